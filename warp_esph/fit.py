@@ -2057,31 +2057,33 @@ def fit(
                 or (stop in ("stalled", "iterations") and evaluated < 2)):
             return stop
         size = lr if lr is not None else LR
-        probe = prob.project(track.start_z + size)
-        if np.array_equal(probe, track.start_z):
-            probe = prob.project(track.start_z - size)
-        t0 = time.perf_counter()
-        try:
-            value = float(prob.value(probe))
-        except FloatingPointError as e:
-            # A probe that blows up moves the observations as far as any run can.
-            history.append({"iteration": len(history), "stage": "descent", "loss": math.inf,
-                            "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None,
-                            "seconds": time.perf_counter() - t0, "note": f"informativeness probe: {_refused_note(e)}",
-                            **({"start": track.index} if track_count > 1 else {})})
-            return stop
-        moved = _tells_apart(track.start_obs, _observed(runs), runs)
-        entry = {"iteration": len(history), "stage": "descent", "loss": value,
-                 "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None,
-                 "seconds": time.perf_counter() - t0,
-                 "note": "informativeness probe (forward only): the observations " + (
-                     "move: the start is told apart" if moved else "do not move beyond round-off")}
-        total = _guarded(runs)
-        entry["guarded"] = total - state.get("guarded", 0)
-        state["guarded"] = total
-        if track_count > 1:
-            entry["start"] = track.index
-        history.append(entry)
+        moved = None
+        for probe in (prob.project(track.start_z + size), prob.project(track.start_z - size)):
+            if np.array_equal(probe, track.start_z):
+                continue  # on a bound that the box holds it to: the other side
+            t0 = time.perf_counter()
+            entry = {"iteration": len(history), "stage": "descent", "loss": math.inf,
+                     "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None}
+            try:
+                entry["loss"] = float(prob.value(probe))
+                moved = _tells_apart(track.start_obs, _observed(runs), runs)
+                entry["note"] = "informativeness probe (forward only): the observations " + (
+                    "move: the start is told apart" if moved else "do not move beyond round-off")
+            except FloatingPointError as e:
+                # A point the materials refuse (a linear lam below -2 mu / 3) or whose run blows
+                # up says nothing of round-off: the other side is asked.
+                entry["note"] = f"informativeness probe: {_refused_note(e) or 'not finite'}"
+            entry["seconds"] = time.perf_counter() - t0
+            total = _guarded(runs)
+            entry["guarded"] = total - state.get("guarded", 0)
+            state["guarded"] = total
+            if track_count > 1:
+                entry["start"] = track.index
+            history.append(entry)
+            if moved is not None:
+                break
+        if moved is None:
+            return stop  # neither side could run: nothing to say beyond the stop
         if moved:
             return stop
         # The lowest loss of round-off is no fitted value: L-BFGS had reported a viscosity of
