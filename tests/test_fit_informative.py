@@ -103,3 +103,20 @@ def test_cli_fit_to_frames_before_the_body_lands_says_it_learned_nothing_and_why
     assert "give target frames after the motion these parameters make" in said[0]
     doc = json.loads((out / "fit.json").read_text())
     assert doc["stopped"] == "uninformative" and doc["converged"] is False
+
+
+def test_adam_does_not_call_a_small_losss_guess_converged_because_its_eps_swallowed_the_step():
+    """A position loss of weight 1e-6 on the landing cube, the yield stress 2 x off: its
+    gradient (2.3e-14) is far below Adam's absolute eps (1e-8), so the first step was below
+    ``xtol`` and the fit said "converged" after one evaluation, at 600 Pa. A probe ``lr`` away
+    shows the loss rising by its slope, not by curvature alone: no minimum, and Adam goes on
+    with eps relative to the gradient, to the truth's neighbourhood."""
+    truth = _landing(wp.float64)
+    dt = 0.5 * truth.stable_dt()
+    target = Rollout(truth, STEPS, dt, frames=FRAMES).forward()
+    loss = we.losses.PositionLoss(target, frames=FRAMES, weight=1e-6)
+    result = fit(_landing(wp.float64, yield_stress=600.0), loss, ["yield_stress"], steps=STEPS, dt=dt,
+                 optimizer="adam", iterations=8, progress=False, diagnostics=False)
+    fitted = result.params["yield_stress"][0]
+    assert abs(np.log(fitted / TRUTH["yield_stress"])) < 0.5 * np.log(2.0), (result.stopped, fitted, result.history)
+    assert result.stopped != "uninformative"

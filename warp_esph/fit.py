@@ -2637,10 +2637,43 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
                 g = g * (clip / norm)
         z_new = project(opt.step(z, g, held))
         if float(np.abs(z_new - z).max()) < xtol:
-            return "converged"
+            if it > 0:
+                return "converged"
+            # A first step moves the largest entry by lr |g| / (|g| + eps), at least lr / 2 >
+            # xtol where |g| >= eps: below xtol, Adam's absolute eps swallowed a gradient of a
+            # small loss (a weight of 1e-6 on a 27-particle landing, 2 x off: "converged" after 1
+            # evaluation). A minimum only where the loss rises a probe away by far more than its
+            # slope says; else Adam goes on with eps relative to this gradient.
+            if _minimum_by_curvature(evaluate, project, z, value, g, lr):
+                return "converged"
+            opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * g0)
+            z_new = project(opt.step(z, g, held))
         z = z_new
         opt.lr *= decay
     return "iterations"
+
+
+#: Adam's eps, relative to the first gradient's largest entry, where its absolute 1e-8 swallowed
+#: the first step (``_run_adam``).
+ADAM_EPS = 1e-8
+
+#: The share of a probe's rise that its first-order (slope) part may take for the start to
+#: count as a minimum (``_minimum_by_curvature``): at a minimum the rise is curvature's alone.
+SLOPE_SHARE = 0.01
+
+
+def _minimum_by_curvature(evaluate, project, z: np.ndarray, value: float, g: np.ndarray, size: float) -> bool:
+    """Whether ``z``, whose gradient ``g`` is too small for Adam's first step, is a minimum: one
+    forward-only evaluation ``size`` away in every optimiser coordinate (into the box) reads a
+    loss above ``value`` whose rise the slope ``g`` explains less than ``SLOPE_SHARE`` of. A
+    start that made its target has a loss at round-off, and a rise of curvature alone; a guess
+    2 x off under a small weight rises by its slope."""
+    probe = project(z + size)
+    if np.array_equal(probe, z):
+        probe = project(z - size)
+    moved, _, finite = evaluate(probe, lambda loss: False)
+    rise = moved - value
+    return bool(finite and rise > 0.0 and abs(float(g.dot(probe - z))) <= SLOPE_SHARE * rise)
 
 
 #: Observations (positions at the target frames, tool and collider forces) that differ from
