@@ -2053,6 +2053,9 @@ def fit(
         gradient at round-off is below ``xtol`` (the dough star's frames before landing,
         float32: "converged" after 1 evaluation), L-BFGS wanders on round-off until the cap."""
         evaluated = sum(1 for h in history if h.get("stage") == "descent" and h.get("start", 0) == track.index)
+        if stop == "uninformative":  # Adam's own probe said so (_run_adam)
+            track.best, track.best_p, track.kept = track.start_loss, prob.from_z(track.start_z), None
+            return stop
         if (track.moved or track.start_obs is None or stop not in ("converged", "tol", "stalled", "iterations")
                 or (stop in ("stalled", "iterations") and evaluated < 2)):
             return stop
@@ -2119,7 +2122,8 @@ def fit(
                                          bounds=prob.z_bounds())
             if optimizer == "adam":
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol,
-                                 bounds=prob.z_bounds())
+                                 bounds=prob.z_bounds(),
+                                 told_apart=None if use_worlds else (lambda: track.moved or track.start_obs is None))
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
@@ -2593,11 +2597,14 @@ class _Stop(Exception):
     """Raised inside an evaluation to end the fit (callback, tol or stalled)."""
 
 
-def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None) -> str:
+def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None,
+              told_apart=None) -> str:
     """Adam in optimiser space, each step projected onto the box. Box bounds (``bounds``:
     ``(lo, hi)`` in optimiser space, or None) as L-BFGS holds them: a value on a bound whose
     gradient points outward (``_held``) is held for the step, its moment dropped, and left out
-    of ``clip``'s norm and of ``gtol``'s test (with every value held, converged)."""
+    of ``clip``'s norm and of ``gtol``'s test (with every value held, converged).
+    ``told_apart()``: whether any evaluation's observations differed from the start's beyond
+    round-off (``_tells_apart``), or None where the caller cannot tell."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -2646,6 +2653,10 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # slope says; else Adam goes on with eps relative to this gradient.
             if _minimum_by_curvature(evaluate, project, z, value, g, lr):
                 return "converged"
+            if told_apart is not None and not told_apart():
+                # The probe observed what the start did, to round-off: nothing to descend on
+                # (the dough star's frames before landing ran Adam to its cap first).
+                return "uninformative"
             opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * g0)
             z_new = project(opt.step(z, g, held))
         z = z_new
