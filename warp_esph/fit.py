@@ -176,10 +176,10 @@ class FitResult:
                       "(raise the iteration cap; with Adam, try L-BFGS)",
         "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
                 "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
-        "uninformative": "learned nothing (not informative): the data do not tell the start from values nearby (moving every fitted value "
-                         "by lr, forward only, changes no observed position or force by more than round-off), so no "
-                         "value is fitted; give target frames after the motion these parameters make (e.g. after the "
-                         "body lands or flows) or observe another experiment",
+        "uninformative": "learned nothing (not informative): the data do not tell the start from values nearby "
+                         "(moving every fitted value by lr, forward only, changes no observed position or force by "
+                         "more than round-off), so no value is fitted; give target frames after the motion these "
+                         "parameters make (e.g. after the body lands or flows) or observe another experiment",
         "callback": "stopped by the callback",
         "interrupted": "interrupted (a KeyboardInterrupt, as Ctrl-C raises): the best of the evaluations so far, "
                        "not a minimum",
@@ -1914,7 +1914,7 @@ def fit(
             self.entry = None  # its last history entry
             self.kept = None  # the runs at its best point (_Run.kept), one per experiment
             # What its first evaluation observed, and whether a later one observed otherwise
-            # (``_tells_apart``): a fit whose observations never move is told by _verdict.
+            # (``_tells_apart``): a fit whose observations never move is judged by ``verdict``.
             self.start_z, self.start_obs, self.start_loss, self.moved = None, None, None, False
 
     def record(track, z, value, gz, seconds, note=None):
