@@ -95,3 +95,22 @@ def test_a_sweep_sample_too_coarse_for_the_fit_says_so_in_its_row():
     row = table.rows[0]
     assert row["status"] == "ok", row
     assert "deformation fit was skipped in" in row.get("warnings", "") and "a larger scale" in row["warnings"], row
+
+
+def test_get_scene_and_load_scene_in_a_fresh_process_print_nothing_of_warps(tmp_path):
+    """get_scene's resolution check starts Warp: a script that had not called init_warp saw
+    Warp's banner, its missing-CUDA note and a line per kernel module the check loaded. Nothing
+    of Warp's is printed now, and the script's own log level is left as it was."""
+    from run_files import run_script
+
+    script = tmp_path / "look.py"
+    script.write_text("import warp as wp\n"
+                      "import warp_esph as we\n"
+                      "from warp_esph.scenes import get_scene, load_scene\n"
+                      "level = wp.config.log_level\n"
+                      "get_scene('star')\n"
+                      "load_scene('lab_squeeze_flow')\n"
+                      "assert wp.config.log_level == level, (wp.config.log_level, level)\n")
+    done = run_script(script, tmp_path, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "" and done.stderr == "", (done.stdout, done.stderr)

@@ -648,7 +648,9 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
     thick) is refused naming the body, ``what`` and the smallest scale above ``scale`` that
     resolves it; it builds the model once on the CPU, in float64, to read its rest
     neighbourhoods (measured: 1.2 s for Fig. 1's 52,309 particles at scale 1, 1.4 s for Fig. 7's
-    73,002).
+    73,002). Where Warp has not started, it starts here as ``init_warp()`` starts it, printing
+    nothing; the check's kernel loads print nothing either, and ``wp.config.log_level`` is left
+    as the caller had it.
     """
     try:
         scene = _load(name_or_path, scale)
@@ -694,14 +696,24 @@ def unresolved_bodies(builder: SceneBuilder) -> list[tuple[str, int, int, int]]:
     ``layers``: the particle layers across its thinnest side (of its bounding box)."""
     import warp as wp  # noqa: PLC0415
 
+    from .startup import init_warp  # noqa: PLC0415
+
+    # get_scene is often a script's first Warp call: started here, Warp printed its banner, the
+    # missing-CUDA note and a line per kernel module loaded, none of it asked for. Warp starts
+    # quietly (init_warp) and the check's own loads are quiet; the caller's level comes back.
+    level = wp.config.log_level
     try:
-        # float64: a scene float32 cannot hold (a mesh tool far out) runs with --dtype float64,
-        # and its refusal is finalize's, with the dtype asked for.
-        model = builder.finalize(device="cpu", dtype=wp.float64)
-    except ValueError:
-        return []  # refused where the scene's model is built, in the caller's words
-    model.rest_neighbors()
-    held = model.rest_guard.numpy() != 0
+        init_warp(log_level=max(level, wp.LOG_WARNING))
+        try:
+            # float64: a scene float32 cannot hold (a mesh tool far out) runs with --dtype float64,
+            # and its refusal is finalize's, with the dtype asked for.
+            model = builder.finalize(device="cpu", dtype=wp.float64)
+        except ValueError:
+            return []  # refused where the scene's model is built, in the caller's words
+        model.rest_neighbors()
+        held = model.rest_guard.numpy() != 0
+    finally:
+        wp.config.log_level = level
     x0 = model.particle_x0.astype(np.float64)
     out = []
     for b in model.bodies:
