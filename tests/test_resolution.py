@@ -46,6 +46,53 @@ def test_a_run_of_a_sheet_one_layer_thick_warns_with_the_share_and_a_block_landi
     assert share < SKIPPED_FIT_SHARE and said == []
 
 
+
+def test_the_warning_names_the_body_too_coarse_for_the_fit_and_the_counts_are_per_body():
+    """A one-layer sheet beside a 4-layer block: the run's counts covered both bodies, so the
+    warning could not say which was too coarse. Solver.skipped_fits() counts each body's
+    skipped fits (summing to the guards' two counts) and the warning names the sheet alone."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.02, 0.1), we.Material.preset("clay"), name="sheet")
+    b.add_box((0.3, 0.1, 0.0), (0.08, 0.08, 0.08), we.Material.preset("clay"), name="block")
+    b.add_ground()
+    model = b.finalize()
+    solver = we.Solver(model)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        we.simulate(model, 2, fps=30.0, progress=False, solver=solver)
+    counts, by_body = solver.guard_counts(), solver.skipped_fits()
+    assert set(by_body) == {"sheet", "block"}
+    assert sum(by_body.values()) == counts["few_neighbors"] + counts["ill_conditioned"]
+    sheet = next(x for x in model.bodies if x.name == "sheet")
+    assert by_body["sheet"] == sheet.count * solver.step_count and by_body["block"] == 0
+    said = _skip_warnings(record)
+    assert len(said) == 1 and "'sheet' 100 %" in said[0] and "'block'" not in said[0], said
+
+
+@pytest.mark.parametrize("fused, fit, deformation", [(False, "linear", "incremental"), (True, "curvature_corrected", "incremental"),
+                                                     (False, "curvature_corrected", "incremental"), (False, "linear", "rest"),
+                                                     (False, "linear", "additive")])
+def test_each_fit_counts_the_skipped_fits_of_its_body(fused, fit, deformation):
+    """Every kernel that skips a fit (the plain and curvature-corrected fits, fused or not, and
+    the comparison models' rest and additive fits) counts it at its body: the bodies' counts
+    sum to the guards' own, and all of them are the one-layer sheet's."""
+    b = we.SceneBuilder(spacing=0.02)
+    clay = we.Material.preset("clay")
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.02, 0.1), clay.replace(deformation=deformation), name="sheet")
+    b.add_box((0.3, 0.1, 0.0), (0.08, 0.08, 0.08), clay, name="block")
+    model = b.finalize()
+    solver = we.Solver(model, fused=fused, fit=fit)
+    state_in, state_out = model.state(), model.state()
+    for _ in range(2):
+        solver.step(state_in, state_out, 0.5 * model.stable_dt())
+        state_in, state_out = state_out, state_in
+    counts, by_body = solver.guard_counts(), solver.skipped_fits()
+    sheet = next(x for x in model.bodies if x.name == "sheet")
+    assert counts["few_neighbors"] + counts["ill_conditioned"] == sheet.count * 2
+    assert by_body == {"sheet": sheet.count * 2, "block": 0}
+    solver.reset_counts()
+    assert solver.skipped_fits() == {"sheet": 0, "block": 0}
+
 def test_the_command_line_warns_and_sums_up_the_share_of_skipped_fits(tmp_path, capsys):
     """The star at scale 0.5 (2 cm spacing) is two layers thick with tips too narrow for the
     fit: its run skipped the tips' fits with exit 0 and a guard-count line only. It still runs
@@ -63,6 +110,9 @@ def test_the_command_line_warns_and_sums_up_the_share_of_skipped_fits(tmp_path, 
     share = (int(counts["few_neighbors"]) + int(counts["ill_conditioned"])) / particle_steps
     assert shown == pytest.approx(100.0 * share, rel=1e-2) and share >= SKIPPED_FIT_SHARE
     assert f"{shown:.3g} % of the run's particle-steps" in warned[0]
+    # Which body: the star's own share, in the warning and the summary.
+    assert "by body, of its own particle-steps: 'star' " in warned[0], warned[0]
+    assert "(by body, of its own: 'star' " in summary[0], summary[0]
     assert np.isfinite(shown)
 
 

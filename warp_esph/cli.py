@@ -479,6 +479,7 @@ def _cmd_run(args) -> int:
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
     from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice, skipped_fits,  # noqa: PLC0415
+                           coarse_bodies, shown_bodies,
                            far_mesh_advice, resolve_timestep, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
@@ -897,6 +898,9 @@ def _cmd_run(args) -> int:
     # The share the run's warning (simulate.SKIPPED_FIT_SHARE) is judged by, said also where it is small.
     particle_steps = model.particle_count * solver.step_count
     skipped = f"; deformation fit skipped in {100.0 * skipped_fits(counts) / max(particle_steps, 1):.3g} % of {particle_steps} particle-steps"
+    coarse = coarse_bodies(model, solver.skipped_fits(), solver.step_count)
+    if coarse:  # which bodies: the share is of them all
+        skipped += f" (by body, of its own: {shown_bodies(coarse)})"
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
                f"frames 0..{writer.last_frame} ({start_frame}..{writer.last_frame} by this run)")

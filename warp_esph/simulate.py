@@ -639,16 +639,36 @@ def skipped_fits(counts: dict) -> int:
     return int(counts["few_neighbors"]) + int(counts["ill_conditioned"])
 
 
-def skipped_fit_warning(skipped: int, particle_steps: int, larger: str = "a smaller spacing") -> str | None:
+def coarse_bodies(model, by_body: dict, steps: int) -> list[tuple[str, float]]:
+    """``(name, share)`` of each body whose fits were skipped in ``SKIPPED_FIT_SHARE`` or more of
+    its own particle-steps (``by_body``: ``Solver.skipped_fits()`` over ``steps`` steps), the
+    largest share first: the bodies a run's warning and ``warp-esph run``'s summary name."""
+    out = []
+    for b in model.bodies:
+        total = b.count * steps
+        if total > 0 and by_body.get(b.name, 0) >= SKIPPED_FIT_SHARE * total:
+            out.append((b.name, by_body[b.name] / total))
+    return sorted(out, key=lambda item: -item[1])
+
+
+def shown_bodies(bodies: list[tuple[str, float]]) -> str:
+    """``coarse_bodies`` as the warning and the summary show them: 'star' 8.4 %, ..."""
+    return ", ".join(f"{name!r} {100.0 * share:.3g} %" for name, share in bodies)
+
+
+def skipped_fit_warning(skipped: int, particle_steps: int, larger: str = "a smaller spacing",
+                        bodies: list[tuple[str, float]] | None = None) -> str | None:
     """The warning of a run whose fits were skipped in ``skipped`` of its ``particle_steps``,
     or None below ``SKIPPED_FIT_SHARE`` (a guard acting on a few particles briefly, as at a
-    landing, says nothing). ``larger``: how the caller makes the bodies finer."""
+    landing, says nothing). ``larger``: how the caller makes the bodies finer; ``bodies``: the
+    bodies that skipped as much of their own (``coarse_bodies``), named."""
     if particle_steps <= 0 or skipped < SKIPPED_FIT_SHARE * particle_steps:
         return None
+    named = f"; by body, of its own particle-steps: {shown_bodies(bodies)}" if bodies else ""
     return (f"the deformation fit was skipped in {100.0 * skipped / particle_steps:.3g} % of the run's particle-steps "
             f"({skipped} of {particle_steps}) by the guards of paper §4 (too few neighbours, or too flat a "
-            f"neighbourhood): there the bodies are too coarse for the fit (parts one or two particle layers across) and did not "
-            f"deform as their material; give them more particle layers ({larger})")
+            f"neighbourhood){named}: there the bodies are too coarse for the fit (parts one or two particle layers "
+            f"across) and did not deform as their material; give them more particle layers ({larger})")
 
 
 def check_step_count(frames: int, substeps: int) -> None:
@@ -1172,6 +1192,7 @@ def simulate(
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
         skipped0 = skipped_fits(solver.guard_counts())
+        by_body0 = solver.skipped_fits()
         far_meshes = _far_mesh_tools(model)
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
@@ -1251,8 +1272,9 @@ def simulate(
         finally:
             if bar is not None:
                 bar.close()
+        by_body = {k: v - by_body0.get(k, 0) for k, v in solver.skipped_fits().items()}
         note = skipped_fit_warning(skipped_fits(solver.guard_counts()) - skipped0, model.particle_count * steps,
-                                   _finer)
+                                   _finer, coarse_bodies(model, by_body, steps))
         if note is not None:
             warnings.warn(note, RuntimeWarning, stacklevel=2)
         return current

@@ -39,6 +39,7 @@ from .replay import kept_through_backward, recording_tape
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
+COUNT_BODY = deformation.COUNT_BODY
 COUNT_INVERTED = deformation.COUNT_INVERTED
 
 
@@ -256,8 +257,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             code = rest_guard[i]
             if code == 1:
                 wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+                wp.atomic_add(counters, COUNT_BODY + body[i], 1)  # its body's count
             elif code == 2:
                 wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
+                wp.atomic_add(counters, COUNT_BODY + body[i], 1)
             else:
                 G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
                 # Taken inverted too (counted): its energy is continued through det = 0
@@ -274,7 +277,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     wp.atomic_add(counters, COUNT_INVERTED, 1)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
-            dF = step_gradient(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition), counters)
+            dF = step_gradient(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition),
+                               COUNT_BODY + body[i], counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.
                 F = F + scalar(0.5) * (wp.transpose(dF) * dF - I)

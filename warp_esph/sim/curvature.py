@@ -61,6 +61,7 @@ CURVATURE_RIDGE = 1.0e-4
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
+COUNT_BODY = deformation.COUNT_BODY
 
 
 @functools.cache
@@ -381,7 +382,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) + corrected_increment(A, Bu, C, D, Eu)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, scale: scalar,
+    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, scale: scalar, slot: int,
                        counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF - I = B~ A~^-1 - I`` times the guards' fade ``scale``
         (``guards.guard_scale``, on the plain moment matrix ``A`` the guard reads); 0, counted,
@@ -389,8 +390,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         inc = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+            wp.atomic_add(counters, slot, 1)  # its body's count (deformation.COUNT_BODY)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
+            wp.atomic_add(counters, slot, 1)
         else:
             inc = scale * corrected_increment(A, Bu, C, D, Eu)
         return inc
@@ -691,7 +694,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         the guards' fade ``scale`` it carries (``guards.guard_scale``, on the plain ``A``)."""
         A, Bu, C, D, Eu, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         scale = gf.guard_scale(A, same, min_neighbors, max_condition)
-        return step_increment(A, Bu, C, D, Eu, code, scale, counters), scale
+        return step_increment(A, Bu, C, D, Eu, code, scale, COUNT_BODY + body[i], counters), scale
 
     @wp.struct
     class FitMoments:

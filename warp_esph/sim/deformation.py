@@ -30,6 +30,10 @@ from .roundoff import compensated_sum
 COUNT_FEW_NEIGHBORS = 0
 COUNT_ILL_CONDITIONED = 1
 COUNT_INVERTED = 2
+#: Body ``b``'s particle-steps whose fit a guard of paper §4 skipped are counted at
+#: ``COUNT_BODY + b`` (after the solver's ``GUARD_NAMES``), beside the guard's own count: the
+#: run's warning names the bodies too coarse for the fit, not only the share of all of them.
+COUNT_BODY = 5
 
 
 @wp.func
@@ -592,25 +596,29 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return B * wp.inverse(A)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, code: int, scale: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
+    def step_increment(A: mat33, Bu: mat33, code: int, scale: scalar, slot: int,
+                       counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF - I`` (eqs. 4-6) times the guards' fade ``scale``
         (``guards.guard_scale``: below 1 where ``cond(A)`` passes ``max_condition`` or the smooth
         neighbour count falls towards ``min_neighbors - 1``); 0, counted, where a guard of
-        paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
+        paper §4 holds (``code``: ``neighbors.GUARD_*``), at its body's ``slot`` too (``COUNT_BODY``)."""
         D = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+            wp.atomic_add(counters, slot, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
+            wp.atomic_add(counters, slot, 1)
         else:
             D = scale * affine_fit(A, Bu)
         return D
 
     @wp.func
-    def step_gradient(A: mat33, Bu: mat33, code: int, scale: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
+    def step_gradient(A: mat33, Bu: mat33, code: int, scale: scalar, slot: int,
+                      counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF = B A^-1`` (eqs. 4-6, ``step_increment``); ``I``, counted, where a
         guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
-        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, scale, counters)
+        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, scale, slot, counters)
 
     @wp.func
     def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
@@ -640,11 +648,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, out_lo
 
     @wp.func
-    def deformation_update(A: mat33, Bu: mat33, code: int, scale: scalar, F: mat33, F_lo: mat33,
+    def deformation_update(A: mat33, Bu: mat33, code: int, scale: scalar, F: mat33, F_lo: mat33, slot: int,
                            counters: wp.array(dtype=wp.int32)):
         """Eq. 8 with the guards of paper §4 (``code``, and their fade ``scale``): ``F <- dF F``
         unless guarded or inverted, of the compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
-        return carried_update(step_increment(A, Bu, code, scale, counters), F, F_lo, counters)
+        return carried_update(step_increment(A, Bu, code, scale, slot, counters), F, F_lo, counters)
 
     # The fit's side of the update kernels (``update_kernels``); ``curvature.funcs`` has the
     # same four for the corrected fit.
@@ -657,7 +665,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fade ``scale`` it carries (``guards.guard_scale``)."""
         A, B, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         scale = gf.guard_scale(A, same, min_neighbors, max_condition)
-        return step_increment(A, B, code, scale, counters), scale
+        return step_increment(A, B, code, scale, COUNT_BODY + body[i], counters), scale
 
     @wp.struct
     class FitMoments:

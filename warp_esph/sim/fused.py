@@ -40,6 +40,9 @@ from . import deformation, forces, isotropic, materials, neighbors, plasticity, 
 from .replay import kept_through_backward
 from .roundoff import compensated_sum
 
+#: Where each body's skipped fits are counted (``deformation.COUNT_BODY``).
+COUNT_BODY = deformation.COUNT_BODY
+
 
 @functools.cache
 def kernels(scalar, weight: str) -> types.SimpleNamespace:
@@ -264,7 +267,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
         code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_new, F_new_lo = df.deformation_update(A, B, code, s, F_prev[i], F_prev_lo[i], counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, s, F_prev[i], F_prev_lo[i], COUNT_BODY + body[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
         Fg_new = F_new

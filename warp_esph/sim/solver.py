@@ -25,6 +25,7 @@ from . import (comparison, curvature, deformation, fields, forces, fused, ghost_
 #: The keys of ``Solver.guard_counts()``: particle-steps each guard of the deformation update skipped
 #: (docs/method.md: the guards of §2, the flow skipped in §4, ``neighbors_cut`` the rows §1's search cut).
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
+assert len(GUARD_NAMES) == deformation.COUNT_BODY  # the bodies' counts follow the guards'
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
 #: non-zero weight (more such neighbours than the row width ``Model.max_neighbors``, or an
 #: elastic stretch beyond ``neighbors.MAX_STRETCH``). Each is a possible jump of the loss.
@@ -85,7 +86,8 @@ class StepScratch:
 
     def __init__(self, model: Model, min_neighbors: int, max_condition: float):
         n, dev = model.particle_count, model.device
-        self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
+        # GUARD_NAMES' counts, then each body's skipped fits (deformation.COUNT_BODY + body).
+        self.counters = wp.zeros(deformation.COUNT_BODY + len(model.bodies), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
         # Each particle's displacement over the step (fused.displacements), read by the fit.
@@ -717,7 +719,14 @@ class Solver:
 
     def guard_counts(self) -> dict[str, int]:
         """How many particle-steps each guard skipped since construction or ``reset_counts``."""
-        return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy())))
+        return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy()[:len(GUARD_NAMES)])))
+
+    def skipped_fits(self) -> dict[str, int]:
+        """``{body name: particle-steps}`` whose deformation fit a guard of paper §4 skipped
+        (``few_neighbors`` or ``ill_conditioned``) since construction or ``reset_counts``, per
+        body (``Model.body_names``); they sum to those two counts."""
+        counts = self.scratch.counters.numpy()[deformation.COUNT_BODY:]
+        return {name: int(c) for name, c in zip(self.model.body_names, counts)}
 
     def reaction_forces(self, state: State) -> dict:
         """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
