@@ -202,3 +202,17 @@ def test_the_resolution_check_builds_only_the_rest_guards_and_keeps_finalizes_ov
     apart = we.SceneBuilder(spacing=0.02)
     apart.add_box((0.0, 0.1, 0.0), (0.1, 0.02, 0.1), we.Material.preset("clay"), name="sheet")
     assert [b[0] for b in scenes.unresolved_bodies(apart)] == ["sheet"]
+
+
+def test_each_worlds_bodies_count_their_own_skipped_fits():
+    """With worlds each world's copy of a body is a body of its own ('w1/sheet'): its skipped
+    fits are counted there, not at world 0's copy."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.02, 0.1), we.Material.preset("clay"), name="sheet")
+    b.add_box((0.3, 0.1, 0.0), (0.08, 0.08, 0.08), we.Material.preset("clay"), name="block")
+    model = b.finalize(worlds=2)
+    solver = we.Solver(model)
+    state_in, state_out = model.state(), model.state()
+    solver.step(state_in, state_out, 0.5 * model.stable_dt())
+    sheet = next(x for x in model.bodies if x.name == "w1/sheet").count
+    assert solver.skipped_fits() == {"w0/sheet": sheet, "w0/block": 0, "w1/sheet": sheet, "w1/block": 0}
