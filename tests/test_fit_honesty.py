@@ -267,6 +267,34 @@ def test_gauss_newton_columns_read_the_correspondences_of_the_point_they_differe
     assert columns >= 8 and any(not reset and z[1] > 0.0 for z, reset, _ in calls)
 
 
+def test_gauss_newton_given_the_runs_it_needs_to_converge_says_converged():
+    """``iterations`` counts Gauss-Newton's runs after the first, Jacobian runs included, and
+    a fit converges where the step from a fresh Jacobian is below ``xtol`` (no trial run
+    needed). Before each Jacobian the fit had stopped at the cap where the Jacobian would be
+    the last run the cap allows, so a fit given exactly the runs it needed ended at the cap,
+    unconverged, one run unused (the 64-particle press of ``tests/test_force_fit.py`` fitted
+    by ``mu`` alone: 8 runs allowed, 9 needed, its last 4 points within 2e-5 of each other;
+    9 allowed ended the same, after 8). A nonzero-residual curve ``c e^z - y`` (a modulus
+    read off a noisy force curve) from ``z = log 8`` (optimum near ``log 5``)."""
+    c, y = np.array([1.0, 2.0, 0.5]), np.array([5.0, 9.7, 2.6])
+
+    def run(cap):
+        calls = []
+
+        def residuals(z, reset=False):
+            calls.append((float(z[0]), reset))
+            return c * math.exp(z[0]) - y, True
+
+        stop = _run_gauss_newton(residuals, lambda z: z, np.array([math.log(8.0)]), cap, 1.0, GN_STEP, 1e-6)
+        return stop, len(calls) - 1, [z for z, reset in calls if reset][-1]  # runs after the first; the last point
+
+    stop, needed, last = run(50)
+    # The least-squares optimum of c m = y in m = e^z (the last run is a Jacobian column's).
+    assert stop == "converged" and math.exp(last) == pytest.approx(c @ y / (c @ c), rel=1e-4)
+    assert run(needed) == ("converged", needed, pytest.approx(last, abs=0.0))
+    assert run(needed - 1)[:2] == ("iterations", needed - 1)
+
+
 def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_lies_inside(landing):
     """Gauss-Newton's Jacobian column of a value on its upper bound stepped out of the box,
     was projected back onto the bound and read no change: a zero column, so the value never

@@ -3013,7 +3013,9 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
                 kept = held & near & _held(z, J.T @ r, bounds)
             else:
                 kept = np.zeros(n, dtype=bool)
-            if evals + n - int(kept.sum()) >= iterations:
+            # A Jacobian that the cap has room for runs even where no trial would: its step
+            # below xtol ends the fit converged without one (stop_or_refresh counts so too).
+            if evals + n - int(kept.sum()) > iterations:
                 return "iterations"
             J_new = np.empty((len(r), n))
             for j in range(n):
