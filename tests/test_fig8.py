@@ -20,9 +20,12 @@ Measured at 6^3 (shape error at 1 s / peak; at 8^3 in brackets):
   the rest-configuration cube's F inverts and it blows up; the additive one stays bounded.
 """
 
+import re
+
 import numpy as np
 import pytest
 import warp as wp
+from run_files import refused_run
 
 import warp_esph as we
 from warp_esph import scenes
@@ -117,7 +120,7 @@ def test_scene_has_the_six_cubes():
     assert len(model.force_fields) == 6 and all(f.t_off == FIG8_RELEASE for f in model.force_fields)
 
 
-def test_scene_refuses_a_scale_too_coarse_for_its_very_plastic_cubes():
+def test_scene_refuses_a_scale_too_coarse_for_its_very_plastic_cubes(tmp_path, capsys):
     """At scale 0.3 (3 particles across) the compression squeezed the very plastic cubes into
     a line of particles: their fits lost their neighbours, and the particles flew apart at the
     speed the squeeze gave them (the incremental cube's highest particle 1.85 m up at 1 s, 0.37 m
@@ -135,6 +138,9 @@ def test_scene_refuses_a_scale_too_coarse_for_its_very_plastic_cubes():
             assert f"at {across} particles across" in str(e.value)
         with pytest.raises(ValueError, match=refused.format(scale, "plastic_incremental, plastic_additive")):
             scenes.get_scene("fig8_comparison", scale)
+    # The command names its option, as its other refusals of a scale do.
+    err = refused_run(capsys, "fig8_comparison", tmp_path / "f.usdc", "--scale", "0.3")
+    assert re.search(r"--scale = 0\.3 is not allowed for fig8_comparison's very plastic cubes .*; give --scale >= 0\.6", err), err
     others = tuple(n for n in FIG8_BODIES if n not in ("plastic_incremental", "plastic_additive"))
     assert [b.name for b in SCENES["fig8_comparison"](scale=0.3, only=others).builder._bodies] == list(others)
     assert [b.name for b in SCENES["fig8_comparison"](scale=SCALE).builder._bodies] == list(FIG8_BODIES)

@@ -38,7 +38,17 @@ def _scale(scale) -> float:
 
 class ScaleRefused(ValueError):
     """A scene's refusal of a scale at which it builds but cannot show what it is for (too
-    few particles for its bodies' deformation); ``load_scaled_scene`` passes it on as given."""
+    few particles for its bodies' deformation): ``scale`` is not allowed ``why``; give one
+    ``allowed``. ``load_scaled_scene`` passes it on naming the option or setting that gave
+    the scale (``message(what)``), where other refusals at a scale other than 1 it blames on
+    the spacing."""
+
+    def __init__(self, scale: float, why: str, allowed: str):
+        self.scale, self.why, self.allowed = scale, why, allowed
+        super().__init__(self.message("scale"))
+
+    def message(self, what: str) -> str:
+        return f"{what} = {self.scale:g} is not allowed {self.why}; give {what} {self.allowed}"
 
 
 def _doc(fn) -> str:
@@ -387,10 +397,10 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
     thin = [body for body in b._bodies if body.name in ("plastic_incremental", "plastic_additive")]
     if thin and scale < FIG8_PLASTIC_MIN_SCALE:
         names = ", ".join(body.name for body in thin)
-        raise ScaleRefused(f"scale = {scale:g} is not allowed for fig8_comparison's very plastic cubes ({names}): at "
-                           f"{round(thin[0].count ** (1 / 3))} particles across, the compression squeezes them into a "
-                           "column too thin for the deformation fit (paper §4), and they come apart; give scale >= "
-                           f"{FIG8_PLASTIC_MIN_SCALE:g}, or leave them out (scenes.fig8_comparison(only=...))")
+        raise ScaleRefused(scale, f"for fig8_comparison's very plastic cubes ({names}): at {round(thin[0].count ** (1 / 3))} "
+                           "particles across, the compression squeezes them into a column too thin for the deformation fit "
+                           "(paper §4), and they come apart",
+                           f">= {FIG8_PLASTIC_MIN_SCALE:g}, or leave them out (scenes.fig8_comparison(only=...))")
     frames = round(FIG8_DURATION * FIGURE_FPS)
     # Its speed reaches 1.8e5 m/s 0.36 s in at scale 1 (finite): the monitor must not stop the figure.
     diverges = tuple(n for n in ("plastic_rest",) if n in {body.name for body in b._bodies})
@@ -692,8 +702,8 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
     """
     try:
         scene = _load(name_or_path, scale)
-    except ScaleRefused:
-        raise  # names the scale and what the scene allows already
+    except ScaleRefused as e:
+        raise ValueError(e.message(what)) from None
     except ValueError as e:
         try:
             scale_ok = _scale(scale) != 1.0
