@@ -873,22 +873,56 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     return model, H, x0, top, bottom, free, x0[top, 1].mean() - x0[bottom, 1].mean()
 
 
+def column_buckling_length(E: float, width: float) -> float:
+    """The height at which a square column ``width`` across of Young's modulus ``E`` (density
+    ``RHO``) buckles under its own weight, its base held upright and its top free (Greenhill's
+    heavy column: ``(7.837 E I / q)^(1/3)``, ``q = rho g A`` its weight per length, I / A =
+    width^2 / 12). A frictionless floor holds the base upright as well as a clamp while the
+    whole base stays pressed on it: a lean carries no sideways force at the base. Taller
+    columns lean under their weight even without yielding (docs/physics.md, "The near-yield
+    column's late collapse")."""
+    return (7.837 * E * width * width / (12.0 * RHO * G)) ** (1.0 / 3.0)
+
+
+def _tilt(state, x0, free, bottom, L0: float, dx: float, tilt: float):
+    """Lean the column: each of its particles moved along x by ``tilt dx (h / L0)^2``, h its
+    height over the bottom layer's centres (the shape of the heavy column's first buckling
+    mode near its base, and a lean the top shows as ``tilt`` spacings)."""
+    if tilt:
+        x = state.x.numpy()
+        h = (x0[free, 1] - x0[bottom, 1].mean()) / L0
+        x[free, 0] += tilt * dx * h * h
+        state.x.assign(x)
+
+
+def _lean(x: np.ndarray, top, bottom) -> float:
+    """The top layer's sideways offset from the bottom layer's centre (m)."""
+    d = x[top][:, [0, 2]].mean(axis=0) - x[bottom][:, [0, 2]].mean(axis=0)
+    return float(np.hypot(d[0], d[1]))
+
+
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
                   deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground",
-                  fit_weight: str = "poly6") -> dict:
+                  fit_weight: str = "poly6", tilt: float = 0.0) -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall, on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
     (``pressure_stiffness``; None: the material's default SPH pressure, which stiffens it), relaxed dynamically. The
     shortening between the centres of the top and bottom layers, against
     ``rho g L (L - dx) / (2 E)`` (the continuum ``rho g L^2 / (2 E)`` integrated between
-    those centres)."""
+    those centres). ``tilt``: an initial lean of the top, in spacings (``_tilt``); ``lean``
+    is the top's at the end, in spacings, and ``length_over_buckling`` the column's height
+    over ``column_buckling_length``: past 1 the lean grows (docs/physics.md, "The near-yield
+    column's late collapse")."""
     wp, we = _we()
     dx = 0.01
     n = resolution
+    from warp_esph import checks
+
+    tilt = checks.number("tilt", tilt)
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, elastic_force=elastic_force,
                                  deformation=deformation)
-    model, H, x0, top, bottom, _, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight)
+    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = _solver(model, fit=fit, hourglass=hourglass)
@@ -904,11 +938,13 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
             hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean())))
 
     a, c = model.state(), model.state()
+    _tilt(a, x0, free, bottom, L0, dx, tilt)
     a, c = _swap_run(model, solver, a, c, dt, steps, after)
     h = np.array(hist)
     rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
     return {"case": "column", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
-            "particles": model.particle_count,
+            "particles": model.particle_count, "tilt": tilt, "lean": _lean(a.x.numpy().astype(np.float64), top, bottom) / dx,
+            "length_over_buckling": H / column_buckling_length(E, n * dx),
             "shortening": h[-1, 1], "theory": theory, "ratio": h[-1, 1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a),
             **_row_fields(solver)}
@@ -926,7 +962,8 @@ def near_yield_column_theory(yield_depth: float) -> float:
 def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float = 0.8, E: float = 1.5e5,
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 36.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
-                      dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground") -> dict:
+                      dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground",
+                      tilt: float = 0.0) -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
     ``aspect`` times as tall, frictionless ground collider, relaxed dynamically) of a
     yield-stress material whose uniaxial yield stress is the weight above the depth
@@ -953,9 +990,18 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     weight's stress at the base and yields the column far above ``yield_depth``, which the
     static analysis does not describe. The run lasts ``periods`` axial periods: the yielded
     base creeps to rest over seconds (6 across: 0.44 x the theory at 12 periods, at rest at
-    0.50 x by 36). ``dtype``: ``"float32"`` or ``"float64"``."""
+    0.50 x by 36). ``dtype``: ``"float32"`` or ``"float64"``. ``tilt``: an initial lean of the
+    top, in spacings (``column_settlement``'s); ``lean`` is the top's at the end, in spacings,
+    ``lean_efolds_per_period`` its growth over the last tenth (log per axial period), and
+    ``length_over_buckling`` the column's height over ``column_buckling_length``: the column
+    of E 1.5e5 is past it from 8 across (dx 0.01 m: its width grows with the resolution),
+    and on its yielded base it leans and topples well before (docs/physics.md, "The
+    near-yield column's late collapse")."""
     wp, we = _we()
+    from warp_esph import checks
+
     _lab_dtype(wp, dtype)  # refused before the elastic reference run
+    tilt = checks.number("tilt", tilt)
     dx = 0.01
     n, nh = resolution, resolution * aspect
     H = nh * dx
@@ -987,11 +1033,12 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
             np.maximum(peak, _deviatoric_norm(state.F.numpy(), mu) / Y, out=peak)
         if k > 0.9 * steps:
             x = state.x.numpy().astype(np.float64)
-            hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean())))
+            hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean()), _lean(x, top, bottom)))
 
     if ramp_time > 0.0:
         model.gravity = (0.0, -G * dt / ramp_time, 0.0)
     a, c = model.state(), model.state()
+    _tilt(a, x0, free, bottom, L0, dx, tilt)
     a, c = _swap_run(model, solver, a, c, dt, steps, after)
     h = np.array(hist)
     rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
@@ -1007,7 +1054,12 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,
-            "yield_depth": yield_depth, "shortening": h[-1, 1], "theory": elastic + plastic,
+            "yield_depth": yield_depth, "tilt": tilt, "lean": h[-1, 2] / dx,
+            # A lean of round-off size has no rate worth fitting (its log is noise).
+            "lean_efolds_per_period": float(np.polyfit(h[:, 0], np.log(np.maximum(h[:, 2], 1e-12)), 1)[0])
+            * 2.0 * math.pi / omega,
+            "length_over_buckling": H / column_buckling_length(E, n * dx),
+            "shortening": h[-1, 1], "theory": elastic + plastic,
             "theory_elastic": elastic, "theory_plastic": plastic, "ratio": h[-1, 1] / (elastic + plastic),
             "elastic_measured": ref["shortening"], "elastic_residual_rate_pct_per_s": ref["residual_rate_pct_per_s"],
             "plastic_measured": plastic_measured,

@@ -251,6 +251,24 @@ def test_column_settles_by_rho_g_l2_over_2e():
     assert r["ratio"] == pytest.approx(1.0, abs=0.05), r["ratio"]
 
 
+def test_column_past_its_self_weight_buckling_length_leans_and_one_short_of_it_straightens():
+    """Greenhill's heavy column (``validation.column_buckling_length``): a square column of
+    height L leans under its own weight once L passes ``(7.837 E I / (rho g A))^(1/3)``. The
+    4-across column (L 0.2 m) given a lean of a tenth of a spacing at its top, pressure off,
+    on the frictionless ground, 3 axial periods: at E 1.5e5 (L 0.79 x the buckling length)
+    the lean falls, at E 1e4 (1.96 x) it grows (measured: 0.67 / 27 x the initial lean; over
+    6 / 12 periods at E 1.5e5 0.50 / 0.27 x, at E 2e4, 1.55 x the length, 14 / 162 x). The
+    elastic column runs on the rest model, which measures against the straight rest
+    positions, so the lean is a disturbance, not a built-in crookedness. The near-yield
+    column (E 1.5e5, dx 0.01 m) is at this length at 8 across and past it at 10 and 12
+    (docs/physics.md, "The near-yield column's late collapse")."""
+    stiff = validation.column_settlement(resolution=4, E=1.5e5, tilt=0.1, periods=3.0)
+    soft = validation.column_settlement(resolution=4, E=1.0e4, tilt=0.1, periods=3.0)
+    assert stiff["length_over_buckling"] < 1.0 < soft["length_over_buckling"], (stiff, soft)
+    assert stiff["lean"] < 0.1, stiff
+    assert soft["lean"] > 0.3, soft
+
+
 BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64"}
 
 
