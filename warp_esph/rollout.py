@@ -197,17 +197,39 @@ def state_nbytes(state: State) -> int:
 #: of its some sixty arrays and gradients, 64.2-64.9 kB at 8 and 512 particles (measured with
 #: ``tracemalloc``). Host memory, on a GPU too; so are the overheads below.
 STATE_OVERHEAD = 64 * 1024
-#: The tape's record of one taped step besides its states, and the step's own records of its
-#: launches (``sim/replay.py``, kept with its ``state_out``; their argument structs are built
-#: at the second run). Per launch, not per particle: a kept record is 5.2-5.5 kB whatever the
-#: particles (8 to 1000) and precision, and a step keeps one per kernel it launches, taped and
-#: adjoint: 11 on the ground (a taped step 132.5-136.4 kB with its state, 74.2-74.8 kB before
-#: the records were kept), 17 with the ground's images and a compression field (183.2-187.6 kB;
-#: 96.3 kB before), measured with ``tracemalloc`` after two forwards and backwards. The
-#: latter's 123.6 kB besides the state's 64 kB and a 16 % margin (11 % of the step's total).
-#: Not covered: a moving tool's own objects a step (a box tool besides those: 234.6 kB a step,
-#: 148.1 kB before the records, so the estimate left out 52 kB a step of it before too).
-TAPE_STEP_OVERHEAD = 144 * 1024
+#: The tape's record of one taped step of a plain scene besides its state, and the step's own
+#: records of its launches (``sim/replay.py``, kept with its ``state_out``; their argument
+#: structs are built at the second run). Per launch, not per particle: a kept record is 5.2-5.5
+#: kB whatever the particles (8 to 1000) and precision, and a step keeps one per kernel it
+#: launches, taped and adjoint. On the ground a taped step holds 132.6-133.4 kB with its state
+#: (36 and 256 particles, float32 and float64; ``tracemalloc`` after two forwards and
+#: backwards, the difference of 16 and 4 steps; 74.2-74.8 kB before the records were kept):
+#: 69.4 kB besides the state's 64, taken with a 15 % margin. What a scene adds to a step is
+#: ``STEP_FEATURE_OVERHEADS``' (``tape_step_overhead``); static colliders, worlds and the
+#: materials' pressure and viscosity add nothing measurable.
+TAPE_STEP_OVERHEAD = 80 * 1024
+#: What a taped step holds besides ``TAPE_STEP_OVERHEAD`` for each feature of the scene (or of
+#: the solver's choice of fit), measured as it (the step's total less the same scene's without
+#: the feature; 36 and 256 particles, float32 and float64) and taken with a 10-20 % margin:
+#:
+#: - ``tools``: a tool set, whatever its tools (moving planes, boxes, spheres, capsules, meshes,
+#:   keyframed, scripted, held still) and pinned sets: its samples' arrays each taped
+#:   ``state_out`` keeps (``ToolSet.integrate``), the states' pose and reaction arrays and the
+#:   pose launch's records: 49.9-50.7 kB a step for one to three tools, pins alone, or two
+#:   worlds (a box tool plus the ground's images and a field: 234.8 kB a step, which the single
+#:   208 kB of before left out).
+#: - ``images``: the ground's images, their constitutive and hardening updates and reaction:
+#:   41.9 kB.
+#: - ``field``: each force field: 3.5 kB on the ground, 7.9-8.2 kB with the images (its
+#:   reaction out of the floor besides).
+#: - ``ghost_floor``: the ghosts' stencils, fit and hand-over (its pinned floor counts as
+#:   ``tools``): 43.6 kB.
+#: - ``comparison``: a comparison deformation model (``"rest"``: 10.6 kB, ``"additive"``: 6.6).
+#: - ``curved``: the curvature-corrected fit: 15.4 kB (with the hourglass control 19.7; the
+#:   rest-configuration model that ``fit="auto"`` runs for an elastic scene, both, 14.2).
+#: - ``hourglass``: the hourglass control: 5.0 kB.
+STEP_FEATURE_OVERHEADS = {"tools": 56 * 1024, "images": 48 * 1024, "field": 10 * 1024, "ghost_floor": 48 * 1024,
+                          "comparison": 12 * 1024, "curved": 18 * 1024, "hourglass": 6 * 1024}
 #: An untaped ``State``'s Python objects (the start's copy, a forward's two states): 42.7-43.2 kB.
 UNTAPED_STATE_OVERHEAD = 48 * 1024
 #: A checkpoint's Python objects: 16.8-17.0 kB at 8 and 512 particles.
@@ -221,6 +243,34 @@ ROLLOUT_OVERHEAD = 2 * 1024 * 1024
 #: loss's target, its copy of the positions and their gradient, and the gradient handed back
 #: (``fit.memory_estimate``; a ``PositionLoss``'s, measured).
 FRAME_BUFFERS = 5
+
+
+def tape_step_overhead(model: Model, fit: str | None = None, hourglass: float | None = None) -> int:
+    """The host bytes a taped step of ``model`` holds besides its state's (``STATE_OVERHEAD``):
+    ``TAPE_STEP_OVERHEAD`` and ``STEP_FEATURE_OVERHEADS``' terms for what the scene has, and for
+    the fit and hourglass control a ``Solver(model, fit=fit, hourglass=hourglass)`` runs now
+    (``Model.solver_choice``). A single figure for every scene left out a tool set's objects:
+    a box tool with the ground's images and a field held 234.8 kB a step against 208 taken,
+    and a ghost floor 227.1, while it over-counted a plain scene's 133 by half. A fit whose
+    parameters turn a flowing scene elastic under ``fit="auto"`` runs the curvature-corrected
+    fit from then on, which this choice at its start does not count (about 14 kB a step)."""
+    terms = STEP_FEATURE_OVERHEADS
+    total = TAPE_STEP_OVERHEAD
+    if model.tools is not None:
+        total += terms["tools"]
+    if model.image_plane is not None:
+        total += terms["images"]
+    total += len(model.force_fields) * terms["field"]
+    if model.ghost_floor is not None:
+        total += terms["ghost_floor"]
+    if model.uses_comparison_models:
+        total += terms["comparison"]
+    chosen, strength = model.solver_choice(fit, hourglass)
+    if chosen == "curvature_corrected":
+        total += terms["curved"]
+    if strength > 0.0:
+        total += terms["hourglass"]
+    return total
 
 
 class RolloutMemoryError(ValueError):
@@ -258,9 +308,11 @@ class _RolloutMemory:
     it has (``overrun``): on a GPU its arrays against the GPU's memory and the taped states'
     own overhead against the host's, on the CPU both against the host's. ``taped=False``: a
     rollout whose runs record no tape (``Rollout(taped=False)``): two untaped states hold it,
-    whatever the segment."""
+    whatever the segment. ``solver``: the one the rollout runs (None: the model's choice), whose
+    fit and hourglass control weigh in a taped step's host memory (``tape_step_overhead``)."""
 
-    def __init__(self, model: Model, steps: int, sizes=None, taped: bool = True, frames: int = 1):
+    def __init__(self, model: Model, steps: int, sizes=None, taped: bool = True, frames: int = 1,
+                 solver: Solver | None = None):
         from .builder import _device_memory  # noqa: PLC0415
         from .fit import _state_bytes  # noqa: PLC0415 (fit imports this module)
 
@@ -269,6 +321,9 @@ class _RolloutMemory:
         self.cpu = model.device.is_cpu
         self.host = None if self.cpu or self.have is None else _device_memory(wp.get_device("cpu"))
         self.sizes = _state_bytes(model) if sizes is None else sizes
+        #: A taped step's host bytes besides its state's: its tape's and launches' records,
+        #: and what the scene's features (tools, images, ...) add to them.
+        self.tape_step = tape_step_overhead(model, *(solver._asked if solver is not None else (None, None)))
         self.rows = len(getattr(model.tools, "row_names", ())) + model.world_count * (
             len(model.planes) + len(model.spheres) + len(model.boxes))
 
@@ -289,7 +344,7 @@ class _RolloutMemory:
                   + steps * self.rows * 3 * np.dtype(self.model.types.np_dtype).itemsize)  # the per-step force rows
         # The start's copy and a checkpointed run's two untaped states, the tape's records and the
         # checkpoints' objects had been left out: 0.3-0.9 x what 8 particles held (measured).
-        own = ((taped + 1 if taped else 0) * STATE_OVERHEAD + taped * TAPE_STEP_OVERHEAD
+        own = ((taped + 1 if taped else 0) * STATE_OVERHEAD + taped * self.tape_step
                + untaped * UNTAPED_STATE_OVERHEAD + checkpoints * CHECKPOINT_OVERHEAD + ROLLOUT_OVERHEAD)
         return (arrays + own, 0) if self.cpu else (arrays, own)
 
@@ -307,8 +362,8 @@ class _RolloutMemory:
         """The segment that needs the least memory. ``sqrt(steps)`` was taken for it, which is
         the least where a taped state weighs what a checkpoint does; a taped state (its
         arrays, its own 64 kB and the tape's records of its step) outweighs a checkpoint several
-        times, and the least lies below: for 8 particles and 1e5 steps 103 steps need 48.4 MiB,
-        316 need 79.4 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
+        times, and the least lies below: for 8 particles and 1e5 steps 122 steps need 41.5 MiB,
+        316 need 59.7 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
         least'). On a GPU, of the memory it
         overruns most (the device's or the host's). Untaped: ``steps``, no checkpoints (its
         forward keeps none)."""
@@ -607,12 +662,12 @@ class Rollout:
                              "rollout keeps no checkpoints (nothing goes back through it); give checkpoint_every = None")
         #: Whether this rollout's runs may record a tape (``taped=False``: loss values alone).
         self.taped = taped
+        if solver is not None and (not isinstance(solver, Solver) or solver.model is not model):
+            raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         _check_rollout_memory(model, self.steps, self.segment if self.checkpointing else None, checkpoint_every,
-                              _RolloutMemory(model, self.steps, taped=taped, frames=len(self.frames)))
+                              _RolloutMemory(model, self.steps, taped=taped, frames=len(self.frames), solver=solver))
         if solver is None:
             solver = _differentiable_solver(model)
-        elif not isinstance(solver, Solver) or solver.model is not model:
-            raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         # The untaped forward of a checkpointed rollout must compute exactly what the
         # taped re-run of ``backward`` records: the fused kernels only where a tape runs them too.
         if getattr(solver, "fused", False) and not solver.fast_under_tape():
