@@ -926,6 +926,41 @@ def test_a_taped_steps_host_memory_is_bounded_by_its_overhead(kind):
     assert 0.8 * taken < per_step <= taken, (per_step / 1024, taken / 1024)
 
 
+def test_a_checkpointed_runs_garbage_is_counted():
+    """A checkpointed rollout's steps leave cyclic garbage (0.5-1.6 kB a step) that a full
+    collection frees only in its own time: 1000 steps of 8 particles in segments of 30 held
+    7.54 MB of Python objects against the 7.43 taken, 5000 in segments of 50 1.20 x. The
+    Python objects' peak over two forwards and backwards (``tracemalloc``) is within the
+    estimate's."""
+    import gc
+    import tracemalloc
+
+    from warp_esph.rollout import _differentiable_solver, _RolloutMemory
+
+    model = _eight_particles()
+    solver = _differentiable_solver(model)
+    dt = 0.5 * model.stable_dt()
+    steps, segment = 1000, 30
+    loss = PositionLoss({steps: model.particle_x0 + 0.001})
+    r = Rollout(model, 20, dt, solver=solver, checkpoint_every=5)  # the kernels loaded, the shared slots filled
+    r.forward()
+    r.backward(PositionLoss({20: model.particle_x0}))
+    del r
+    gc.collect()
+    tracemalloc.start()
+    try:
+        r = Rollout(model, steps, dt, solver=solver, checkpoint_every=segment)
+        for _ in range(2):
+            r.forward()
+            r.backward(loss)
+        held = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    memory = _RolloutMemory(model, steps)
+    memory.cpu = False  # the arrays and the Python objects apart, as on a GPU
+    assert held <= memory.need(segment)[1], (held, memory.need(segment)[1])
+
+
 def test_the_kept_launch_records_go_with_the_fits_states():
     """Each taped step's launch records live as long as its ``state_out`` (``Launches.records``,
     weakly keyed): records kept past their states would grow with every fit a process runs.
