@@ -345,8 +345,10 @@ def fig7_plastic_grid(scale: float = 1.0, only=None) -> Scene:
 def _fig8_materials(elastic_force: str | None = PAPER) -> list[tuple[str, Material]]:
     """Fig. 8: (row, material) of the elastic (top) and very plastic (bottom) rows."""
     # SPH viscosity damps the ringing after the release, so the final shape is read at rest.
-    # The comparison models (rest, additive) have only the paper's force: the figure's
-    # incremental cubes use it too, so the three columns differ only in the deformation model.
+    # The additive model has only the paper's force: the figure's other cubes use it too, so
+    # the three columns differ only in the deformation model. Its pair forces are not central,
+    # so the free cubes' spin drifts after the release (the elastic incremental one +7.9 % by
+    # 1 s; the variational force keeps it: docs/physics.md, "Angular momentum of free bodies").
     base = dict(density=1000.0, viscosity=20.0, elastic_force=elastic_force)
     E, nu = 5.0e4, 0.3
     return [
