@@ -657,6 +657,57 @@ def test_gauss_newton_fits_the_press_modulus_in_four_steps_and_the_held_lam_is_w
     assert biased.loss > 1e3 * fitted[5000.0].loss
 
 
+def test_a_held_lam_that_biases_the_press_modulus_fails_the_chi_square_against_a_stated_noise():
+    """``mu`` of the press fitted with ``lam`` held at 8000 (the truth's 5000) ends about 5 %
+    low, 8 standard errors, on residuals 1.6 times the stated noise (30 windows, noise-free
+    curve, the noise stated at 1 % of its RMS force): the old rule (RMS above 3 x the noise)
+    said nothing. The chi-square of the residuals on their 29 degrees of freedom is past its
+    99.9 % quantile, and the warning says so. With the true ``lam``, curves with that noise
+    drawn (a fixed set of draws) pass the same test."""
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    ends, truth = _press_curve(60, 2)
+    sigma = 0.01 * float(np.sqrt(np.mean(truth**2)))
+
+    def diagnostics(target, lam):
+        loss = ReactionForceLoss(target, "plate", ends, window=2, components="y", noise=sigma)
+        result = fit(_elastic_press(8000.0, lam), loss, ["mu"], steps=60, dt=2.0e-4, optimizer="gauss-newton",
+                     iterations=12, progress=False)
+        assert result.converged, result.stopped
+        return result.params["mu"][0], result.diagnostics
+
+    mu, d = diagnostics(truth, 8000.0)
+    assert 5000.0 - mu > 5.0 * d.standard_error[0]  # the bias the errors do not cover
+    said = [w for w in d.warnings if w.startswith("the residuals of the force curve of 'plate' (RMS ")]
+    assert len(said) == 1 and "29 degrees of freedom" in said[0], d.warnings
+    assert "understate the uncertainty" in said[0], said
+    (test,) = d.misfit_tests
+    assert test["dof"] == 29 and not test["passed"] and test["chi_square"] > test["limit"], test
+    for seed in range(4):
+        drawn = truth + sigma * np.random.default_rng(seed).standard_normal(truth.shape)
+        mu, d = diagnostics(drawn, 5000.0)
+        assert abs(mu - 5000.0) < 3.0 * d.standard_error[0], (seed, mu, d.standard_error)
+        (test,) = d.misfit_tests
+        assert test["passed"] and test["dof"] == 29, (seed, test)
+        assert not [w for w in d.warnings if "degrees of freedom" in w], (seed, d.warnings)
+
+
+def test_the_chi_square_limit_is_passed_by_a_correct_model_once_in_a_thousand():
+    """``chi_square_quantile`` (Wilson-Hilferty; there is no scipy) at ``MISFIT_QUANTILE``,
+    against draws of the chi-square distribution itself, and the exact quantile of 2 degrees of
+    freedom, ``-2 ln(1 - q)``: the false-alarm rate of the residual test is what it states."""
+    from warp_esph.diagnostics import MISFIT_QUANTILE, chi_square_quantile  # noqa: PLC0415
+
+    rng = np.random.default_rng(0)
+    for dof in (1, 2, 5, 29, 300):
+        limit = chi_square_quantile(dof)
+        rate = float(np.mean(rng.chisquare(dof, 400_000) > limit))
+        # High where off (fewer alarms), and never far: 1 dof is its worst.
+        assert 0.0006 < rate < (1.0 - MISFIT_QUANTILE) + 0.0002, (dof, limit, rate)
+    exact = -2.0 * math.log(1.0 - MISFIT_QUANTILE)
+    assert exact <= chi_square_quantile(2) < 1.03 * exact
+
+
 def test_a_force_curve_the_model_cannot_follow_is_not_reported_determined():
     """The press's curve reversed in time, which no modulus gives, was fitted to mu = 2841 Pa,
     'determined' to 0.7 % and nothing said: the curve's residuals (newtons) never entered the

@@ -71,3 +71,24 @@ def test_a_noise_with_no_more_residuals_than_fitted_values_is_said_not_estimable
     assert len(said) == 1, d.warnings
     stated = diagnose(_cube(), loss, PARAMS + ["mu"], steps=STEPS, dt=dt, noise=1e-4)
     assert not any("cannot be estimated" in w for w in stated.warnings), stated.warnings
+
+
+def test_positions_whose_stated_noise_is_understated_fail_the_chi_square_and_the_true_noise_passes(landing):
+    """Positions drawn with 1 mm noise, diagnosed with the noise stated at half that: their
+    RMS is twice the stated noise, a chi-square of about 4 per degree of freedom, which no
+    correct model and noise give, and nothing was said (the rule was an RMS above 3 x the
+    noise). Stated at its true 1 mm, a fixed set of draws passes the test."""
+    dt, truth = landing
+
+    def target(seed):
+        return PositionLoss(truth + 1e-3 * np.random.default_rng(seed).standard_normal(truth.shape), frames=FRAMES)
+
+    low = diagnose(_cube(), target(0), PARAMS, steps=STEPS, dt=dt, frames=FRAMES, noise=0.5e-3)
+    said = [w for w in low.warnings if w.startswith("the residuals of the experiment (RMS ")]
+    assert len(said) == 1 and "46 degrees of freedom" in said[0] and "the noise understated" in said[0], low.warnings
+    assert 1.5 < low.residual_rms[0] / 0.5e-3 < 3.0  # below the old rule's 3 x
+    for seed in range(3):
+        told = diagnose(_cube(), target(seed), PARAMS, steps=STEPS, dt=dt, frames=FRAMES, noise=1e-3)
+        (test,) = told.misfit_tests
+        assert test["passed"] and test["dof"] == 46 and test["noise"] == 1e-3, (seed, test)
+        assert not any("degrees of freedom" in w for w in told.warnings), (seed, told.warnings)
