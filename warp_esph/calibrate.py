@@ -80,10 +80,12 @@ def add_calibration_arguments(parser):
     g.add_argument("--patience", type=int, default=20, metavar="N",
                    help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
-                   help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
+                   help="observation noise in m for the diagnostics (default: estimated from the residuals, at least 1%% "
+                        "of the spacing); stated, the residuals are tested against it (a chi-square past its 99.9%% limit "
+                        "is a warning)")
     g.add_argument("--force-noise", type=float, metavar="N",
-                   help="a force log's measurement noise in N for the diagnostics (default: the curve's residual RMS, "
-                        "at least 1%% of its RMS force)")
+                   help="a force log's measurement noise in N for the diagnostics (default: estimated from the curve's "
+                        "residuals, at least 1%% of its RMS force); stated, the curve's residuals are tested against it")
     g.add_argument("--force-components", metavar="AXES",
                    help="the force log's columns fitted: distinct axes among x, y, z (default xyz; e.g. z where the log "
                         "measures the loading axis alone and writes 0 for the others, which otherwise count as "
