@@ -780,6 +780,11 @@ def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refus
         capsys.readouterr().err
     doc = json.loads((out / "fit.json").read_text())
     assert doc["diagnostics"]["noise"] == [0.25] and doc["experiments"][0]["force_noise"] == 0.25
+    # The stated noise is what the curve's residuals are tested against, in the table too.
+    (test,) = doc["diagnostics"]["misfit_tests"]
+    assert test["noise"] == 0.25 and test["unit"] == "N" and test["dof"] == doc["diagnostics"]["observations"] - 1, test
+    said = capsys.readouterr()
+    assert "against the stated noise 0.25 N, the force curve of 'plane0': chi-square" in said.out + said.err, said
 
 
 def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it_is(tmp_path):
