@@ -696,6 +696,33 @@ def test_a_held_lam_that_biases_the_press_modulus_fails_the_chi_square_against_a
         assert not [w for w in d.warnings if "degrees of freedom" in w], (seed, d.warnings)
 
 
+def test_each_group_of_residuals_with_a_stated_noise_is_tested_on_its_own_count_in_a_joint_loss():
+    """Positions and a force curve of the press in one loss, each with its noise stated: each
+    group is tested on its own, on ``n`` degrees of freedom (the fitted value's pull is shared
+    between them, so ``n - P`` would warn a correct model too often), and the curve's noise
+    understated 10 times is named by the curve's test alone."""
+    from warp_esph.diagnostics import diagnose  # noqa: PLC0415
+
+    ends = [10, 20, 30, 40, 50, 60]
+    ro = Rollout(_elastic_press(5000.0), 60, 2.0e-4, frames=ends)
+    x = np.asarray(ro.forward(taped=False), dtype=np.float64)
+    probe = ReactionForceLoss(np.zeros((len(ends), 1)), "plate", ends, window=10, components="y")
+    truth = probe.curve(ro.observations())[:, 0]
+    sigma = 0.03 * float(np.sqrt(np.mean(truth**2)))
+    measured = truth + sigma * np.random.default_rng(0).standard_normal(truth.shape)
+    for stated, passes in ((sigma, True), (sigma / 10.0, False)):
+        loss = PositionLoss(x, frames=ends) + ReactionForceLoss(measured, "plate", ends, window=10, components="y",
+                                                                noise=stated)
+        d = diagnose(_elastic_press(5000.0), loss, ["mu"], steps=60, dt=2.0e-4, noise=1e-4, progress=False)
+        by_name = {t["residuals"]: t for t in d.misfit_tests}
+        assert set(by_name) == {"the experiment", "the force curve of 'plate'"}, d.misfit_tests
+        assert by_name["the experiment"]["dof"] == x.size and by_name["the experiment"]["passed"]
+        assert by_name["the force curve of 'plate'"]["dof"] == len(ends)
+        assert by_name["the force curve of 'plate'"]["passed"] is passes, by_name
+        said = [w for w in d.warnings if "degrees of freedom" in w]
+        assert len(said) == (0 if passes else 1) and all("force curve of 'plate'" in w for w in said), d.warnings
+
+
 def test_the_chi_square_limit_is_passed_by_a_correct_model_once_in_a_thousand():
     """``chi_square_quantile`` (Wilson-Hilferty; there is no scipy) at ``MISFIT_QUANTILE``,
     against draws of the chi-square distribution itself, and the exact quantile of 2 degrees of
