@@ -3,6 +3,7 @@ both precisions, and is never reported as converged; a fit started at the values
 an informative target still is."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -124,3 +125,48 @@ def test_adam_does_not_call_a_small_losss_guess_converged_because_its_eps_swallo
     fitted = result.params["yield_stress"][0]
     assert abs(np.log(fitted / TRUTH["yield_stress"])) < 0.5 * np.log(2.0), (result.stopped, fitted, result.history)
     assert result.stopped != "uninformative"
+
+
+def _swallowed(probe_at, probe_result):
+    """A loss of one value whose gradient at the start (2e-16) is far below Adam's absolute
+    eps (1e-8), so its first step is below ``xtol``; ``probe_result`` is what an evaluation at
+    ``probe_at`` returns. Returns the evaluate function and its list of evaluated points."""
+    points = []
+
+    def evaluate(z, wants=None):
+        points.append(float(z[0]))
+        if abs(z[0] - probe_at) < 1e-12:
+            return probe_result
+        return 1e-16 * (z[0] - 1.0) ** 2, np.array([2e-16 * (z[0] - 1.0)]), True
+
+    return evaluate, points
+
+
+def test_adam_does_not_call_a_start_uninformative_from_a_probe_that_did_not_run():
+    """Adam's probe ``lr`` away from a start whose step eps swallowed is refused by the
+    materials or blows up (not finite): it observed nothing, so nothing moved, and Adam had
+    ended the fit "uninformative" from it, the start's values reported as all the data allow.
+    A probe that did not run says nothing of round-off (as ``verdict``'s probes, which then ask
+    the other side): Adam goes on with eps relative to the gradient, to the minimum at 1."""
+    from warp_esph.fit import _run_adam
+
+    evaluate, points = _swallowed(0.1, (math.inf, np.full(1, np.nan), False))
+    stop = _run_adam(evaluate, lambda z: z, np.zeros(1), 40, 0.1, None, None, lambda text: None, xtol=1e-6,
+                     told_apart=lambda: False)
+    assert stop != "uninformative", points
+    assert abs(points[-1] - 1.0) < 0.2, (stop, points)
+
+
+def test_adam_ends_uninformative_at_its_probe_whatever_the_curvature_reads():
+    """Adam's probe observed what the start did to round-off, but its loss read a rise of
+    curvature alone (round-off can): Adam said "converged", and ``verdict`` then ran the very
+    same probe again before saying "uninformative", an evaluation that could tell nothing new.
+    The probe's observations decide first: "uninformative" after the start and the probe."""
+    from warp_esph.fit import _run_adam
+
+    # At 0.1 the loss rises by 1e-6 with a slope of 2e-16 x 0.1: a rise of curvature alone.
+    evaluate, points = _swallowed(0.1, (1e-6, None, True))
+    stop = _run_adam(evaluate, lambda z: z, np.ones(1) * 0.0, 40, 0.1, None, None, lambda text: None, xtol=1e-6,
+                     told_apart=lambda: False)
+    assert stop == "uninformative", (stop, points)
+    assert points == [0.0, 0.1]

@@ -2651,12 +2651,16 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # small loss (a weight of 1e-6 on a 27-particle landing, 2 x off: "converged" after 1
             # evaluation). A minimum only where the loss rises a probe away by far more than its
             # slope says; else Adam goes on with eps relative to this gradient.
-            if _minimum_by_curvature(evaluate, project, z, value, g, lr):
-                return "converged"
-            if told_apart is not None and not told_apart():
+            minimum = _minimum_by_curvature(evaluate, project, z, value, g, lr)
+            if minimum is not None and told_apart is not None and not told_apart():
                 # The probe observed what the start did, to round-off: nothing to descend on
-                # (the dough star's frames before landing ran Adam to its cap first).
+                # (the dough star's frames before landing ran Adam to its cap first). Asked
+                # before the curvature, which round-off can fake: "converged" then had verdict
+                # run this very probe again. A probe that did not run (refused, blown up)
+                # observed nothing and says nothing of round-off: Adam goes on.
                 return "uninformative"
+            if minimum:
+                return "converged"
             opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * g0)
             z_new = project(opt.step(z, g, held))
         z = z_new
@@ -2673,18 +2677,21 @@ ADAM_EPS = 1e-8
 SLOPE_SHARE = 0.01
 
 
-def _minimum_by_curvature(evaluate, project, z: np.ndarray, value: float, g: np.ndarray, size: float) -> bool:
+def _minimum_by_curvature(evaluate, project, z: np.ndarray, value: float, g: np.ndarray, size: float) -> bool | None:
     """Whether ``z``, whose gradient ``g`` is too small for Adam's first step, is a minimum: one
     forward-only evaluation ``size`` away in every optimiser coordinate (into the box) reads a
     loss above ``value`` whose rise the slope ``g`` explains less than ``SLOPE_SHARE`` of. A
     start that made its target has a loss at round-off, and a rise of curvature alone; a guess
-    2 x off under a small weight rises by its slope."""
+    2 x off under a small weight rises by its slope. None where the probe did not run to a
+    finite loss (refused by the materials, blown up): it tells nothing."""
     probe = project(z + size)
     if np.array_equal(probe, z):
         probe = project(z - size)
     moved, _, finite = evaluate(probe, lambda loss: False)
+    if not finite:
+        return None
     rise = moved - value
-    return bool(finite and rise > 0.0 and abs(float(g.dot(probe - z))) <= SLOPE_SHARE * rise)
+    return bool(rise > 0.0 and abs(float(g.dot(probe - z))) <= SLOPE_SHARE * rise)
 
 
 #: Observations (positions at the target frames, tool and collider forces) that differ from
