@@ -2696,42 +2696,69 @@ def _minimum_by_curvature(evaluate, project, z: np.ndarray, value: float, g: np.
 
 #: Observations (positions at the target frames, tool and collider forces) that differ from
 #: the start's by no more than this many units of round-off of their precision, relative to
-#: their largest magnitude, tell nothing apart: rounding alone makes runs differ at a few
-#: units (the dough star's frames before it lands, float32: 0.5 unit); a parameter the data
-#: read moves them by per cents.
+#: their size, tell nothing apart: rounding alone makes runs differ at a few units (the dough
+#: star's frames before it lands, float32: 0.5 unit); a parameter the data read moves them by
+#: per cents. The size of positions is the bodies' extent about their centroid, not their
+#: distance from the origin (``PLACE_UNITS``).
 ROUNDOFF_UNITS = 1000.0
 
+#: Positions' round-off that comes of their coordinates' own magnitude, in units of it: a
+#: coordinate is rounded to its own precision (a 10 m coordinate in float32 to 9.5e-7 m, 0.8
+#: unit), so two runs differing by round-off differ there by a few units wherever the bodies
+#: sit. Read against the largest magnitude with ``ROUNDOFF_UNITS``, the same swelling cube fitted
+#: 2000 Pa at the origin and was called uninformative 10 m from it (its 10 % move of mu, 2.3e-5 m,
+#: is 19.5 units of 10 m; tests/test_fit_informative.py).
+PLACE_UNITS = 8.0
 
-def _observed(runs) -> list[list[np.ndarray]]:
-    """What each experiment's last forward let its loss read, as float64 host arrays: the
-    positions of every observed frame, then its force curves where it has any."""
+
+def _observed(runs) -> list[list[tuple[bool, np.ndarray]]]:
+    """What each experiment's last forward let its loss read, as float64 host arrays, each
+    with whether it holds positions: the positions of every observed frame, then its force
+    curves where it has any."""
     from .rollout import COLLIDER_FORCES, FORCES  # noqa: PLC0415
 
     out = []
     for r in runs:
         obs = r.rollout.observations(numpy=True)
         frames = [np.asarray(obs[f], dtype=np.float64) for f in r.rollout.frames]
-        kinds = [np.stack(frames)] if frames else []
-        kinds += [np.asarray(obs[k], dtype=np.float64) for k in (FORCES, COLLIDER_FORCES) if k in obs]
+        kinds = [(True, np.stack(frames))] if frames else []
+        kinds += [(False, np.asarray(obs[k], dtype=np.float64)) for k in (FORCES, COLLIDER_FORCES) if k in obs]
         out.append(kinds)
     return out
 
 
+def _extent(x: np.ndarray, finite: np.ndarray) -> float:
+    """The largest distance along an axis of a finite position from its frame's centroid
+    (``x``: frames x particles x 3, ``finite`` its mask)."""
+    rows = finite.all(axis=-1, keepdims=True)
+    count = rows.sum(axis=1, keepdims=True)
+    centre = np.where(rows, x, 0.0).sum(axis=1, keepdims=True) / np.maximum(count, 1)
+    away = np.abs(x - centre)[finite & rows.repeat(x.shape[-1], axis=-1)]
+    return float(away.max()) if away.size else 0.0
+
+
 def _tells_apart(a, b, runs) -> bool:
     """Whether two runs' observations (``_observed``) differ anywhere by more than
-    ``ROUNDOFF_UNITS`` units of round-off of the experiment's precision, each kind (positions,
-    forces) against its own largest finite magnitude. The rule reads how the observations move
-    with the values (the loss's sensitivity), never the loss's value: a start that made its
-    target has a loss at round-off whose observations still move a probe away; data taken
-    before any motion the parameters make have observations that do not."""
+    ``ROUNDOFF_UNITS`` units of round-off of the experiment's precision, forces against their
+    largest finite magnitude, positions against the bodies' extent about their centroid (and
+    ``PLACE_UNITS`` units of their largest magnitude, the coordinates' own rounding). The rule
+    reads how the observations move with the values (the loss's sensitivity), never the loss's
+    value: a start that made its target has a loss at round-off whose observations still move
+    a probe away; data taken before any motion the parameters make have observations that do
+    not."""
     for r, ka, kb in zip(runs, a, b):
         eps = float(np.finfo(np.float32 if r.model.scalar is wp.float32 else np.float64).eps)
-        for xa, xb in zip(ka, kb):
+        for (positions, xa), (_, xb) in zip(ka, kb):
             both = np.isfinite(xa) & np.isfinite(xb)
             if not both.any():
                 continue
-            scale = max(float(np.abs(xa[both]).max()), float(np.abs(xb[both]).max()))
-            if float(np.abs(xa[both] - xb[both]).max()) > ROUNDOFF_UNITS * eps * scale:
+            magnitude = max(float(np.abs(xa[both]).max()), float(np.abs(xb[both]).max()))
+            if positions:
+                size = max(_extent(xa, both), _extent(xb, both))
+                bound = ROUNDOFF_UNITS * eps * size + PLACE_UNITS * eps * magnitude
+            else:
+                bound = ROUNDOFF_UNITS * eps * magnitude
+            if float(np.abs(xa[both] - xb[both]).max()) > bound:
                 return True
     return False
 
