@@ -213,3 +213,19 @@ def test_where_the_body_sits_does_not_make_informative_data_uninformative():
     still = fit(falling(wp.float32, factor=2.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
                 optimizer="lbfgs", iterations=6, progress=False, diagnostics=False)
     assert still.stopped == "uninformative", [(h["loss"], h.get("note")) for h in still.history]
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
+def test_a_probe_already_evaluated_is_not_run_again(optimizer):
+    """Started at the values that made its float32 target in free fall: the loss is exactly 0
+    and so is its gradient, and the fit's zero-gradient check evaluates a point ``lr`` away,
+    whose observations are compared with the start's as every evaluation's are. ``verdict``
+    then ran that very point again as its informativeness probe (the same values, the same
+    loss): a forward run that could tell nothing new. Each point is evaluated once."""
+    dt = 0.5 * _falling(wp.float64).stable_dt()
+    target = Rollout(_falling(wp.float32), STEPS, dt, frames=FRAMES).forward()
+    result = fit(_falling(wp.float32), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, optimizer=optimizer,
+                 iterations=6, progress=False, diagnostics=False)
+    points = [tuple(v for k in sorted(h["params"]) for v in h["params"][k]) for h in result.history]
+    assert len(points) == len(set(points)), [(h["loss"], h["params"], h.get("note")) for h in result.history]
+    assert result.stopped == "uninformative", result.stopped

@@ -1916,6 +1916,9 @@ def fit(
             # What its first evaluation observed, and whether a later one observed otherwise
             # (``_tells_apart``): a fit whose observations never move is judged by ``verdict``.
             self.start_z, self.start_obs, self.start_loss, self.moved = None, None, None, False
+            # The points whose finite observations were compared with the start's: verdict
+            # does not run one of them again as its probe (the zero-gradient check's point).
+            self.compared = set()
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
@@ -1948,6 +1951,7 @@ def fit(
                 track.start_z, track.start_obs, track.start_loss = np.array(z, dtype=np.float64), seen, value
             else:
                 track.moved = _tells_apart(track.start_obs, seen, runs)
+            track.compared.add(tuple(np.asarray(z, dtype=np.float64).tolist()))
         if len(history) == 1 and not use_worlds:
             # At the start, where the guess's curve has the sign a pressing tool gives: a fit
             # to a curve of the opposite sign drives the material soft, where the curve fades
@@ -2048,7 +2052,8 @@ def fit(
         """``stop``, or ``"uninformative"`` where the data do not tell the start from values
         nearby: no evaluation's observations differed from the start's beyond round-off, and
         neither do those of one forward-only probe ``lr`` (``LR`` for Gauss-Newton) away in
-        every optimiser coordinate (into the box). Asked of a fit that says it converged, and
+        every optimiser coordinate (into the box; not run again where the fit evaluated that
+        point already). Asked of a fit that says it converged, and
         of one that stalled or hit the cap after more than one evaluation: Adam's step from a
         gradient at round-off is below ``xtol`` (the dough star's frames before landing,
         float32: "converged" after 1 evaluation), L-BFGS wanders on round-off until the cap."""
@@ -2064,6 +2069,11 @@ def fit(
         for probe in (prob.project(track.start_z + size), prob.project(track.start_z - size)):
             if np.array_equal(probe, track.start_z):
                 continue  # on a bound that the box holds it to: the other side
+            if tuple(probe.tolist()) in track.compared:
+                # Already evaluated (the zero-gradient check's point lr away), its observations
+                # compared as it ran and found not to move: running it again tells nothing new.
+                moved = False
+                break
             t0 = time.perf_counter()
             entry = {"iteration": len(history), "stage": "descent", "loss": math.inf,
                      "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None}
