@@ -836,3 +836,21 @@ def test_a_second_derivative_is_refused_saying_why_and_create_graph_keeps_the_fi
         graphed.sum().backward()
     assert str(e.value) == SECOND_DERIVATIVES
     assert "not supported" in SECOND_DERIVATIVES
+
+
+def test_a_hessian_of_a_loss_linear_in_the_positions_is_refused_not_zero():
+    """A loss linear in the positions (their sum) hands the bridge's backward an upstream
+    gradient of constants, so no argument of the backward required a gradient and its result
+    carried no graph: ``torch.autograd.functional.hessian`` read that as independent of mu and
+    returned 0, where the module says a Hessian is refused (positions depend on mu nonlinearly).
+    The gradient taken with ``create_graph=True`` is still the plain one."""
+    from warp_esph.torch import SECOND_DERIVATIVES
+
+    rollout = Rollout(_cube(), 3, 1.0e-3, frames=[3])
+    mu = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    plain = torch.autograd.grad(rollout_positions(rollout, {"mu": mu}).sum(), mu)[0]
+    (graphed,) = torch.autograd.grad(rollout_positions(rollout, {"mu": mu}).sum(), mu, create_graph=True)
+    assert torch.equal(graphed.detach(), plain)
+    with pytest.raises(RuntimeError) as e:
+        torch.autograd.functional.hessian(lambda m: rollout_positions(rollout, {"mu": m}).sum(), mu)
+    assert str(e.value) == SECOND_DERIVATIVES

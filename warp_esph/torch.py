@@ -100,7 +100,10 @@ def _function():
         def wrapper(ctx, *args):
             with torch.no_grad():
                 outputs = backward(ctx, *args)
-            graphed = [a for a in args if isinstance(a, torch.Tensor) and a.requires_grad]
+            # The forward's inputs too: a loss linear in the positions hands on an upstream
+            # gradient of constants, and with those alone the result carried no graph, so
+            # torch.autograd.functional.hessian read it as independent of mu and returned 0.
+            graphed = [a for a in (*args, *ctx.graph_inputs) if isinstance(a, torch.Tensor) and a.requires_grad]
             if not (torch.is_grad_enabled() and graphed):
                 return outputs
             return tuple(None if o is None else _SecondDerivative.apply(o, *graphed) for o in outputs)
@@ -148,6 +151,9 @@ def _function():
             ctx.settings = rollout._forward_inputs[3]
             ctx.scripted = rollout._scripted_poses  # a Scripted motion's poses: a Python callable is no array to put back
             ctx.tensor_dtype, ctx.device = dtype, device = out_as
+            # Held (not saved: an in-place change before the backward is no error of this one) for
+            # a gradient taken with create_graph=True, which depends on them (_first_derivatives_only).
+            ctx.graph_inputs = tuple(t for t in (x0, v0, *values) if isinstance(t, torch.Tensor) and t.requires_grad)
             return torch.from_numpy(out).to(dtype=dtype, device=device)
 
         @staticmethod
