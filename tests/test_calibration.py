@@ -111,7 +111,7 @@ def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, 
     least = min(stable(mu) for mu in mus)
     substeps = math.ceil((1.0 / 30.0) / least)
     assert substeps == 24 and (1.0 / 30.0) / stable(2000.0) < 17
-    assert f"dt = {1.0 / 30.0 / substeps:.4g} s ({2 * substeps} steps)" in err
+    assert f"dt = {1.0 / 30.0 / substeps:.4g} s: each evaluation runs {2 * substeps} steps" in err
     assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
     # The help says so: it said 'else the stable step', read as the guess's.
     from warp_esph.cli import main
