@@ -2436,8 +2436,14 @@ def test_an_interrupted_fit_names_the_signal_that_stopped_it(tmp_path, capsys, d
     monkeypatch.setattr(fit_module._Problem, "value_and_grad", signalled)
     out = tmp_path / "fit"
     capsys.readouterr()
-    got = main(["fit", str(guess), "--target", str(run), "--params", "yield_stress", "--iterations", "10",
-                "--optimizer", "adam", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(out)])
+    # A process started in the background (nohup, '&') inherits SIGINT ignored, and main leaves an
+    # ignored signal ignored, so the test gives this process Python's own Ctrl-C handler first.
+    before = signal.signal(signum, signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL)
+    try:
+        got = main(["fit", str(guess), "--target", str(run), "--params", "yield_stress", "--iterations", "10",
+                    "--optimizer", "adam", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(out)])
+    finally:
+        signal.signal(signum, before)
     err = capsys.readouterr().err
     assert got == status, err
     doc = json.loads((out / "fit.json").read_text())
