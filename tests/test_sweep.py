@@ -23,9 +23,7 @@ from warp_esph.material import Material
 from warp_esph.scenes import Scene
 from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
 from run_files import run_script
-
-FRAMES = 10
-YIELD = "yield_stress=10:10000:log:3"
+from sweep_cases import FRAMES, YIELD, _box, _extra_raising_what_pickle_cannot_rebuild, _extra_that_exits, _rows
 
 SCENE_TOML = """
 [scene]
@@ -48,18 +46,6 @@ size = [0.1, 0.1, 0.1]
 type = "ground"
 friction = 0.5
 """
-
-
-def _box() -> Scene:
-    b = SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.06, 0.0), (0.1, 0.1, 0.1), Material.preset("toothpaste"), name="paste")
-    b.add_ground(friction=0.5)
-    return Scene("paste_box", "a small box of toothpaste", b, frames=FRAMES, fps=30.0)
-
-
-def _rows(table: SweepTable):
-    """The rows without ``wall_s``, the one column that depends on the machine's load."""
-    return [{k: v for k, v in r.items() if k != "wall_s"} for r in table.rows]
 
 
 @pytest.fixture(scope="module")
@@ -152,17 +138,6 @@ def test_two_workers_give_the_same_table(serial, tmp_path):
     # And the CSV round-trips every value exactly.
     back = SweepTable.read_csv(parallel.to_csv(tmp_path / "t.csv"))
     assert _rows(back) == _rows(parallel) and back.params == ["yield_stress"]
-
-
-def test_ray_gives_the_same_table(serial):
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False)
-    try:
-        remote = sweep(_box(), [YIELD], frames=FRAMES, ray="auto")
-    finally:
-        ray.shutdown()
-    assert remote.columns == serial.columns
-    assert _rows(remote) == _rows(serial)
 
 
 def test_a_ray_address_where_nothing_answers_is_refused_at_once(capsys, tmp_path):
@@ -1055,33 +1030,6 @@ def test_the_tables_are_written_into_a_folder_named_in_bytes_that_are_not_utf8(t
     assert back.column(q).to_pylist() == [0.0, 0.5, 1.0]
 
 
-def test_ray_a_sample_that_crashes_its_worker_is_a_failed_row_at_once(tmp_path):
-    """Ray retried a task whose worker died (3 more times by default): a sample that crashes
-    its worker every time (a fault in native code, out of memory) ran four times, each dying
-    the same way, before its row said it failed. It now runs once, and its row says what a
-    process pool's says of an item that kills its worker alone: it was Ray's words ('Ray:
-    WorkerCrashedError: ...', the worker's pid, colour codes), another reason on every run."""
-    ray = pytest.importorskip("ray")
-    from warp_esph.sweep import parallel_map
-
-    # os.system's shell notes the attempt, then kills its parent: the worker. Two items, so
-    # that the pool has two worker processes (one item runs in this one); the one beside the
-    # crash, if in flight, runs again alone, and the crash dies alone: the rows do not depend
-    # on which was in flight.
-    pool = parallel_map(os.system, [(f"echo x >> {tmp_path / 'pool'}; kill -9 $PPID",), ("true",)], workers=2,
-                        on_error=lambda i, why: why)
-    assert pool[1] == 0 and "worker process died running this item alone" in pool[0], pool
-    note = tmp_path / "attempts"
-    ray.init(num_cpus=1, include_dashboard=False)
-    try:
-        rows = parallel_map(os.system, [(f"echo x >> {note}; kill -9 $PPID",), ("true",)], ray="auto",
-                            on_error=lambda i, why: why)
-    finally:
-        ray.shutdown()
-    assert note.read_text() == "x\n"
-    assert rows == pool
-
-
 def test_a_signal_after_the_last_sample_keeps_the_whole_tables_and_says_so(scene_file, tmp_path, monkeypatch, capsys):
     """Every sample ran, then a SIGTERM (or Ctrl-C) landed while the final tables were
     written, or under the plot: the line said 'terminated' alone, a table could be cut short
@@ -1210,23 +1158,6 @@ def test_the_solver_column_shows_where_auto_switches_models(tmp_path):
     old = SweepTable([c for c in table.columns if c != "solver"],
                      [{k: v for k, v in r.items() if k != "solver"} for r in table.rows], table.params)
     assert "solver" not in SweepTable.read_csv(old.to_csv(tmp_path / "old.csv")).columns
-
-
-def test_a_sample_s_error_is_the_same_reason_on_ray_as_here():
-    """A sample whose ``extra`` raised was a row whose reason was Ray's text on Ray (colour
-    codes, the worker's pid and ip, a traceback: 'Ray: RayTaskError(TypeError): ...'), and
-    ``TypeError: ...`` in this process or a worker process: the same sweep, another table on
-    every run. ``int`` is an ``extra`` every Ray worker can import, and it raises a TypeError."""
-    ray = pytest.importorskip("ray")
-    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=int)
-    assert [r["status"] for r in here.rows] == ["failed", "failed"]
-    assert here.rows[0]["reason"].startswith("TypeError: int() takes"), here.rows[0]["reason"]
-    ray.init(num_cpus=1, include_dashboard=False)
-    try:
-        remote = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=int)
-    finally:
-        ray.shutdown()
-    assert _rows(remote) == _rows(here)
 
 
 def test_the_parquet_table_has_no_value_where_the_csv_has_none(tmp_path):
@@ -1567,18 +1498,6 @@ def test_a_cuda_sweep_s_ray_tasks_see_a_gpu_where_ray_hides_them_from_tasks_that
     assert seen == ["0"], asked
 
 
-def test_a_cuda_sweep_on_a_ray_cluster_without_a_gpu_is_refused_before_any_sample():
-    """Ray holds a task that asks for a GPU where the cluster has none, without an end."""
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=1, num_gpus=0, include_dashboard=False, log_to_driver=False)
-    try:
-        with pytest.raises(ValueError, match=r"^device = 'cuda' is not allowed with ray = 'auto': the Ray cluster has no "
-                                             r"GPU \(0\), and each CUDA sample asks it for one"):
-            sweep(_box(), ["mu=1e4"], frames=1, device="cuda", ray="auto")
-    finally:
-        ray.shutdown()
-
-
 def test_a_resumed_sweep_stopped_again_keeps_the_rows_it_resumed_from(scene_file, tmp_path, monkeypatch, capsys):
     """The tables a resumed sweep writes on a stop (and as samples finish) hold the rows it
     kept as well as those it ran, so that a second stop loses neither; a third run finishes."""
@@ -1706,22 +1625,6 @@ def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_a
 
 
 # ------------------------------------------------------------------ a sample's own exception, wherever it runs
-class _TwoPartError(Exception):
-    """An exception pickle cannot rebuild (``cls(*args)`` with its one message): a worker
-    process sends it, and the parent fails to read it back."""
-
-    def __init__(self, what, why):
-        super().__init__(f"{what}: {why}")
-
-
-def _extra_raising_what_pickle_cannot_rebuild(model, state, seed):
-    raise _TwoPartError("extra", "no column today")
-
-
-def _extra_that_exits(model, state, seed):
-    sys.exit(4)
-
-
 def _extra_of_a_function(model, state, seed):
     return {"top": float(state.x.numpy()[:, 1].max()), "how": _box}
 
@@ -1735,25 +1638,6 @@ def test_a_sample_s_exception_the_parent_cannot_rebuild_is_its_reason_with_worke
     assert [r["reason"] for r in here.rows] == ["_TwoPartError: extra: no column today"] * 2
     there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_raising_what_pickle_cannot_rebuild)
     assert _rows(there) == _rows(here)
-
-
-def test_a_sample_s_exception_the_driver_cannot_rebuild_is_its_reason_on_ray_too(monkeypatch):
-    """On Ray the same exception was a row of Ray's words ('Ray: UnserializableException: ...',
-    the worker's pid and ip, colour codes): another reason on every run. It says the exception."""
-    ray = pytest.importorskip("ray")
-    # The Ray workers, started by the instance below, import this module for the extra function.
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (os.path.dirname(__file__), os.environ.get("PYTHONPATH")) if p))
-    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_raising_what_pickle_cannot_rebuild)
-    exits = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_that_exits)
-    ray.init(num_cpus=2, include_dashboard=False)
-    try:
-        remote = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=_extra_raising_what_pickle_cannot_rebuild)
-        # A sample that calls sys.exit was a row of Ray's 'WorkerCrashedError: The worker died unexpectedly'.
-        remote_exits = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=_extra_that_exits)
-    finally:
-        ray.shutdown()
-    assert _rows(remote) == _rows(here)
-    assert _rows(remote_exits) == _rows(exits)
 
 
 def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on():
