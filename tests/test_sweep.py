@@ -1,6 +1,7 @@
-"""Parameter sweeps (warp_esph.sweep, ``warp-esph sweep``): sampling, the table, workers, Ray.
+"""Parameter sweeps (warp_esph.sweep, ``warp-esph sweep``): sampling, the table, workers, Ray
+(the tests that need a running Ray instance are in ``test_sweep_ray.py``).
 
-The scene is a 125-particle box of toothpaste (2 cm spacing) dropped 1 cm onto the
+The scene (``sweep_cases.py``) is a 125-particle box of toothpaste (2 cm spacing) dropped 1 cm onto the
 ground, run for 10 frames at 30 fps (a third of a second): enough for a low yield stress
 to slump visibly and a high one to stay a box.
 """
