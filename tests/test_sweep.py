@@ -1244,29 +1244,40 @@ def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
     assert top[0] < top[1] < top[2] < top[3]
 
 
-def _dies_first(i):
-    """A parallel_map item: item 0 kills its worker after 0.5 s; item 3 takes 3 s."""
+def _dies_first(i, notes):
+    """A parallel_map item: item 0 kills its worker once item 3 has started beside it; item 3
+    waits for item 0's note that it dies, then 1 s more, so that it is in flight when the
+    pool breaks (a sleep of 3 s had made that likely, and cost 3 s again in its run alone).
+    Run again, each finds its notes: item 0 dies, item 3 returns, at once."""
     import time
 
+    started, died = os.path.join(notes, "3 started"), os.path.join(notes, "0 died")
     if i == 0:
-        time.sleep(0.5)
+        for _ in range(6000):  # at most 60 s: then it dies anyway, with the same rows
+            if os.path.exists(started):
+                break
+            time.sleep(0.01)
+        open(died, "w").close()
         os._exit(7)
-    if i == 3:
-        time.sleep(3.0)
+    if i == 3 and not os.path.exists(started):
+        open(started, "w").close()
+        while not os.path.exists(died):
+            time.sleep(0.01)
+        time.sleep(1.0)
     return i
 
 
-def test_an_item_in_flight_when_another_kills_its_worker_runs_again_alone():
+def test_an_item_in_flight_when_another_kills_its_worker_runs_again_alone(tmp_path):
     """Item 3 was running (or queued) in the other worker when item 0 killed its own: the
     broken pool failed it too, a row lost to the timing of another. It runs again alone and
     returns; item 0, which dies alone too, is the one that fails."""
     from warp_esph.sweep import parallel_map
 
-    out = parallel_map(_dies_first, [(i,) for i in range(5)], workers=2, on_error=lambda i, why: why)
+    out = parallel_map(_dies_first, [(i, str(tmp_path)) for i in range(5)], workers=2, on_error=lambda i, why: why)
     assert out[1:] == [1, 2, 3, 4], out
     assert "worker process died running this item alone" in out[0], out[0]
     with pytest.raises(RuntimeError, match="item 0: a worker process died"):
-        parallel_map(_dies_first, [(0,), (1,)], workers=2)
+        parallel_map(_dies_first, [(0, str(tmp_path)), (1, str(tmp_path))], workers=2)
 
 
 def _dies_second(i, marker):
