@@ -330,6 +330,8 @@ def _dots(strength, **field):
     return b.finalize()
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_stable_dt_includes_the_force_fields_and_holds():
     """A compression field of strength ``k`` is a spring of angular frequency ``sqrt(k)``,
     which symplectic Euler follows only while ``dt < 2 / sqrt(k)``: ``Model.stable_dt()``

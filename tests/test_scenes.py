@@ -26,6 +26,8 @@ EVERYDAY = [name for name in SCENES if name not in FIGURE_SCENES]
 TINY = {"star": 0.5, "lab_squeeze_flow": 0.4}
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 @pytest.mark.parametrize("name", EVERYDAY)
 def test_scene_builds_and_runs_two_frames_tiny(name):
     scene = get_scene(name, scale=TINY.get(name, 0.35))
@@ -311,6 +313,8 @@ def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
     np.testing.assert_allclose(np.unique(np.round(floor[:, 1], 9)), low - 0.05 * np.arange(3, 0, -1), atol=1e-9)
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_path):
     """``[solver]`` reaches ``Solver(model)``: a step of the scene's model is, bit for bit, the
     step of a solver given the option explicitly, and differs from the linear fit's (an
@@ -363,6 +367,8 @@ def test_solver_table_sets_the_fit_weight_of_the_model_and_its_worlds(tmp_path):
         SceneBuilder(fit_weight="cubic")
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp_path):
     """``[solver] hourglass = 0.1`` reaches ``Solver(model)`` and the worlds copied from the
     model: a step is, bit for bit, that of ``Solver(model, hourglass=0.1)`` on the scene
@@ -398,6 +404,8 @@ def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp
     assert m.hourglass == 0.1
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_material_table_sets_the_pressure_force(tmp_path):
     """A material table's ``pressure_force`` becomes ``Material.pressure_force`` and changes
     the run (the two forms differ once the body is compressed)."""

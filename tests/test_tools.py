@@ -895,6 +895,8 @@ def _block_under_a_hammer(**tool):
     return b.finalize()
 
 
+# Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
+@pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_that_step():
     """A ``Scripted`` motion is known only as the steps evaluate it: a step that moves it more
     than a spacing stops the run there (``SimulationError``, the pre-run refusal's message),
