@@ -568,6 +568,27 @@ def test_under_resolved_body_is_refused_naming_body_scale_and_the_least_scale(tm
         load_scene(str(path), scale=1.5)
 
 
+def test_an_under_resolved_bodys_search_stopped_by_its_particle_bound_names_the_last_scale_it_checked(tmp_path, monkeypatch):
+    """The search also stops at a scale whose model would pass its particle bound: that scale is
+    not checked, and the refusal named it as the scale the search looked up to."""
+    path = tmp_path / "wide_sheet.toml"
+    path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
+                    'center = [0, 0.5, 0]\nsize = [1.0, 0.02, 1.0]\n')
+    monkeypatch.setattr(scenes, "SCALE_SEARCH", (scenes.SCALE_SEARCH[0], 1.0))  # the bound: its particles + 1000
+    count = scenes._load(str(path), 1.05).builder._count  # the scene unchecked, as the search builds it
+    checked, over = [], None
+    for k in range(22, 60):  # scales 1.1, 1.15, ...: the first whose model passes the bound is not checked
+        s = round(k * scenes.SCALE_STEP, 10)
+        if scenes._load(str(path), s).builder._count > count + 1000:
+            over = s
+            break
+        checked.append(s)
+    assert over is not None and checked, (count, checked)
+    with pytest.raises(ValueError, match=rf"; no scale up to {checked[-1]:g} resolves it \(at {over:g} it would hold "
+                       r"\d+ particles, past the search's bound of \d+\); give the body more particle layers$"):
+        load_scene(str(path), scale=1.05)
+
+
 def test_an_under_resolved_body_no_scale_searched_resolves_says_how_far_it_looked(tmp_path, monkeypatch):
     """The search for a scale that resolves a refused scene is bounded (each scale tried builds
     the model): where none within it does, the refusal says how far it looked."""

@@ -792,18 +792,23 @@ def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
     label = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
     thick = f"it is {layers} particle layer{'s' if layers > 1 else ''} thick, and " if layers <= 2 else ""
     more = f" (and {len(bad) - 1} more {'body' if len(bad) == 2 else 'bodies'})" if len(bad) > 1 else ""
-    least, s = None, scale
+    # s: the last scale the search checked (a scale whose model would pass the particle bound is
+    # not checked, and a refusal must not say it was).
+    least, s, bound = None, scale, ""
+    limit = SCALE_SEARCH[1] * scene.builder._count + 1000
     k = math.floor(scale / SCALE_STEP + 1e-9) + 1
     for k in range(k, k + SCALE_TRIES):
         if k * SCALE_STEP > SCALE_SEARCH[0] * scale + 1e-9:
             break
-        s = round(k * SCALE_STEP, 10)
+        trial_scale = round(k * SCALE_STEP, 10)
         try:
-            trial = _load(name_or_path, s)
+            trial = _load(name_or_path, trial_scale)
         except ValueError:
             continue
-        if trial.builder._count > SCALE_SEARCH[1] * scene.builder._count + 1000:
+        if trial.builder._count > limit:
+            bound = f" (at {trial_scale:g} it would hold {trial.builder._count} particles, past the search's bound of {limit:g})"
             break
+        s = trial_scale
         if not unresolved_bodies(trial.builder):
             least = s
             break
@@ -814,9 +819,9 @@ def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
     if scale == 1.0 and label not in SCENES:
         # A scene file as written: its spacing is the fault, and the scale is the other way out.
         hint = (f"the largest spacing that resolves it is {spacing / least:.3g} ({what} {least:g})" if least is not None else
-                f"no spacing down to {spacing / s:.3g} ({what} {s:g}) resolves it; give the body more particle layers")
+                f"no spacing down to {spacing / s:.3g} ({what} {s:g}) resolves it{bound}; give the body more particle layers")
         raise ValueError(f"{label}: [scene] spacing = {spacing:g} is not allowed: {why}; {hint}")
     hint = (f"the smallest {what} above {scale:g} that resolves it is {least:g}" if least is not None else
-            f"no {what} up to {s:g} resolves it; give the body more particle layers" if s > scale else
+            f"no {what} up to {s:g} resolves it{bound}; give the body more particle layers" if s > scale else
             f"give a larger {what}, or the body more particle layers")
     raise ValueError(f"{what} = {scale:g} is not allowed for {label}: {why}; {hint}")
