@@ -2454,6 +2454,35 @@ def test_an_interrupted_fit_names_the_signal_that_stopped_it(tmp_path, capsys, d
     assert err.splitlines()[-1].startswith(f"warp-esph: {word}"), err
 
 
+def test_a_long_target_at_a_real_rate_is_warned_of_without_the_frame_interval_hint(tmp_path, capsys, dough_scene,
+                                                                                   monkeypatch):
+    """A target of many frames at the scene's own 30 fps plans 10 times the scene's duration: the
+    plan warns of it, but it read 'if 30 is a frame interval (seconds per frame), the rate is
+    0.03333 fps', a hint no 30 fps recording needs."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    scene = tmp_path / "s.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    x0 = load_scene(str(scene)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 - [0.0, 0.001 * k, 0.0] for k in (1, 2, 3)]), frames=[20, 40, 60], fps=30.0)
+
+    def stand_in(*args, log, **kwargs):
+        log("the fit would start here")  # the plan is said with the fit's first line
+        raise ValueError("stopped by the test before the first evaluation")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(target), "--no-progress", "--no-usd",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    warning = [line for line in err.splitlines() if "warning: each evaluation runs" in line]
+    assert len(warning) == 1 and "10 times the scene's own 6 frames at 30 fps" in warning[0], err
+    assert "frame interval" not in warning[0] and warning[0].endswith("the target's last frame, 60, sets its length"), err
+
+
 @pytest.mark.parametrize("rate, warned", [(0.03, True), (30.0, False)], ids=["interval_as_rate", "scene_rate"])
 def test_a_plan_of_far_more_steps_than_the_scene_needs_says_so_and_names_the_rate_read(tmp_path, capsys, dough_scene,
                                                                                       monkeypatch, rate, warned):

@@ -1027,6 +1027,10 @@ def _long_rollout_reading(scene, frames, fps, substeps, dt, stored, fps_flag, so
     line = (f"warning: each evaluation runs {frames * substeps} steps, {seconds:.4g} s simulated ({frames} frames at "
             f"{fps:g} fps), {seconds / own:.3g} times the scene's own {scene.frames} frames at {scene.fps:g} fps "
             f"({own:.4g} s, {math.ceil(own / dt - 1e-9)} steps at this dt)")
+    if fps >= 1.0:
+        # A rate of a frame a second or more is no frame interval written as a rate (that would
+        # be a camera at 1 fps or slower): the target is long, and its frames set the length.
+        return f"{line}: the target's last frame, {frames}, sets its length"
     interval = (f"if {fps:g} is a frame interval (seconds per frame), the rate is {1.0 / fps:.4g} fps")
     if fps_flag is not None:
         return f"{line}: {fps_flag} = {fps:g}; {interval}: give {fps_flag} {1.0 / fps:.4g}"
