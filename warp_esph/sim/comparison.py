@@ -255,12 +255,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # (and counted) where the rest neighbourhood's guard holds (a singular A there). The
             # positions' round-off is not carried here (round-off arrays y, y).
             code = rest_guard[i]
-            if code == 1:
-                wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
-                wp.atomic_add(counters, COUNT_BODY + body[i], 1)  # its body's count
-            elif code == 2:
-                wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
-                wp.atomic_add(counters, COUNT_BODY + body[i], 1)
+            if code == 1 or code == 2:
+                deformation.count_guarded(code, COUNT_BODY + body[i], counters)
             else:
                 G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
                 # Taken inverted too (counted): its energy is continued through det = 0

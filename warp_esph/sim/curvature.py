@@ -388,12 +388,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         (``guards.guard_scale``, on the plain moment matrix ``A`` the guard reads); 0, counted,
         where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
         inc = mat33()
-        if code == 1:
-            wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
-            wp.atomic_add(counters, slot, 1)  # its body's count (deformation.COUNT_BODY)
-        elif code == 2:
-            wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
-            wp.atomic_add(counters, slot, 1)
+        if code == 1 or code == 2:
+            deformation.count_guarded(code, slot, counters)
         else:
             inc = scale * corrected_increment(A, Bu, C, D, Eu)
         return inc

@@ -37,6 +37,18 @@ COUNT_BODY = 5
 
 
 @wp.func
+def count_guarded(code: int, slot: int, counters: wp.array(dtype=wp.int32)):
+    """Counts a particle-step whose fit a guard of paper §4 skipped (``code``: 1 too few
+    neighbours, 2 too flat a neighbourhood; ``neighbors.GUARD_*``) under its guard and at its
+    body's ``slot`` (``COUNT_BODY + body``): every fit that can be skipped counts it here."""
+    if code == 1:
+        wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+    else:
+        wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
+    wp.atomic_add(counters, slot, 1)
+
+
+@wp.func
 def image_row_particle(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32)) -> int:
     """The particle whose floor image stands at slot ``k`` of particle ``i``'s image loop
     (``image_row_length`` slots): row neighbour ``nbr[i, k]`` for ``k < n``, ``i`` itself at
@@ -603,12 +615,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         neighbour count falls towards ``min_neighbors - 1``); 0, counted, where a guard of
         paper §4 holds (``code``: ``neighbors.GUARD_*``), at its body's ``slot`` too (``COUNT_BODY``)."""
         D = mat33()
-        if code == 1:
-            wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
-            wp.atomic_add(counters, slot, 1)
-        elif code == 2:
-            wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
-            wp.atomic_add(counters, slot, 1)
+        if code == 1 or code == 2:
+            count_guarded(code, slot, counters)
         else:
             D = scale * affine_fit(A, Bu)
         return D
