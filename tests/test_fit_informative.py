@@ -127,6 +127,24 @@ def test_adam_does_not_call_a_small_losss_guess_converged_because_its_eps_swallo
     assert result.stopped != "uninformative"
 
 
+def test_adam_takes_the_same_path_whatever_the_loss_s_units():
+    """The landing cube's position loss in m^2 (weight 1, first gradient 1.4e-9) is of the
+    size of Adam's absolute eps (1e-8): every step was damped, and 8 evaluations moved the
+    yield stress from 600 Pa to 546 where the same loss times 2^20 (millimetres, nearly) reached
+    294 (truth 300). eps is relative to the first gradient: a loss's scale changes no step."""
+    truth = _landing(wp.float64)
+    dt = 0.5 * truth.stable_dt()
+    target = Rollout(truth, STEPS, dt, frames=FRAMES).forward()
+    paths = []
+    for weight in (1.0, 2.0**20):
+        loss = we.losses.PositionLoss(target, frames=FRAMES, weight=weight)
+        result = fit(_landing(wp.float64, yield_stress=600.0), loss, ["yield_stress"], steps=STEPS, dt=dt,
+                     optimizer="adam", iterations=8, progress=False, diagnostics=False)
+        paths.append([h["params"]["yield_stress"][0] for h in result.history])
+    np.testing.assert_allclose(paths[0], paths[1], rtol=1e-9)
+    assert abs(np.log(paths[0][-1] / TRUTH["yield_stress"])) < np.log(1.1), paths
+
+
 def _swallowed(probe_at, probe_result):
     """A loss of one value whose gradient at the start (2e-16) is far below Adam's absolute
     eps (1e-8), so its first step is below ``xtol``; ``probe_result`` is what an evaluation at
