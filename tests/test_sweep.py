@@ -2063,3 +2063,25 @@ def test_a_new_sweep_cut_off_in_its_first_write_leaves_no_other_sweep_s_table_be
     _no_sample_runs(monkeypatch)
     with pytest.raises(ValueError, match="the folder holds no sweep.csv or sweep.parquet"):
         sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=tmp_path / "sw")
+
+
+def test_a_csv_read_without_its_types_reads_each_column_as_one_type(tmp_path):
+    """``SweepTable.read_csv`` without types read each cell alone: an extra's codes "007" and
+    "abc" came back as the int 7 beside the text "abc", and "042" beside "015" as 42 and 15,
+    where the table held text. A column is read by all its cells (a cell no number as
+    ``to_csv`` writes one makes it text), or by the record ``write_outputs`` keeps beside a
+    ``sweep.csv``, which alone tells a text "101" from the int; unknown types are refused."""
+    from warp_esph.sweep import _table, write_outputs
+
+    rows = [{"sample": 0, "status": "ok", "seed": 1, "code": "007", "lot": "042", "id": "101", "x": 0.5},
+            {"sample": 1, "status": "ok", "seed": 2, "code": "abc", "lot": "015", "id": "102", "x": 2.0}]
+    table = _table(rows, [])
+    assert table.types()["code"] == table.types()["id"] == "text"
+    back = SweepTable.read_csv(table.to_csv(tmp_path / "t.csv"))
+    assert [r["code"] for r in back.rows] == ["007", "abc"] and [r["lot"] for r in back.rows] == ["042", "015"]
+    assert [r["x"] for r in back.rows] == [0.5, 2.0] and [r["seed"] for r in back.rows] == [1, 2]
+    assert [r["id"] for r in back.rows] == [101, 102]  # digits alone: only the record says they are text
+    write_outputs(table, tmp_path / "out", plot_figure=False)
+    assert SweepTable.read_csv(tmp_path / "out" / "sweep.csv").rows == table.rows
+    with pytest.raises(ValueError, match=r"types\['id'\] = 'str' is not allowed: must be one of 'int', 'float', 'text'"):
+        SweepTable.read_csv(tmp_path / "t.csv", {"id": "str"})

@@ -401,20 +401,48 @@ class SweepTable:
 
     @classmethod
     def read_csv(cls, path, types: Mapping[str, str] | None = None) -> "SweepTable":
-        """Read a table written by ``to_csv`` (empty cells as None). ``types``: the columns'
-        types (``SweepTable.types``; ``sweep.json``'s ``column_types`` beside the table), read
-        back as written: text that looks like a number ("007") stays text. A column without
-        one reads by its cells: ints back as ints, other numbers as floats, the rest as text."""
+        """Read a table written by ``to_csv`` (empty cells as None), each column as one type
+        (``SweepTable.types``), so that a text "007" stays text. ``types``: the columns' types,
+        ``"int"``, ``"float"`` or ``"text"`` (``sweep.json``'s ``column_types``); without them,
+        those of the ``sweep.json`` that ``write_outputs`` wrote beside a ``sweep.csv`` (where it
+        names the same columns), else each column's by all its cells: text where any cell is
+        no number as ``to_csv`` writes one ("007", "n/a"), else int where every cell is an int,
+        else float. A text column whose every cell reads as such a number ("42") is told from
+        numbers by the record alone."""
         path = os.fspath(path)
+        columns, cells = cls._csv_cells(path)
+        if types is None:
+            types = _recorded_types(path, columns) or {c: _cells_type(c, [line[j] for line in cells if j < len(line)])
+                                                       for j, c in enumerate(columns)}
+        else:
+            types = dict(types)
+            for c, kind in types.items():
+                if kind not in _TYPES:
+                    raise ValueError(f"types[{c!r}] = {kind!r} is not allowed: must be one of {', '.join(map(repr, _TYPES))}")
+        return cls._from_cells(path, columns, cells, types)
+
+    @classmethod
+    def _read_csv_kept(cls, path, types: Mapping[str, str] | None) -> "SweepTable":
+        """A resumed sweep's reading of its CSV (``_resume_table``): by the record's types where
+        it has them, else by each cell as it reads (digits alone an int), as every resume did."""
+        path = os.fspath(path)
+        columns, cells = cls._csv_cells(path)
+        return cls._from_cells(path, columns, cells, dict(types or {}))
+
+    @staticmethod
+    def _csv_cells(path: str) -> tuple[list[str], list[list[str]]]:
         wanted = "must be a sweep table written by SweepTable.to_csv (a header with sample, status, the parameters, seed)"
-        types = dict(types or {})
         try:
             with open(path, newline="", encoding="utf-8") as f:
                 reader = csv.reader(f)
                 columns = next(reader, [])
-                rows = [{c: _parse_cell(c, v, types.get(c)) for c, v in zip(columns, line)} for line in reader]
+                return columns, list(reader)
         except (UnicodeDecodeError, csv.Error) as e:
             raise ValueError(f"path = {path!r} is not allowed: {wanted}; it is not CSV text ({e})") from None
+
+    @classmethod
+    def _from_cells(cls, path: str, columns: list[str], cells: list[list[str]], types: dict) -> "SweepTable":
+        rows = [{c: _parse_cell(c, v, types.get(c)) for c, v in zip(columns, line)} for line in cells]
         return cls._checked(path, columns, rows, None)
 
     @classmethod
@@ -489,6 +517,41 @@ def _as_type(v, kind: str):
     if kind == "float" and isinstance(v, (int, np.integer)) and not isinstance(v, bool):
         return float(v)
     return v
+
+
+_TYPES = ("int", "float", "text")
+# A number as ``to_csv`` writes one: an int by str (no leading zero, no '+'), a float by repr.
+_WRITTEN_INT = re.compile(r"-?(?:0|[1-9][0-9]*)")
+_WRITTEN_FLOAT = re.compile(r"-?(?:(?:0|[1-9][0-9]*)\.[0-9]+(?:e[+-][0-9]+)?|[1-9](?:\.[0-9]+)?e[+-][0-9]+|inf|nan)")
+
+
+def _cells_type(column: str, texts: Sequence[str]) -> str:
+    """The type of a column read without a record, from all its cells, as ``_column_type``
+    decides a table's: reading each cell alone gave an extra's codes "007" and "abc" the int 7
+    beside the text "abc", one column of two types."""
+    if column in _TEXT_COLUMNS:
+        return "text"
+    texts = [t for t in texts if t != ""]
+    if any(not (_WRITTEN_INT.fullmatch(t) or _WRITTEN_FLOAT.fullmatch(t)) for t in texts):
+        return "text"
+    if all(_WRITTEN_INT.fullmatch(t) for t in texts):
+        return "int" if texts or _is_int_column(column) else "float"
+    return "float"
+
+
+def _recorded_types(path: str, columns: list[str]) -> dict | None:
+    """The ``column_types`` of the ``sweep.json`` beside ``path`` where ``path`` is a
+    ``sweep.csv`` and the record names its columns, each with a known type; else None."""
+    if os.path.basename(path) != "sweep.csv":
+        return None
+    try:
+        with open(os.path.join(os.path.dirname(path), "sweep.json"), encoding="utf-8") as f:
+            types = json.load(f).get("column_types")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(types, dict) or set(types) != set(columns) or not set(types.values()) <= set(_TYPES):
+        return None
+    return types
 
 
 def _parse_cell(column: str, text: str, kind: str | None = None):
@@ -1774,7 +1837,7 @@ def _resume_table(source, name: str) -> tuple[SweepTable, str]:
     if not path.endswith(".parquet"):
         types = meta.get("column_types")
         # The columns' types as written: an extra's text "007" read back by its cells was the number 7.
-        table = SweepTable.read_csv(path, types if isinstance(types, dict) else None)
+        table = SweepTable._read_csv_kept(path, types if isinstance(types, dict) else None)
     table.identity = meta.get("sweep")
     if isinstance(table.identity, dict) and "version" not in table.identity and isinstance(meta.get("version"), str):
         # A record of format 1 kept the version beside it alone: the refusal names it.
