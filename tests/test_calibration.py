@@ -1075,7 +1075,7 @@ def test_a_body_resting_at_its_start_over_its_first_stored_frames_is_not_said_to
     stored frame at rest is still said."""
     import types
 
-    from warp_esph.calibrate import _start_frame_later
+    from warp_esph.calibrate import _scene_run, _start_frame_later
 
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"))
@@ -1089,13 +1089,48 @@ def test_a_body_resting_at_its_start_over_its_first_stored_frames_is_not_said_to
         return x
 
     def said(positions, frames):
-        return _start_frame_later("lab.npz", types.SimpleNamespace(frames=frames, data=np.stack(positions)), model)
+        # The scene's own run judges a rest over several stored frames: this box settles onto
+        # its ground by half a spacing and stays, so a rest over frames 3 and 4 is no lateness.
+        return _start_frame_later("lab.npz", types.SimpleNamespace(frames=frames, data=np.stack(positions)), model,
+                                  _scene_run(model, 31, 1.0 / 930.0))
 
+    settled = _scene_run(model, 31, 1.0 / 930.0)(4)
+    assert settled is not None and 0.3 < np.sqrt(np.mean(np.sum((settled - start) ** 2, axis=1))) / 0.02 < 1.0
     presses = [pressed(0.1), pressed(0.2), pressed(0.3)]
     assert said([start, start, *presses], [3, 4, 5, 6, 7]) is None  # at rest at frames 3 and 4, pressed from 5
+    assert said([start], [4]) is None  # a lone frame at rest
     late = said([start, *presses], [3, 4, 5, 6])  # pressed from the frame after the first
     assert late is not None and "its first stored frame, 3, lies 0 spacings RMS" in late, late
     assert said([start, *presses], [0, 1, 2, 3]) is None  # numbered from 0
+
+
+def test_a_late_counter_over_frames_at_rest_or_in_one_frame_is_said_by_the_scene_s_own_run(tmp_path, capsys,
+                                                                                           dough_scene):
+    """The dough block is dropped at 1 m/s: its scene leaves its start at once. A lab file
+    holding the start at its stored frames 2 and 3 (moving from 4), or storing that one frame
+    alone as frame 2, counts its frames from a later start; neither was said, since only a
+    start followed at once by motion was. The scene's own run, already a spacing and more off
+    its start by then, now says so."""
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    x = np.asarray(load_target(run, frames="all").data)  # frames 0..3, entry 0 the start
+
+    def plan(name, positions, frames):
+        np.savez(tmp_path / name, positions=positions, frames=frames, fps=30.0)
+        capsys.readouterr()
+        status = main(["fit", str(guess), "--target", str(tmp_path / name), "--iterations", "0", "--no-diagnostics",
+                       "--no-progress", "--no-usd", "--frames", "5", "--output-dir", str(tmp_path / f"out_{name}")])
+        err = capsys.readouterr().err
+        assert status == 0, err
+        return [line for line in err.splitlines() if "initial positions" in line]
+
+    rested = plan("rested.npz", np.stack([x[0], x[0], x[1], x[2]]), [2, 3, 4, 5])
+    assert len(rested) == 1 and "its stored frames 2 to 3 lie within 0.05 spacings RMS" in rested[0], rested
+    assert "by frame 3" in rested[0] and "renumber them from 0" in rested[0]
+    lone = plan("lone.npz", x[:1], [2])
+    assert len(lone) == 1 and "its one stored frame, 2, lies within" in lone[0] and "by frame 2" in lone[0], lone
 
 
 def _interrupt_evaluation(monkeypatch, n):

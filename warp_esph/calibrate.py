@@ -864,7 +864,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
                 and os.path.splitext(str(path))[1].lower() not in (".usd", ".usda", ".usdc")]
     readings += [said for kind, path, t in loaded if kind == "file" and t.kind == "positions" and t.frames_stored
-                 and (said := _start_frame_later(path, t, model))]
+                 and (said := _start_frame_later(path, t, model, _scene_run(model, substeps, dt)))]
     readings += zero_readings
     long_run = _long_rollout_reading(scene, frames, fps, substeps, dt, stored, f"{where}{flag}" if given["fps"] else None,
                                      source)
@@ -1045,38 +1045,90 @@ def _long_rollout_reading(scene, frames, fps, substeps, dt, stored, fps_flag, so
 #: farther than this, is said to hold the start (_start_frame_later).
 START_TOLERANCE = 0.05
 START_MOTION_SHARE = 0.05
+#: How far (RMS, in spacings) the scene's own run must have moved from its start by a stored
+#: frame that holds the start for that frame to be said late (_start_frame_later): a spacing,
+#: twice what a lattice settling onto its ground moves (a box a half spacing above it settles
+#: 0.53 spacings and stops), a free fall's second frame at 30 fps.
+SCENE_MOTION = 1.0
 
 
-def _start_frame_later(path, t, model) -> str | None:
+def _scene_run(model, substeps: int, dt: float):
+    """The scene's own run as ``_start_frame_later`` reads it: a function of one frame number
+    returning the model's positions there (its current values; untaped, so a model without
+    gradients runs too), or None where the run does not run to finite positions (it tells
+    nothing then)."""
+
+    def run(frame: int):
+        from .sim.solver import Solver  # noqa: PLC0415
+
+        solver = Solver(model)
+        current, spare = model.state(requires_grad=False), model.state(requires_grad=False)
+        try:
+            for _ in range(int(frame) * substeps):
+                solver.step(current, spare, dt)
+                current, spare = spare, current
+        except (ValueError, ArithmeticError, RuntimeError):  # a refused step, a neighbour overflow
+            return None
+        x = current.x.numpy().astype(np.float64)
+        return x if np.isfinite(x).all() else None
+
+    return run
+
+
+def _start_frame_later(path, t, model, run=None) -> str | None:
     """A warning where an ``.npz``'s earliest stored frame is after 0 and holds the scene's
     initial positions (a camera's frame counter, which starts where it was switched on): each
     entry is fitted at its stored frame's time, so the whole motion was fitted that many
     frames late, and the diagnostics could only say the residuals were large.
 
-    Said only where the motion starts at that frame, the next stored frame already off the
-    start: a body that rests at its start over its first stored frames (a press that has not
-    reached it yet) is at its start at any of them, as the scene's own start has it, and was
-    told its frames were late."""
+    Said from the data alone where the motion starts at that frame, the next stored frame
+    already off the start. Where the data hold the start over several stored frames, or the
+    file stores that one frame alone, they can be late or a body resting until something
+    reaches it (a press): the scene's own run (``run``, ``_scene_run``; None: not judged)
+    tells them apart, the data said late where it has moved ``SCENE_MOTION`` spacings from
+    its start by the last stored frame that holds it. A body falling from frame 0, recorded
+    at rest over stored frames 3 to 5, had been told nothing, as had a lone frame 5 at rest.
+    A stored frame off the start is not judged: its frame and the material trade off."""
     order = np.argsort(np.asarray(t.frames), kind="stable")
     first, start = int(t.frames[order[0]]), np.asarray(model.particle_x0, dtype=np.float64)
     data = np.asarray(t.data, dtype=np.float64)
     if first == 0 or data.shape[1:] != start.shape:
         return None
 
-    def rms(x):
-        seen = np.isfinite(x).all(axis=1)
+    def rms(x, seen=None):
+        seen = np.isfinite(x).all(axis=1) if seen is None else seen
         return float(np.sqrt(np.mean(np.sum((x[seen] - start[seen]) ** 2, axis=1)))) / model.spacing if seen.any() else None
 
     away = [rms(data[k]) for k in order]  # in frame order
     near, moved = away[0], max((r for r in away if r is not None), default=None)
-    following = next((r for r in away[1:] if r is not None), None)
-    if near is None or moved is None or following is None or not (
-            near <= START_TOLERANCE and near <= START_MOTION_SHARE * moved and following > START_TOLERANCE):
+    if near is None or near > START_TOLERANCE:
         return None
-    return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the scene's "
-            f"initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, which is "
-            f"frame 0; each entry is fitted at its stored frame / fps, {first} frames late if the frames count from "
-            "another start (a camera's frame counter): renumber them from 0 at the start")
+    following = next((r for r in away[1:] if r is not None), None)
+    if following is not None and near <= START_MOTION_SHARE * moved and following > START_TOLERANCE:
+        return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the "
+                f"scene's initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, "
+                f"which is frame 0; each entry is fitted at its stored frame / fps, {first} frames late if the frames "
+                "count from another start (a camera's frame counter): renumber them from 0 at the start")
+    # The stored frames that hold the start, from the first: a rest the scene's run judges.
+    held = 0
+    while held < len(order) and (away[held] is None or away[held] <= START_TOLERANCE):
+        held += 1
+    kept = max(k for k in range(held) if away[k] is not None)  # the last of them that observes a marker
+    last = int(t.frames[order[kept]])
+    x = None if run is None else run(last)
+    if x is None:
+        return None
+    seen = np.isfinite(data[order[kept]]).all(axis=1)
+    scene = rms(x, seen)
+    if scene is None or scene < SCENE_MOTION:
+        return None
+    stored = f"its one stored frame, {first}," if len(order) == 1 else (
+        f"its first stored frame, {first}," if held == 1 else f"its stored frames {first} to {last}")
+    return (f"warning: target {path}: {stored} {'lies' if held == 1 else 'lie'} within {START_TOLERANCE:g} spacings RMS "
+            f"of the scene's initial positions, where the scene's own run (its values now) has moved {scene:.3g} "
+            f"spacings RMS from them by frame {last}: the data hold the start, frame 0, after the scene has left it; "
+            "each entry is fitted at its stored frame / fps, late if the frames count from another start (a camera's "
+            "frame counter): renumber them from 0 at the start, or start the scene as the data do")
 
 
 def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None,
