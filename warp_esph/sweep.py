@@ -342,8 +342,8 @@ class SweepTable:
     def types(self) -> dict[str, str]:
         """Each column's type, ``"int"``, ``"float"`` or ``"text"`` (``_column_type``), as the
         Parquet table's schema holds it and ``sweep.json`` beside a CSV table (``column_types``),
-        which ``read_csv(path, types)`` reads back by: an ``extra``'s text "007" read back from
-        the CSV alone as the number 7."""
+        which ``read_csv(path, types)`` reads back by: an ``extra``'s text "101" reads back from
+        the CSV alone as the number 101 (a "007" beside it makes the column text)."""
         return {c: _column_type(c, [r.get(c) for r in self.rows]) for c in self.columns}
 
     @property
