@@ -17,6 +17,7 @@ finished samples). Errors are one line on stderr,
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
@@ -1084,6 +1085,11 @@ def add_fit_arguments(parser):
                         help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10; "
                              "not with gauss-newton)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
+    parser.add_argument("--scales", action="append", default=[], metavar="NAME=S",
+                        help="the size of a parameter fitted as itself (from 0 or below: lam, hardening, "
+                             "pressure_stiffness, viscosity), in its units: a step of --lr moves it by LR times S "
+                             "(default: its start's magnitude; from 0, its --bounds' width, else its materials'); "
+                             "repeatable")
     parser.add_argument("--clip", type=float, metavar="C", help="Adam only: clip the gradient norm (log space) to C")
     parser.add_argument("--target-frames", action="append", metavar="F,G",
                         help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
@@ -1142,6 +1148,27 @@ def _parse_bounds(items) -> dict:
             raise ValueError(f"--bounds {item!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "
                              "give one range per parameter")
         out[name] = (lo, hi)
+    return out
+
+
+def _parse_scales(items) -> dict:
+    out = {}
+    for item in items or []:
+        try:
+            name, size = item.split("=", 1)
+            size, name = float(size), name.strip()
+            if not name:
+                raise ValueError
+        except ValueError:
+            raise ValueError(f"--scales {item!r} is not allowed: use NAME=S, e.g. hardening=1e4") from None
+        if not (math.isfinite(size) and size > 0.0):
+            # A step of lr moves the value by lr times the size: 0, a negative or a NaN moves it nowhere or backwards.
+            raise ValueError(f"--scales {item!r} is not allowed: the size must be > 0 and finite (a step of --lr moves "
+                             "the parameter by LR times it)")
+        if name in out:
+            raise ValueError(f"--scales {item!r} is not allowed: {name} already has scale {out[name]:g}; give one "
+                             "scale per parameter")
+        out[name] = size
     return out
 
 

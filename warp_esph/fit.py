@@ -22,8 +22,9 @@ A tool's force curve is a ``warp_esph.losses.ReactionForceLoss`` (``load_target`
 the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 
 Positive parameters are optimised in log space (a step of Adam changes them by about
-``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
-magnitude. ``bounds={"flow_rate": (1, 1e3)}`` keeps them in a box: every evaluated point is
+``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by a size in their
+own units: ``scales={name: size}`` where given, else their initial magnitude, else (from 0)
+their finite bounds' width, else their materials' (``_natural_scale``). ``bounds={"flow_rate": (1, 1e3)}`` keeps them in a box: every evaluated point is
 clipped into it, and the optimisers hold a value on a bound while the loss falls beyond it,
 fitting the others (an active set; Adam drops a held value's moment). ``clip`` caps the norm
 of the optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
@@ -1135,6 +1136,20 @@ class BoundsError(ValueError):
         return f"{given} is not allowed: {reason}"
 
 
+class ScaleRefused(ValueError):
+    """A given scale of a parameter fitted as its logarithm, refused once the model gives its
+    start. ``said(flag, typed)``: named as ``flag`` names options (the command line's
+    ``--scales NAME=S``, ``typed`` the entry as written)."""
+
+    def __init__(self, name: str, size: float, reason: str):
+        self.name, self.size, self.reason = name, size, reason
+        super().__init__(self.said())
+
+    def said(self, flag=lambda name: name, typed: str | None = None) -> str:
+        given = f"{flag('scales')} {typed}" if typed is not None else f"{flag('scales')}[{self.name!r}] = {self.size!r}"
+        return f"{given} is not allowed: {self.reason}"
+
+
 class StartRefused(ValueError):
     """The guess, held to the bounds, refused by a material (each end allowed alone, but two
     ends together past a precision's range). ``held``: ``(name, lo, hi, side)`` of each
@@ -1260,13 +1275,37 @@ def _check_diverged(run) -> None:
         raise Diverged(why)
 
 
+#: How ``_natural_scale`` sizes a parameter fitted as itself from 0 without bounds.
+_NATURAL_SCALE_SAID = {"lam": "mu", "hardening": "mu", "pressure_stiffness": "its default share K / density",
+                       "viscosity": "mu times the stable step"}
+
+
+def _natural_scale(name: str, run: _Values, guess) -> float:
+    """The size of a parameter that starts at 0 from the fitted materials' other values, in
+    its own units: a stress modulus (``lam``, ``hardening``) by ``mu``; ``pressure_stiffness``
+    by the one the material gives by default (``share K / rho0``); ``viscosity`` by the one
+    whose stress over a step is ``mu``'s over the strain the step makes (``mu dt`` at the
+    stable step of the start). Each scales with the units of the others, so the same problem
+    in other units takes the same path."""
+    idx = run.idx
+    mu = run.values["mu"][idx]
+    if name in ("lam", "hardening"):
+        return float(np.max(mu))
+    if name == "pressure_stiffness":
+        lam = guess["lam"] if "lam" in guess else run.values["lam"][idx]
+        mu_k = guess["mu"] if "mu" in guess else mu
+        return float(np.max(run.kp_share[idx] * (lam + 2.0 * mu_k / 3.0) / run.rho[idx]))
+    return float(np.max(mu)) * run.stable_step({n: np.asarray(v, dtype=np.float64) for n, v in guess.items()})
+
+
 class _Problem:
     """The shared parameter vector of one or more experiments, in optimiser space.
 
-    ``z = log(p)`` for positive parameters, ``p / scale`` for the others; ``bounds`` clip.
+    ``z = log(p)`` for positive parameters, ``p / scale`` for the others (``_linear_scale``);
+    ``bounds`` clip.
     """
 
-    def __init__(self, runs: list[_Run], params, bounds):
+    def __init__(self, runs: list[_Run], params, bounds, scales=None):
         self.runs, self.params = runs, params
         first = runs[0]
         self.k = len(first.idx)
@@ -1275,16 +1314,26 @@ class _Problem:
                 raise ValueError(f"{r.name} fits {len(r.idx)} materials, {first.name} {self.k}: a joint fit shares "
                                  f"material k of every experiment, so each must select the same number (materials=...)")
         values = first.values
-        self.spaces, self.scales = {}, {}
+        self.spaces, self.scales, self.scale_source = {}, {}, {}
         for name in params:
             v = values[name][first.idx]
             if name in _POSITIVE or (v > 0).all():
                 if not (v > 0).all():
-                    raise ValueError(f"{name} must be > 0 to be fitted, the initial values are {v.tolist()}")
+                    # 'must be > 0 to be fitted' read as the material's refusal of a value it takes
+                    # (a yield stress of 0 is a Maxwell fluid): it is the logarithm that has none.
+                    said = f"{v[0]:g}" if self.k == 1 else str(v.tolist())
+                    raise ValueError(f"{name} = {said} is not allowed as the start of a fit: it is fitted as its "
+                                     "logarithm, which has no value at or below 0; give a start above 0 (a bound lo > 0 "
+                                     "keeps it there)")
                 self.spaces[name] = "log"
             else:
                 self.spaces[name] = "linear"
-                self.scales[name] = max(float(np.abs(v).max()), 1.0)
+        for name, s in (scales or {}).items():  # their form checked by check_options
+            if self.spaces[name] == "log":
+                raise ScaleRefused(name, s, f"{name} is fitted as its logarithm (its initial value"
+                                   f"{'s' if self.k > 1 else ''} {', '.join(f'{x:g}' for x in values[name][first.idx])} "
+                                   "being positive), whose steps are relative to the value and take no scale; give "
+                                   "scales of parameters fitted from 0 or below it")
         self.bounds = {}
         for name, (lo, hi) in (bounds or {}).items():  # their form checked by check_options
             lo, hi = float(lo), float(hi)
@@ -1304,6 +1353,9 @@ class _Problem:
             if self.spaces[name] == "linear" and name in _NON_NEGATIVE and name not in self.bounds:
                 self.bounds[name] = (0.0, math.inf)
         guess = {name: values[name][first.idx] for name in params}
+        for name in params:
+            if self.spaces[name] == "linear":
+                self.scales[name], self.scale_source[name] = self._linear_scale(name, guess, scales or {})
         for name, (lo, hi) in self.bounds.items():
             # A bound a material refuses would only make refused trials: said at once.
             for side, end in (("lower", lo), ("upper", hi)):
@@ -1339,6 +1391,27 @@ class _Problem:
         self._start = (self.z0.copy(), np.concatenate([start[n] for n in params]))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
         self.labels = [name if self.k == 1 else f"{name}[{j}]" for name in params for j in range(self.k)]
+
+    def _linear_scale(self, name: str, guess, scales) -> tuple[float, str]:
+        """The size of one unit of ``z`` for a parameter fitted as itself, and where it came
+        from. A step of ``lr`` moves the value by ``lr`` times it, so it must be the value's
+        own size: it was ``max(|start|, 1)`` in whatever units the parameter has, so a
+        hardening fitted from 0 Pa against mu = 1e5 Pa moved 0.1 Pa a step, and the same
+        problem in other units took another path."""
+        if name in scales:
+            return float(scales[name]), "given"
+        v = float(np.abs(guess[name]).max())
+        if v > 0.0:
+            return v, "start"
+        lo, hi = self.bounds.get(name, (-math.inf, math.inf))
+        if math.isfinite(lo) and math.isfinite(hi):
+            return hi - lo, "bounds"
+        s = _natural_scale(name, self.runs[0], guess)
+        if not (math.isfinite(s) and s > 0.0):
+            raise ValueError(f"{name} starts at 0 without finite bounds, and its materials give it no size "
+                             f"({_NATURAL_SCALE_SAID[name]} = {s:g}): give scales={{{name!r}: size}} (a step of lr moves "
+                             "it by lr times that size), or finite bounds")
+        return s, "material"
 
     def to_z(self, p) -> np.ndarray:
         return np.concatenate([np.log(p[n]) if self.spaces[n] == "log" else p[n] / self.scales[n] for n in self.params])
@@ -1492,7 +1565,7 @@ def _choose_steps(runs: list[_Run], prob: _Problem, candidates) -> list[str]:
 
 
 def starts_stable_steps(models, params, *, materials=None, bounds=None, samples=0, starts=1, sample_range=4.0,
-                        seed=0, tie_pressure=None, names=None) -> list[float]:
+                        seed=0, tie_pressure=None, names=None, scales=None) -> list[float]:
     """For each of ``models`` (a joint fit's, the first holding the guess), the smallest
     ``Model.stable_dt()`` over the points ``fit(..., samples, starts, sample_range, seed)``
     starts from (the guess among them), before any run: the step at which a fit of
@@ -1503,7 +1576,7 @@ def starts_stable_steps(models, params, *, materials=None, bounds=None, samples=
     vals = [_Values(m, _material_indices(m, sel), name) for m, sel, name in zip(models, materials, names)]
     for v in vals:
         v.setup_tie(params, tie_pressure)
-    prob = _Problem(vals, params, bounds)
+    prob = _Problem(vals, params, bounds, scales)
     candidates = _start_candidates(prob, samples, starts, sample_range, seed)
     out = []
     for v in vals:
@@ -1549,13 +1622,15 @@ def _step_size(name: str, value) -> float:
 
 def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
                   samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT, xtol=XTOL,
-                  flag=lambda name: name, bounds_typed: Mapping | None = None) -> dict:
+                  flag=lambda name: name, bounds_typed: Mapping | None = None, scales=None,
+                  scales_typed: Mapping | None = None) -> dict:
     """``fit``'s options that need no model, checked (as ``fit`` checks them, before any
     rollout): a dict of the validated values. ``flag(name)`` is how a message names an
     option (the command line passes ``--lr`` for ``lr``). ``lr``: ``None`` is ``LR``, and
     one given is refused with ``optimizer = "gauss-newton"``, which never reads it. Bounds
     are checked here for their form (``lo < hi``, a fitted parameter); ``fit`` checks
-    ``lo > 0`` of a positive one."""
+    ``lo > 0`` of a positive one. ``scales`` (``{name: size}``): each a fitted parameter's
+    positive, finite size; ``fit`` refuses one of a parameter fitted as its logarithm."""
     if isinstance(params, str):
         params = [p.strip() for p in params.split(",") if p.strip()]
     try:
@@ -1636,6 +1711,24 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
                              "open end is -inf or inf)")
         if not lo < hi:
             raise ValueError(f"{said(name, lo, hi)} is not allowed: need lo < hi")
+    out["scales"] = _check_scales(scales, params, flag, scales_typed or {})
+    return out
+
+
+def _check_scales(scales, params, flag, typed) -> dict[str, float]:
+    """``scales`` as ``{name: size}`` of fitted parameters, each size positive and finite;
+    ``typed``: the command line's entries as written, by name."""
+    if scales is None:
+        return {}
+    if not isinstance(scales, Mapping):
+        raise ValueError(f"{flag('scales')} = {checks.shorten(scales)!r} is not allowed: must be a mapping {{name: size}}")
+    out = {}
+    for name, size in scales.items():
+        if name not in params:
+            given = f"{flag('scales')} {typed[name]}" if name in typed else f"{flag('scales')} for {name!r}"
+            raise ValueError(f"{given} is not allowed: {name} is not fitted ({flag('params')} = "
+                             f"{','.join(params)}); give the scale of a fitted parameter")
+        out[name] = checks.positive(f"{flag('scales')}[{name!r}]", size)
     return out
 
 
@@ -1687,6 +1780,7 @@ def fit(
     lr: float | None = None,
     lr_end: float | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
+    scales: Mapping[str, float] | None = None,
     clip: float | None = None,
     checkpoint_every: int | str | None = "auto",
     memory_limit: float = MEMORY_LIMIT,
@@ -1731,6 +1825,13 @@ def fit(
       on a bound whose gradient points out of the box and step the others alone, so a
       fit whose optimum lies beyond a bound converges to the others' optimum there
       (docs/fitting.md, "Bounds"). ``clip``: gradient norm cap.
+    - ``scales``: ``{name: size}`` (positive, finite, in the parameter's units) of a parameter
+      fitted as itself (one whose initial value is 0 or below; ``lam``, ``hardening``,
+      ``pressure_stiffness``, ``viscosity``): a step of ``lr`` moves it by ``lr`` times the
+      size. Without one the size is the start's largest magnitude; from 0, the width of
+      finite ``bounds``, else the materials' (``mu`` for ``lam`` and ``hardening``, the
+      default ``pressure_stiffness``, ``mu`` times the stable step for ``viscosity``):
+      docs/fitting.md, "Optimisers". One of a parameter fitted as its logarithm is refused.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
       tape when it fits in ``memory_limit`` bytes (and in the device's memory), else the
       longest segment that fits (``choose_checkpointing``). A rollout that cannot fit even
@@ -1792,7 +1893,7 @@ def fit(
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
                       optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
-                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol)
+                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol, scales=scales)
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
     noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]
@@ -1864,7 +1965,7 @@ def fit(
     _refuse_unread_noise(runs, noise if len(exps) > 1 else None)
     for r in runs:
         r.setup_tie(params, tie_pressure)
-    prob = _Problem(runs, params, bounds)
+    prob = _Problem(runs, params, bounds, o["scales"])
     if optimizer == "gauss-newton":
         from .diagnostics import leaf_terms  # noqa: PLC0415
 

@@ -1,0 +1,154 @@
+"""The step size of a parameter fitted as itself (``fit(..., scales=...)``): a step of ``lr``
+moves it by ``lr`` times its own size, whatever units the problem is written in."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.fit import fit
+from warp_esph.losses import PositionLoss
+from warp_esph.rollout import Rollout
+
+DT = 1.0e-3
+STEPS = 6
+ALPHA0 = 0.02
+
+
+def _block(units=1.0, **params):
+    """A 5x4x4 block flowing under an affine velocity, its stresses and density in ``units``
+    (times Pa, times kg/m^3): every acceleration, and so every position, is the same."""
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "hardening": 0.0} | params
+    p = {k: v * units for k, v in p.items()}
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), we.Material(density=1000.0 * units, flow_rate=50.0,
+                                                                  pressure_stiffness=1.0, **p))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=2e-5, size=model.particle_x0.shape)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array((1.0, -0.5, 0.0))
+    return model
+
+
+@pytest.fixture(scope="module")
+def target():
+    x = Rollout(_block(hardening=300.0), STEPS, DT, frames=[3, 6]).forward(alpha0=ALPHA0)
+    return {f: x[i] for i, f in enumerate([3, 6])}
+
+
+def _path(target, units, optimizer, **kw):
+    loss = PositionLoss(np.stack([target[3], target[6]]), frames=[3, 6])
+    r = fit(_block(units), loss, ["hardening"], steps=STEPS, dt=DT, initial={"alpha0": ALPHA0}, iterations=4,
+            optimizer=optimizer, progress=False, diagnostics=False, **kw)
+    return (np.array([h["params"]["hardening"][0] / units for h in r.history]),
+            np.array([h["loss"] for h in r.history]))
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs", "gauss-newton"])
+def test_a_hardening_fitted_from_zero_takes_the_same_path_in_any_units(target, optimizer):
+    """From 0 the hardening had a step of 1 Pa whatever the problem's stresses: with mu = 1 kPa
+    Adam's first step moved it 0.1 Pa, with the same problem in mPa (every stress and the
+    density times 1e3) 1e-4 of that. Its size is now mu's, so both move alike; the fit
+    leaves 0 by a share of mu, not by a part in 1e4 of it."""
+    a, loss_a = _path(target, 1.0, optimizer)
+    b, loss_b = _path(target, 1.0e3, optimizer)
+    assert len(a) == len(b)
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9 * 1e3)
+    np.testing.assert_allclose(loss_b, loss_a, rtol=1e-6, atol=1e-6 * loss_a[0])
+    assert abs(a[1]) >= 10.0  # the first step (a Jacobian's difference with Gauss-Newton) moves it by a share of mu
+
+
+def test_bounds_and_a_given_scale_size_the_steps_in_the_parameter_units(target):
+    """A hardening from 0 bounded to (-500, 500) takes the bounds' width as its size; one
+    given (``scales``) replaces it: the problem in other units with the bounds, or the
+    scale, in those units follows the same path."""
+    a, _ = _path(target, 1.0, "adam", bounds={"hardening": (-500.0, 500.0)})
+    b, _ = _path(target, 1.0e3, "adam", bounds={"hardening": (-5.0e5, 5.0e5)})
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+    assert a[1] == pytest.approx(-100.0, rel=1e-6) or a[1] == pytest.approx(100.0, rel=1e-6)
+    c, _ = _path(target, 1.0, "adam", scales={"hardening": 200.0})
+    d, _ = _path(target, 1.0e3, "adam", scales={"hardening": 2.0e5})
+    np.testing.assert_allclose(d, c, rtol=1e-6, atol=1e-6)
+    assert abs(c[1]) == pytest.approx(20.0, rel=1e-6)  # lr 0.1 times 200 Pa
+
+
+@pytest.mark.parametrize("scales, said", [
+    ({"hardening": 0.0}, r"^scales\['hardening'\] = 0\.0 is not allowed: must be > 0"),
+    ({"hardening": float("inf")}, r"^scales\['hardening'\] = inf is not allowed"),
+    ({"hardening": float("nan")}, r"^scales\['hardening'\] = nan is not allowed"),
+    ({"lam": 10.0}, r"^scales for 'lam' is not allowed: lam is not fitted"),
+    ([1.0], r"^scales = \[1\.0\] is not allowed: must be a mapping"),
+])
+def test_a_scale_that_is_not_a_positive_finite_size_of_a_fitted_parameter_is_refused(scales, said):
+    with pytest.raises(ValueError, match=said):
+        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["hardening"], steps=2, dt=DT, scales=scales,
+            progress=False, diagnostics=False)
+
+
+def test_a_scale_of_a_parameter_fitted_as_its_logarithm_is_refused():
+    with pytest.raises(ValueError, match=r"^scales\['mu'\] = 5\.0 is not allowed: mu is fitted as its logarithm"):
+        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["mu"], steps=2, dt=DT, scales={"mu": 5.0},
+            progress=False, diagnostics=False)
+
+
+def test_a_log_space_parameter_starting_at_zero_is_refused_naming_why_and_a_linear_one_takes_its_bounds():
+    """A yield stress of 0 (a Maxwell fluid, which the material takes) has no logarithm: the
+    fit refuses it, saying it is fitted as its logarithm and how to start it. A viscosity
+    from 0 with bounds (0, 4) is fitted as itself, its first Adam step lr times the width."""
+    loss = PositionLoss(np.zeros((1, 80, 3)), frames=[2])
+    with pytest.raises(ValueError, match=r"^yield_stress = 0 is not allowed as the start of a fit: it is fitted as its "
+                                         r"logarithm, .*give a start above 0"):
+        fit(_block(yield_stress=0.0), loss, ["yield_stress"], steps=2, dt=DT, bounds={"yield_stress": (1e-3, 10.0)},
+            progress=False, diagnostics=False)
+    r = fit(_block(), loss, ["viscosity"], steps=2, dt=DT, bounds={"viscosity": (0.0, 4.0)}, iterations=1,
+            optimizer="adam", progress=False, diagnostics=False)
+    assert [h["params"]["viscosity"][0] for h in r.history] == pytest.approx([0.0, 0.4], rel=1e-6)
+
+
+@pytest.mark.parametrize("params, scales, said", [
+    ("yield_stress", ["hardening=0"], "--scales 'hardening=0' is not allowed: the size must be > 0 and finite"),
+    ("yield_stress", ["hardening=nan"], "--scales 'hardening=nan' is not allowed: the size must be > 0 and finite"),
+    ("yield_stress", ["hardening"], "--scales 'hardening' is not allowed: use NAME=S"),
+    ("yield_stress", ["hardening=5"], "--scales hardening=5 is not allowed: hardening is not fitted (--params = yield_stress)"),
+    ("yield_stress", ["yield_stress=5"], "--scales yield_stress=5 is not allowed: yield_stress is fitted as its logarithm"),
+])
+@pytest.mark.parametrize("stage", [[], ["--samples", "2"]])
+def test_cli_fit_scales_refused_are_one_line_naming_the_entry(tmp_path, capsys, dough_scene, params, scales, said,
+                                                              stage):
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0]), frames=[2])
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    extra = [a for s in scales for a in ("--scales", s)]
+    assert main(["fit", str(guess), "--target", str(target), "--params", params, *extra, "--iterations", "1",
+                 "--no-progress", "--no-usd", "--output-dir", str(out), *stage]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {said}"), err
+    assert not out.exists()
+
+
+def test_cli_fit_scales_reach_the_fit(tmp_path, dough_scene):
+    """--scales hardening=S sizes the steps of a hardening fitted from 0: the first Adam step
+    moves it by --lr times S."""
+    import json
+
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + 1e-3]), frames=[2])
+    out = tmp_path / "fit"
+    assert main(["fit", str(guess), "--target", str(target), "--params", "hardening", "--scales", "hardening=250",
+                 "--optimizer", "adam", "--iterations", "1", "--no-progress", "--no-usd", "--no-diagnostics",
+                 "--output-dir", str(out)]) == 0
+    history = json.loads((out / "fit.json").read_text())["history"]
+    steps = [h["params"]["hardening"][0] for h in history]
+    assert steps[0] == 0.0 and abs(steps[1]) == pytest.approx(25.0, rel=1e-6)
