@@ -40,7 +40,7 @@ def _path(target, units, optimizer, **kw):
     r = fit(_block(units), loss, ["hardening"], steps=STEPS, dt=DT, initial={"alpha0": ALPHA0}, iterations=4,
             optimizer=optimizer, progress=False, diagnostics=False, **kw)
     return (np.array([h["params"]["hardening"][0] / units for h in r.history]),
-            np.array([h["loss"] for h in r.history]))
+            np.array([h["loss"] for h in r.history]), r)
 
 
 @pytest.mark.parametrize("optimizer", ["adam", "lbfgs", "gauss-newton"])
@@ -49,8 +49,11 @@ def test_a_hardening_fitted_from_zero_takes_the_same_path_in_any_units(target, o
     Adam's first step moved it 0.1 Pa, with the same problem in mPa (every stress and the
     density times 1e3) 1e-4 of that. Its size is now mu's, so both move alike; the fit
     leaves 0 by a share of mu, not by a part in 1e4 of it."""
-    a, loss_a = _path(target, 1.0, optimizer)
-    b, loss_b = _path(target, 1.0e3, optimizer)
+    a, loss_a, ra = _path(target, 1.0, optimizer)
+    b, loss_b, rb = _path(target, 1.0e3, optimizer)
+    assert ra.scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu
+    assert rb.scales == {"hardening": {"size": 1.0e6, "from": "material"}}
+    assert ra.to_dict()["scales"] == ra.scales
     assert len(a) == len(b)
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9 * 1e3)
     np.testing.assert_allclose(loss_b, loss_a, rtol=1e-6, atol=1e-6 * loss_a[0])
@@ -61,14 +64,16 @@ def test_bounds_and_a_given_scale_size_the_steps_in_the_parameter_units(target):
     """A hardening from 0 bounded to (-500, 500) takes the bounds' width as its size; one
     given (``scales``) replaces it: the problem in other units with the bounds, or the
     scale, in those units follows the same path."""
-    a, _ = _path(target, 1.0, "adam", bounds={"hardening": (-500.0, 500.0)})
-    b, _ = _path(target, 1.0e3, "adam", bounds={"hardening": (-5.0e5, 5.0e5)})
+    a, _, r = _path(target, 1.0, "adam", bounds={"hardening": (-500.0, 500.0)})
+    b, _, _ = _path(target, 1.0e3, "adam", bounds={"hardening": (-5.0e5, 5.0e5)})
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+    assert r.scales == {"hardening": {"size": 1000.0, "from": "bounds"}}
     assert a[1] == pytest.approx(-100.0, rel=1e-6) or a[1] == pytest.approx(100.0, rel=1e-6)
-    c, _ = _path(target, 1.0, "adam", scales={"hardening": 200.0})
-    d, _ = _path(target, 1.0e3, "adam", scales={"hardening": 2.0e5})
+    c, _, rc = _path(target, 1.0, "adam", scales={"hardening": 200.0})
+    d, _, _ = _path(target, 1.0e3, "adam", scales={"hardening": 2.0e5})
     np.testing.assert_allclose(d, c, rtol=1e-6, atol=1e-6)
-    assert abs(c[1]) == pytest.approx(20.0, rel=1e-6)  # lr 0.1 times 200 Pa
+    assert abs(c[1]) == pytest.approx(20.0, rel=1e-6)
+    assert rc.scales == {"hardening": {"size": 200.0, "from": "given"}}  # lr 0.1 times 200 Pa
 
 
 @pytest.mark.parametrize("scales, said", [

@@ -1082,7 +1082,8 @@ def add_fit_arguments(parser):
                         help="evaluations of each start after its first, line-search trials (gauss-newton: Jacobian "
                              "runs) included; --samples' runs not counted (default 50, at most 100000)")
     parser.add_argument("--lr", type=float, metavar="LR",
-                        help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10; "
+                        help="Adam step size, relative (times --scales' size for a parameter fitted from 0 or "
+                             "below); L-BFGS: its first step (default 0.1, at most 10; "
                              "not with gauss-newton)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
     parser.add_argument("--scales", action="append", default=[], metavar="NAME=S",

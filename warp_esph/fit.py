@@ -167,6 +167,10 @@ class FitResult:
     #: ("SIGINT", "SIGTERM"; ``warp-esph fit`` sets it); "" where only a ``KeyboardInterrupt``
     #: was seen. A SIGTERM had been reported as Ctrl-C in ``fit.json``'s termination.
     signal: str = ""
+    #: Of each parameter fitted as itself, the size one unit of optimiser space is and where
+    #: it came from (``{"size": S, "from": "given" | "start" | "bounds" | "material"}``): what a
+    #: step of ``lr`` moves it by, which the history alone does not say.
+    scales: dict = dataclasses.field(default_factory=dict)
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -230,6 +234,7 @@ class FitResult:
             "termination": self.termination,
             **({"signal": self.signal} if self.stopped == "interrupted" and self.signal else {}),
             "starts": list(self.starts),
+            "scales": self.scales,
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "solver": self.solver_record(),
             "history": self.history,
@@ -1817,7 +1822,8 @@ def fit(
       carries its own).
     - ``materials``: indices (or body names) of the materials to fit; default all. With a
       per-particle model (``rollout.split_materials``) this fits a field.
-    - ``iterations``, ``lr``: optimiser steps and step size (relative, in log space;
+    - ``iterations``, ``lr``: optimiser steps and step size (in optimiser space: relative for
+      a parameter fitted as its logarithm, times its size for one fitted as itself, ``scales``;
       default ``LR`` = 0.1; Adam's step and L-BFGS's first step, refused with
       ``"gauss-newton"``, which never reads it);
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
@@ -2326,6 +2332,7 @@ def fit(
     result.experiment_materials = fitted
     result.flowed_starts = [r.flowed_start() for r in runs]
     result.starts = stops
+    result.scales = {n: {"size": prob.scales[n], "from": prob.scale_source[n]} for n in params if n in prob.scales}
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
 
     if stopped == "flat":
