@@ -157,3 +157,21 @@ def test_cli_fit_scales_reach_the_fit(tmp_path, dough_scene):
     history = json.loads((out / "fit.json").read_text())["history"]
     steps = [h["params"]["hardening"][0] for h in history]
     assert steps[0] == 0.0 and abs(steps[1]) == pytest.approx(25.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("name, truth, size", [("viscosity", 2.0, None), ("lam", 500.0, 1.0e3)])
+def test_a_viscosity_or_lam_fitted_from_zero_takes_the_same_path_in_any_units(name, truth, size):
+    """As the hardening: a viscosity (Pa s) from 0 is sized by mu times the stable step, lam
+    (Pa) by mu, so Adam visits the same values in units 1e3 times smaller; with the old size
+    of 1 in any unit the mPa problem moved a thousandth as far."""
+    x = Rollout(_block(**{name: truth}), STEPS, DT, frames=[3, 6]).forward(alpha0=ALPHA0)
+    paths = []
+    for units in (1.0, 1.0e3):
+        r = fit(_block(units, **{name: 0.0}), PositionLoss(x, frames=[3, 6]), [name], steps=STEPS, dt=DT,
+                initial={"alpha0": ALPHA0}, iterations=3, optimizer="adam", progress=False, diagnostics=False)
+        assert r.scales[name]["from"] == "material"
+        if size is not None:
+            assert r.scales[name]["size"] == pytest.approx(size * units, rel=1e-12)
+        paths.append(np.array([h["params"][name][0] / units for h in r.history]))
+    np.testing.assert_allclose(paths[1], paths[0], rtol=1e-6, atol=1e-9 * abs(paths[0]).max())
+    assert abs(paths[0][1]) > 0.01 * truth  # lr = 0.1 of its size: a step of its own order
