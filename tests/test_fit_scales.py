@@ -154,8 +154,9 @@ def test_cli_fit_scales_reach_the_fit(tmp_path, dough_scene):
     assert main(["fit", str(guess), "--target", str(target), "--params", "hardening", "--scales", "hardening=250",
                  "--optimizer", "adam", "--iterations", "1", "--no-progress", "--no-usd", "--no-diagnostics",
                  "--output-dir", str(out)]) == 0
-    history = json.loads((out / "fit.json").read_text())["history"]
-    steps = [h["params"]["hardening"][0] for h in history]
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["scales"] == {"hardening": {"size": 250.0, "from": "given"}}
+    steps = [h["params"]["hardening"][0] for h in doc["history"]]
     assert steps[0] == 0.0 and abs(steps[1]) == pytest.approx(25.0, rel=1e-6)
 
 
