@@ -41,6 +41,12 @@ DEFAULT_SKIN = 0.15
 #: rounding above the limit, warned of as if the run might blow up.
 STEP_ROUNDING = 1e-9
 
+#: Factor by which a step must lie further past ``Model.stable_dt`` (``dt / limit``) than when
+#: ``Solver.check_dt`` last warned of that ``dt`` before it warns again: a fit or a torch loop
+#: moves the limit a little at every evaluation, and each new limit was warned of, the same
+#: line at nearly every evaluation (17 of a 21-evaluation press fit).
+STEP_REWARN = 1.1
+
 #: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
 #: deformation; the differentiable one (under a tape, or ``fused=False``) splits
 #: ``fused`` into density, constitutive, forces and pressure.
@@ -346,7 +352,7 @@ class Solver:
             warnings.warn(f"{why} runs the non-fused kernels for every world: world(s) {plain}, alone on the fused "
                           f"ones, differ from their separate runs by round-off (their sums run in another order)"
                           f"{advice}", RuntimeWarning, stacklevel=2)
-        self._warned_dt = set()
+        self._warned_dt = {}  # dt -> dt / limit when check_dt last warned of it
         self._tape_seen = None  # (the recording tape, the states its steps wrote): _check_taped_step
         self._warned_tape = False
         self._warned_cut = False
@@ -754,12 +760,14 @@ class Solver:
     def check_dt(self, dt) -> float:
         """``dt`` as a float, refused (ValueError) unless positive and representable in the
         model's precision; warns once per value above ``Model.stable_dt`` (with the
-        hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``. ``step``
-        calls it."""
+        hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``, and
+        again for that value only where new parameters put it ``STEP_REWARN`` times further
+        past its limit than when it last warned. ``step`` calls it."""
         dt = representable_dt(self.model.scalar, dt)
         stable = self.model.stable_dt(hourglass=self.hourglass)
-        if dt > stable * (1.0 + STEP_ROUNDING) and (dt, stable) not in self._warned_dt:
-            self._warned_dt.add((dt, stable))
+        past = dt / stable
+        if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
+            self._warned_dt[dt] = past
             warnings.warn(
                 f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
                 f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
