@@ -998,6 +998,12 @@ def test_a_force_log_quoted_tab_separated_or_under_comment_lines_reads_as_the_pl
     with pytest.raises(ValueError, match=r"lacking\.csv is not allowed: a reaction-force log needs the columns frame, time, "
                                          r"tool, fx, fy, fz, .*; it lacks fx, fz"):
         load_target(lacking)
+    # A load cell that measures the loading axis alone: its log has fy and nothing else, and
+    # the refusal said only what it lacked, not how such a log is fitted (docs/cli.md,
+    # --force-components): zeros in the columns not measured, and the measured axis alone.
+    with pytest.raises(ValueError, match=r"lacking\.csv is not allowed: .*; it lacks fx, fz .*; a load cell that "
+                                         r"measures y alone: write 0 in fx, fz and give --force-components y"):
+        load_target(lacking)
 
 
 def test_a_quoted_force_log_with_spaces_after_its_commas_reads_as_the_plain_log(tmp_path):

@@ -3897,6 +3897,14 @@ def _refuse_other_force_logs(p: str) -> None:
         # A lab's log by time alone: the fit compares frame k's window mean at k / fps.
         extra = ("; a log by time alone is not resampled: average its samples over each frame's interval "
                  "((k - 1) / fps, k / fps] and number the rows by frame k")
+    forces = [c for c in ("fx", "fy", "fz") if c not in missing]
+    if forces and len(forces) < 3:
+        # A single-axis load cell's log (frame, time, tool, fy): the refusal named what it
+        # lacked, not that such a log is fitted with zeros in the other columns left unfitted.
+        unmeasured = [c for c in ("fx", "fy", "fz") if c in missing]
+        axes = "".join(c[1] for c in forces)
+        extra += (f"; a load cell that measures {axes} alone: write 0 in {', '.join(unmeasured)} and give "
+                  f"--force-components {axes} (the zeros are then not fitted as measured forces)")
     raise ValueError(f"target {p} is not allowed: {need}; it lacks {', '.join(missing)} (its header: "
                      f"{line.strip()[:120]!r}){extra}")
 
