@@ -426,3 +426,64 @@ def test_spiky_gradient_factor_and_its_slope():
     assert np.all(out[:, 2] == 0.0), "grad_w_spiky_at is psi r"
     fd = (run(rl + eps)[:, 0] - run(rl - eps)[:, 0]) / (2 * eps)
     np.testing.assert_allclose(out[:, 1], fd, rtol=1e-6)
+
+
+@functools.cache
+def _moments_kernel(scalar):
+    T = type_set(scalar)
+    df = deformation.funcs(scalar, "poly6")
+
+    @wp.kernel
+    def run(x: wp.array(dtype=T.vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32),
+            count: wp.array(dtype=wp.int32), h: scalar, gn: T.vec3, goff: scalar, gmin: scalar, images: int,
+            A_fit: wp.array(dtype=T.mat33), same_fit: wp.array(dtype=scalar), A_pos: wp.array(dtype=T.mat33),
+            same_pos: wp.array(dtype=scalar)):
+        i = wp.tid()
+        A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
+        A_fit[i] = A
+        same_fit[i] = same
+        A2, same2 = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, images)
+        A_pos[i] = A2
+        same_pos[i] = same2
+
+    return run
+
+
+def _moments(scalar, x, body, nbr, counts, h, images):
+    """``fit_sums``' ``A`` and count on ``x`` alone, then ``position_moments``'."""
+    T = type_set(scalar)
+    outs = [wp.zeros(len(x), dtype=t) for t in (T.mat33, scalar, T.mat33, scalar)]
+    wp.launch(_moments_kernel(scalar), len(x),
+              [wp.array(x, dtype=T.vec3), wp.array(body, dtype=wp.int32), wp.array(nbr, dtype=wp.int32),
+               wp.array(counts, dtype=wp.int32), scalar(h), T.vec3(0.0, 1.0, 0.0), scalar(0.0), scalar(0.005), images],
+              outs)
+    return [o.numpy() for o in outs]
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+@pytest.mark.parametrize("images", [0, 1])
+def test_position_moments_are_the_fits_moments_bit_for_bit(scalar, images):
+    """``position_moments``, which the fused step's variational force sums ``A`` with (without
+    the fit's ``B``), gives ``fit_sums``' ``A`` and smooth count on ``x`` alone to the bit: rows
+    with partners of another body and beyond ``h``, near a floor whose images count."""
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    rng = np.random.default_rng(5)
+    g = np.arange(4) * 0.01
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + 0.004
+    x = (x + rng.normal(scale=1e-3, size=x.shape)).astype(np_t)
+    n = len(x)
+    body = (np.arange(n) % 5 == 0).astype(np.int32)  # every fifth particle another body
+    h = 0.02
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    rows = [[j for j in np.argsort(d[i], kind="stable") if j != i and d[i, j] < 1.3 * h] for i in range(n)]
+    nbr = np.zeros((n, max(len(r) for r in rows)), dtype=np.int32)
+    for i, r in enumerate(rows):
+        nbr[i, :len(r)] = r
+    counts = np.array([len(r) for r in rows], dtype=np.int32)
+    A_fit, same_fit, A_pos, same_pos = _moments(scalar, x, body, nbr, counts, h, images)
+    assert np.abs(A_fit).max() > 0 and same_fit.max() > 0
+    if images:
+        assert not np.array_equal(A_fit, _moments(scalar, x, body, nbr, counts, h, 0)[0]), \
+            "the floor's images must count in this case"
+    assert np.array_equal(A_pos, A_fit)
+    assert np.array_equal(same_pos, same_fit)

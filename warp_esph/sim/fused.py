@@ -175,8 +175,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         M = mat33()
         fi = vec3()
         if kind_el == 1:
-            # The moments of x alone (y = x and the same round-off: B - A = 0).
-            A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            # The fit's moments of x alone (y = x: B - A = 0), A and the count only: B's sum cost
+            # about 5 % of the step (docs/performance.md), and the same A to the bit.
+            A, same = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, images)
             # Faded where cond(A) passes max_condition or the count falls towards
             # min_neighbors - 1 (guards.guard).
             code, s_fit, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
