@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from warp_esph._types import type_set
-from warp_esph.sim import deformation
+from warp_esph.sim import curvature, deformation
 
 SCALARS = [wp.float32, wp.float64]
 
@@ -429,31 +429,47 @@ def test_spiky_gradient_factor_and_its_slope():
 
 
 @functools.cache
-def _moments_kernel(scalar):
+def _moments_kernel(scalar, fit):
     T = type_set(scalar)
     df = deformation.funcs(scalar, "poly6")
+    cf = curvature.funcs(scalar, "poly6")
 
     @wp.kernel
     def run(x: wp.array(dtype=T.vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32),
             count: wp.array(dtype=wp.int32), h: scalar, gn: T.vec3, goff: scalar, gmin: scalar, images: int,
-            A_fit: wp.array(dtype=T.mat33), same_fit: wp.array(dtype=scalar), A_pos: wp.array(dtype=T.mat33),
+            fit_sums: wp.array2d(dtype=T.mat33), same_fit: wp.array(dtype=scalar), pos_sums: wp.array2d(dtype=T.mat33),
             same_pos: wp.array(dtype=scalar)):
         i = wp.tid()
-        A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
-        A_fit[i] = A
-        same_fit[i] = same
-        A2, same2 = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, images)
-        A_pos[i] = A2
-        same_pos[i] = same2
+        if wp.static(fit == "linear"):
+            A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            fit_sums[i, 0] = A
+            same_fit[i] = same
+            A2, same2 = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            pos_sums[i, 0] = A2
+            same_pos[i] = same2
+        else:
+            A, B, C, D, E, same = cf.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            fit_sums[i, 0] = A
+            fit_sums[i, 1] = C
+            fit_sums[i, 2] = D
+            same_fit[i] = same
+            A2, C2, D2, same2 = cf.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            pos_sums[i, 0] = A2
+            pos_sums[i, 1] = C2
+            pos_sums[i, 2] = D2
+            same_pos[i] = same2
 
     return run
 
 
-def _moments(scalar, x, body, nbr, counts, h, images):
-    """``fit_sums``' ``A`` and count on ``x`` alone, then ``position_moments``'."""
+def _moments(scalar, x, body, nbr, counts, h, images, fit):
+    """``fit_sums``' position moments (``A``; the corrected fit's ``A``, ``C``, ``D``) and count
+    on ``x`` alone, then ``position_moments``'."""
     T = type_set(scalar)
-    outs = [wp.zeros(len(x), dtype=t) for t in (T.mat33, scalar, T.mat33, scalar)]
-    wp.launch(_moments_kernel(scalar), len(x),
+    n = len(x)
+    outs = [wp.zeros((n, 3), dtype=T.mat33), wp.zeros(n, dtype=scalar), wp.zeros((n, 3), dtype=T.mat33),
+            wp.zeros(n, dtype=scalar)]
+    wp.launch(_moments_kernel(scalar, fit), n,
               [wp.array(x, dtype=T.vec3), wp.array(body, dtype=wp.int32), wp.array(nbr, dtype=wp.int32),
                wp.array(counts, dtype=wp.int32), scalar(h), T.vec3(0.0, 1.0, 0.0), scalar(0.0), scalar(0.005), images],
               outs)
@@ -462,10 +478,12 @@ def _moments(scalar, x, body, nbr, counts, h, images):
 
 @pytest.mark.parametrize("scalar", SCALARS)
 @pytest.mark.parametrize("images", [0, 1])
-def test_position_moments_are_the_fits_moments_bit_for_bit(scalar, images):
-    """``position_moments``, which the fused step's variational force sums ``A`` with (without
-    the fit's ``B``), gives ``fit_sums``' ``A`` and smooth count on ``x`` alone to the bit: rows
-    with partners of another body and beyond ``h``, near a floor whose images count."""
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+def test_position_moments_are_the_fits_moments_bit_for_bit(scalar, images, fit):
+    """``position_moments``, which the variational force sums its moments with (the fused step's
+    ``A``, the corrected fit's ``A``, ``C``, ``D``, without the displacement moments), gives
+    ``fit_sums``' on ``x`` alone and its smooth count to the bit: rows with partners of another
+    body and beyond ``h``, near a floor whose images count."""
     np_t = np.float32 if scalar == wp.float32 else np.float64
     rng = np.random.default_rng(5)
     g = np.arange(4) * 0.01
@@ -480,10 +498,11 @@ def test_position_moments_are_the_fits_moments_bit_for_bit(scalar, images):
     for i, r in enumerate(rows):
         nbr[i, :len(r)] = r
     counts = np.array([len(r) for r in rows], dtype=np.int32)
-    A_fit, same_fit, A_pos, same_pos = _moments(scalar, x, body, nbr, counts, h, images)
-    assert np.abs(A_fit).max() > 0 and same_fit.max() > 0
+    sums_fit, same_fit, sums_pos, same_pos = _moments(scalar, x, body, nbr, counts, h, images, fit)
+    used = 1 if fit == "linear" else 3
+    assert all(np.abs(sums_fit[:, k]).max() > 0 for k in range(used)) and same_fit.max() > 0
     if images:
-        assert not np.array_equal(A_fit, _moments(scalar, x, body, nbr, counts, h, 0)[0]), \
+        assert not np.array_equal(sums_fit, _moments(scalar, x, body, nbr, counts, h, 0, fit)[0]), \
             "the floor's images must count in this case"
-    assert np.array_equal(A_pos, A_fit)
+    assert np.array_equal(sums_pos, sums_fit)
     assert np.array_equal(same_pos, same_fit)

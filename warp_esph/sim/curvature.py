@@ -191,6 +191,52 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return A, B, C, D, E, same
 
     @wp.func
+    def position_moments(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
+    ):
+        """``fit_sums`` on ``x`` alone (``y = x``: ``B - A`` and ``E - C`` are 0) without those
+        two: ``A``, ``C``, ``D`` and the smooth count, the same terms in the same order (the
+        same bits), for the variational force and its adjoint, which read no displacement
+        moment: two sums and the displacement's three loads per neighbour fewer
+        (docs/performance.md, a few percent of the corrected fit's step)."""
+        A = mat33()
+        C = mat33()
+        D = mat33()
+        xi = x[i]
+        bi = body[i]
+        c6 = fw.coef(h)
+        hh = h * h
+        same = scalar(0.0)
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - xi
+                r2 = wp.dot(xb, xb)
+                # (pair_moments' displacement terms, of a zero yb here, are not summed.)
+                dA, dB, dC, dD, dE = pair_moments(xb, vec3(), fw.w_c(r2, h, c6), h)
+                A += dA
+                C += dC
+                D += dD
+                c, dc = gf.count_weight(r2, hh)
+                same += c
+        if images != 0:
+            Ag, Bg, Cg, Dg, Eg, sg = moment_pair_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, 1)
+            A = A + Ag
+            C = C + Cg
+            D = D + Dg
+            same = same + sg
+        return A, C, D, same
+
+    @wp.func
     def floor_image_moment(
         i: int,
         x: wp.array(dtype=vec3),
@@ -667,7 +713,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         corrected fit and its own image's energy (``Mg``, ``Kg`` of ``floor_image_moment``)."""
         # The moments from their own function: the inverses must not see a loop
         # accumulator (docs/method.md, Warp pitfall 1).
-        A, B, C, D, E, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        A, C, D, same = position_moments(i, x, body, nbr, n, h, gn, goff, gmin, images)
         K = curvature_projection(A, C, D)
         s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
         M = s_fit * variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K)))
@@ -757,6 +803,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        position_moments=position_moments,
         fit_variational_forces=fit_variational_forces, fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
         moments_adjoint=moments_adjoint, carried_update=df.carried_update,
         ImageSums=ImageSums, floor_image_displacement_sums=floor_image_displacement_sums,
@@ -839,7 +886,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         n = count[i]
         c6 = fw.coef(h)
         hh = h * h
-        A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        A, C, D, same = fn.position_moments(i, x, body, nbr, n, h, gn, goff, gmin, images)
         # adj M = S1 - S2 K and adj K = -S2^T M (which need K and M); the same for the own
         # image's Mg, Kg (S1g, S2g).
         S1, S2 = fn.map_adjoint_sums(i, x, body, nbr, n, h, adj_f)
