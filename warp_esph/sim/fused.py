@@ -32,6 +32,7 @@ the two.
 import contextlib
 import functools
 import types
+import weakref
 
 import warp as wp
 
@@ -325,6 +326,10 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         )
     if tape is None:
         return
+    # The tape keeps this backward: one holding the tape itself made a reference cycle, which
+    # left every dropped tape (a checkpointed backward's segments', a full tape at the next
+    # forward) with all its step records to the cyclic collector (about 5 kB a step pending).
+    tape_ref = weakref.ref(tape)
 
     def backward():
         # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
@@ -340,7 +345,8 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
                                                      scratch.max_condition, sph)
             if sph:
                 pressure.launch_pressure_image_forces_adjoint(model, state_in, state_out)
-        plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
+        plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters,
+                                                      tape_ref())
         if sph:
             pressure.launch_state_densities_adjoint(model, state_in.x, state_out)
 

@@ -21,6 +21,7 @@ act (``launch_floor_image_reaction``).
 
 import functools
 import types
+import weakref
 
 import warp as wp
 
@@ -289,8 +290,12 @@ def launch_integrate(model, state_in, state_out, dt):
     model.launches(kernel, m.particle_count, inputs, outputs, device=m.device, record_tape=tape is None)
     if tape is None:
         return
+    # Weakly: the tape keeps this backward, and a backward holding the tape made a reference
+    # cycle that left every dropped tape with its step records to the cyclic collector.
+    tape_ref = weakref.ref(tape)
 
     def backward():
+        tape = tape_ref()
         adj = tape.get_adjoint
         spare = spare_reaction_rows(m, state_out.collider_force)
         for a in spare:
