@@ -239,14 +239,6 @@ CHECKPOINT_OVERHEAD = 20 * 1024
 #: overheads above, measured at 8 and 64 particles and 50-3000 steps; an untaped run's did
 #: not grow from 2000 to 20000 steps).
 ROLLOUT_OVERHEAD = 2 * 1024 * 1024
-#: A checkpointed run's cyclic garbage, which a full collection frees in its own time (a
-#: ``gc.collect()`` after a checkpointed forward frees all of it), as a share of the Python
-#: objects taken for it: Python collects in full where a quarter more objects than it keeps
-#: long are pending. Its steps leave 0.5-1.6 kB a step (8 particles, 120-5000 steps,
-#: ``tracemalloc``), which the objects taken without it did not bound: segments of 30 over
-#: 1000 steps held 7.54 MB against 7.43 taken, segments of 50 over 5000 steps 14.09 against
-#: 11.73 (1.20 x). A full tape's is small beside its states (within their margin, measured).
-CHECKPOINTED_GARBAGE_SHARE = 0.25
 #: Positions' worth of Warp arrays per observed step (``frames``): the rollout's copy, the
 #: loss's target, its copy of the positions and their gradient, and the gradient handed back
 #: (``fit.memory_estimate``; a ``PositionLoss``'s, measured).
@@ -353,10 +345,10 @@ class _RolloutMemory:
                   + steps * self.rows * 3 * np.dtype(self.model.types.np_dtype).itemsize)  # the per-step force rows
         # The start's copy and a checkpointed run's two untaped states, the tape's records and the
         # checkpoints' objects had been left out: 0.3-0.9 x what 8 particles held (measured).
+        # No share for cyclic garbage: a dropped tape is freed at once (its recorded adjoints
+        # hold it weakly), where each segment's had been left to the collector (1.20 x).
         own = ((taped + 1 if taped else 0) * STATE_OVERHEAD + taped * self.tape_step
                + untaped * UNTAPED_STATE_OVERHEAD + checkpoints * CHECKPOINT_OVERHEAD + ROLLOUT_OVERHEAD)
-        if checkpoints:
-            own = int(own * (1.0 + CHECKPOINTED_GARBAGE_SHARE))
         return (arrays + own, 0) if self.cpu else (arrays, own)
 
     def overrun(self, segment: int | None) -> int:
@@ -373,16 +365,15 @@ class _RolloutMemory:
         """The segment that needs the least memory. ``sqrt(steps)`` was taken for it, which is
         the least where a taped state weighs what a checkpoint does; a taped state (its
         arrays, its own 64 kB and the tape's records of its step) outweighs a checkpoint several
-        times, and the least lies below: for 8 particles and 1e5 steps 122 steps need 50.3 MiB,
-        316 need 72.9 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
+        times, and the least lies below: for 8 particles and 1e5 steps 122 steps need 41.5 MiB,
+        316 need 59.7 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
         least'). On a GPU, of the memory it
         overruns most (the device's or the host's). Untaped: ``steps``, no checkpoints (its
         forward keeps none)."""
         if not self.taped:
             return self.steps
         have, host, steps = self.have, self.host, self.steps
-        # (Its own objects with the garbage share a checkpointed run is weighed with.)
-        checkpoint = self.sizes[2] + (CHECKPOINT_OVERHEAD * (1.0 + CHECKPOINTED_GARBAGE_SHARE) if self.cpu else 0)
+        checkpoint = self.sizes[2] + (CHECKPOINT_OVERHEAD if self.cpu else 0)
 
         def worst(segment, smooth=False):
             d, h = self.need(segment)
