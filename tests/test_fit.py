@@ -1008,6 +1008,38 @@ def test_a_taped_rollout_leaves_no_cyclic_garbage(kind, checkpoint_every):
     assert not garbage, found.most_common(12)
 
 
+@pytest.mark.parametrize("checkpoint_every", [None, 4], ids=["full_tape", "checkpointed"])
+def test_a_fit_leaves_no_cyclic_garbage(checkpoint_every):
+    """Besides its rollouts' tapes, each fit made two reference cycles that only the cyclic
+    collector freed: the class of its starts' descents (made inside ``fit``) and the recursive
+    closure that walks a loss's worlds for the target check. A second fit of a scene (the
+    kernels loaded by the first) leaves nothing for the collector (``gc.DEBUG_SAVEALL``)."""
+    import collections
+    import gc
+
+    model = _step_memory_scene("ground")
+    steps = 8
+    loss = PositionLoss({steps: model.particle_x0 + 0.001})
+
+    def one_fit():
+        result = fit(model, loss, ["mu"], steps=steps, dt=0.5 * model.stable_dt(), iterations=2, progress=False,
+                     diagnostics=False, optimizer="lbfgs", checkpoint_every=checkpoint_every)
+        assert len(result.history) >= 2  # it ran its taped evaluations
+
+    one_fit()
+    gc.collect()
+    gc.set_debug(gc.DEBUG_SAVEALL)
+    try:
+        one_fit()
+        gc.collect()
+        garbage = list(gc.garbage)
+    finally:
+        gc.set_debug(0)
+        gc.garbage.clear()
+    found = collections.Counter(getattr(o, "__qualname__", None) or type(o).__name__ for o in garbage)
+    assert not garbage, found.most_common(12)
+
+
 def test_the_kept_launch_records_go_with_the_fits_states():
     """Each taped step's launch records live as long as its ``state_out`` (``Launches.records``,
     weakly keyed): records kept past their states would grow with every fit a process runs.

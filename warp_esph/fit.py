@@ -353,6 +353,18 @@ def _target_loss(target, frames) -> Loss:
     return PositionLoss(a, frames=frames)
 
 
+def _world_leaves(loss: Loss, world: int | None):
+    """``(leaf, world)`` of every leaf of ``loss``, a ``WorldLoss``'s with the index of its world
+    (its particles numbered within it). A module function: recursing as a closure over its own
+    name made a reference cycle at every fit, left to the cyclic collector."""
+    for leaf in _leaves(loss):
+        if isinstance(leaf, WorldLoss):
+            for w, inner in enumerate(leaf.losses):
+                yield from _world_leaves(inner, w)
+        else:
+            yield leaf, world
+
+
 def _check_target_range(loss: Loss, model: Model, what: str) -> None:
     """Refuse target coordinates whose square the loss cannot hold in the model's precision
     (``checks.squarable_coordinates``, as ``warp-esph fit --target``), before any rollout:
@@ -361,16 +373,7 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
     (numpy warning only of an overflow), the fit running on without it. A slump height or
     spread (``SlumpLoss``, m) is bounded the same way, in float64, the precision that loss is
     evaluated in on the host (a ``ReactionForceLoss`` refuses such a force when made)."""
-    def leaves(loss, world):
-        for leaf in _leaves(loss):
-            if isinstance(leaf, WorldLoss):
-                # A world's loss numbers its particles within that world.
-                for w, inner in enumerate(leaf.losses):
-                    yield from leaves(inner, w)
-            else:
-                yield leaf, world
-
-    for leaf, world in leaves(loss, None):
+    for leaf, world in _world_leaves(loss, None):
         at = f"world {world}, " if world is not None else ""
         if isinstance(leaf, PositionLoss):
             # A missing marker (NaN) is no coordinate to square: checked as 0.
@@ -1771,6 +1774,23 @@ def _result_on_interrupt(f):
     return wrapper
 
 
+class _Track:
+    """One start's descent in ``fit``: its best point and evaluations since the best improved.
+    At module level: a class made inside each fit is a reference cycle (its dict, its
+    methods), left to the cyclic collector."""
+
+    def __init__(self, index):
+        self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
+        self.entry = None  # its last history entry
+        self.kept = None  # the runs at its best point (_Run.kept), one per experiment
+        # What its first evaluation observed, and whether a later one observed otherwise
+        # (``_tells_apart``): a fit whose observations never move is judged by ``verdict``.
+        self.start_z, self.start_obs, self.start_loss, self.moved = None, None, None, False
+        # The points whose finite observations were compared with the start's: verdict
+        # does not run one of them again as its probe (the zero-gradient check's point).
+        self.compared = set()
+
+
 @_result_on_interrupt
 def fit(
     model,
@@ -2012,20 +2032,6 @@ def fit(
                 f"{', '.join(f'{v:.6g}' for v in start[name])}")
     history: list[dict] = []
     state = {"bar": None, "stage": "descent", "stop_all": None}
-
-    class _Track:
-        """One start's descent: its best point and evaluations since the best improved."""
-
-        def __init__(self, index):
-            self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
-            self.entry = None  # its last history entry
-            self.kept = None  # the runs at its best point (_Run.kept), one per experiment
-            # What its first evaluation observed, and whether a later one observed otherwise
-            # (``_tells_apart``): a fit whose observations never move is judged by ``verdict``.
-            self.start_z, self.start_obs, self.start_loss, self.moved = None, None, None, False
-            # The points whose finite observations were compared with the start's: verdict
-            # does not run one of them again as its probe (the zero-gradient check's point).
-            self.compared = set()
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
