@@ -486,3 +486,71 @@ def test_physics_md_reader_path_links_every_open_problem():
     assert len(open_) >= 3
     slug = {h: re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in open_}
     assert not [h for h in open_ if slug[h] not in linked]
+
+
+#: A number docs/accuracy.md quotes from docs/validation.json, with the row it comes from:
+#: ``0.998<!-- vj: case=bar resolution=4 elastic_force=variational ; ratio -->``. Before the ``;``:
+#: ``key=value`` filters that pick exactly one result row (``yf`` first: a row of the table
+#: "The yield stress a slump fit recovers" instead, which docs/validation.md derives from the slump
+#: rows and docs/mpm_slump.json); after it: an expression of the row's fields (``flow(lo, hi)``: a
+#: uniaxial flow's stress over Bingham's at the log strains in ``[lo, hi)``). The quoted number must
+#: be the expression's value rounded to the decimals it shows (a ``-`` after a number or its comment is a range's).
+VJ = re.compile(r"(?P<num>(?:(?<![\d.>])-)?\d+(?:\.\d+)?)\s*(?:%|x)?\s*<!-- vj: (?P<sel>[^;]*?)\s*;\s*(?P<expr>.*?)\s*-->")
+#: Values of a filter's key where a row predates the key.
+VJ_DEFAULTS = {"fit_weight": "poly6"}
+
+
+def _vj_rows():
+    import json  # noqa: PLC0415
+
+    from benchmarks import validation_report as vr  # noqa: PLC0415
+
+    results = json.loads((DOCS / "validation.json").read_text())["results"]
+    mpm = json.loads((DOCS / "mpm_slump.json").read_text())
+    keys = ["floor", "fit_weight", "resolution", "S", "thickness_over_H0", "yield_1d", "continuum",
+            "continuum_thickness_over_H0", "yield_continuum", "log_s_moves"]
+    return results, [dict(zip(keys, row)) for row in vr._fitted_yield_rows(results, mpm)]
+
+
+def _vj_matches(row: dict, filters: list[str]) -> bool:
+    for f in filters:
+        key, _, want = f.partition("=")
+        have = row.get(key, VJ_DEFAULTS.get(key))
+        try:
+            if float(have) != float(want):
+                return False
+        except (TypeError, ValueError):
+            if str(have) != want:
+                return False
+    return True
+
+
+def test_every_number_accuracy_md_quotes_from_a_validation_row_is_the_rows():
+    """docs/accuracy.md answers "how far can I trust a fitted parameter" with numbers of
+    docs/validation.json; each carries the row it was read from, so a re-measured row that moves
+    a number, or a number mistyped, fails here rather than misleading a reader."""
+    text = (DOCS / "accuracy.md").read_text()
+    results, fitted = _vj_rows()
+    found, wrong = 0, []
+    for m in VJ.finditer(text):
+        found += 1
+        filters = m.group("sel").split()
+        rows = fitted if filters and filters[0] == "yf" else results
+        filters = filters[1:] if rows is fitted else filters
+        picked = [r for r in rows if _vj_matches(r, filters)]
+        if len(picked) != 1:
+            wrong.append(f"{m.group(0)!r}: {len(picked)} rows match, not one")
+            continue
+        row = picked[0]
+
+        def flow(lo, hi, row=row):
+            return [x["stress_over_sigma_y"] / x["bingham_over_sigma_y"] for x in row["history"]
+                    if lo <= x["log_strain"] < hi]
+
+        value = eval(m.group("expr"), {"__builtins__": {}, "abs": abs, "min": min, "max": max, "flow": flow}, dict(row))
+        digits = len(m.group("num").partition(".")[2])
+        if float(m.group("num")) != round(float(value), digits):
+            wrong.append(f"{m.group(0)!r}: the row gives {value!r}")
+    assert found >= 20, f"docs/accuracy.md marks {found} numbers: has the marker's format changed?"
+    assert found == text.count("<!-- vj:"), "a marker of docs/accuracy.md follows no number it can read"
+    assert not wrong, "\n".join(wrong)
