@@ -45,7 +45,11 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: the rest and additive materials, the ghost floor and the non-fused floor images; the hourglass
 #: control beside the paper's force, the floor images and the ghost floor; the ``energy`` and
 #: ``spiky`` pressure forces on the non-fused schedule (one unclamped); a block held on a mesh
-#: tool and on a cylinder tool standing on its axis.
+#: tool and on a cylinder tool standing on its axis; an elastic block (the corotated stress, with
+#: the ghosts in its linear fit) on a no-slip and on a slip ghost floor, a plastic one on the slip
+#: floor, and an elastic block (the default solver's rest model) on a pinned particle floor, the
+#: combinations the audit of docs/method.md, "Which test checks each kernel's adjoint", found no
+#: float64 central difference passing through.
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -66,6 +70,10 @@ CASES = {
     "spiky_unfused_unclamped": ({"pressure_force": "spiky", "clamp_pressure": False}, {"fused": False}, {}, "ground"),
     "mesh_tool": ({}, {}, {}, "mesh"),
     "cylinder_tool": ({}, {}, {}, "cylinder"),
+    "ghost_floor_elastic": (ELASTIC, {}, {}, "ghost"),
+    "ghost_slip_floor": ({}, {}, {}, "ghost_slip"),
+    "ghost_slip_floor_elastic": (ELASTIC, {}, {}, "ghost_slip"),
+    "pinned_floor_elastic": (ELASTIC, {}, {}, "pinned"),
 }
 
 
@@ -78,8 +86,10 @@ def _model(case, scene, params=None):
          "viscosity": 2.0, **options, **(params or {})}
     b = we.SceneBuilder(spacing=DX, gravity=(0.0, -9.81, 0.0), **builder)
     b.add_box((0.0, 0.03, 0.0), (4 * DX, 3 * DX, 3 * DX), we.Material(density=1000.0, **p), name="block")
-    if floor == "ghost":
-        b.add_particle_floor("block", margin=DX, ghost=True)
+    if floor in ("ghost", "ghost_slip"):
+        b.add_particle_floor("block", margin=DX, ghost=True, slip=floor == "ghost_slip")
+    elif floor == "pinned":
+        b.add_particle_floor("block", margin=DX, layers=1)
     elif floor == "mesh":
         b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), position=(0.0, 0.0, 0.0), friction=0.5, name="floor")
     elif floor == "cylinder":
@@ -128,7 +138,7 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         assert solver.rest_model and solver.fit == "curvature_corrected" and solver.hourglass > 0.0
     if floor in ("mesh", "cylinder"):
         assert np.abs(states[-1].reaction_force.numpy()).max() > 0.0
-    elif floor != "ghost":
+    elif not floor.startswith("ghost") and floor != "pinned":
         assert np.abs(states[-1].collider_force.numpy()).max() > 0.0
     base = getattr(model.materials[0], name)
     for rel in (1e-3, 1e-5):
