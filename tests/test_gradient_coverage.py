@@ -22,6 +22,9 @@ Where the other combinations are checked (float64 central differences of a taped
   parameters of a block flowing on the ground or a plane tool, a flowing block under moving
   tools, two bodies of different models pressed together, a plane tool and a sphere tool
   moved at a linear and an angular velocity: ``test_gradient_inputs.py``.
+
+docs/method.md, "Which test checks each kernel's adjoint", has the same by kernel; the last test
+here fails when a taped step launches a kernel that table does not name.
 """
 
 import numpy as np
@@ -157,3 +160,69 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
         assert abs(fd) > 1e-9
         assert grads["v0"][i, 0] == pytest.approx(fd, rel=1e-4, abs=1e-9), eps
+
+
+#: Taped steps (each scene with a compression field) whose launches together are every kernel of
+#: docs/method.md's coverage table but the rest model's hand-over and hand-back (a step that
+#: switches models): (case of ``CASES``, material options, ``Solver`` options or None for the
+#: case's, hand-written adjoints).
+_TABLE_SCENES = [
+    ("biweight_ghost_floor", None, None, True),
+    ("default_elastic", None, None, True),
+    ("default_elastic", None, None, False),
+    ("hourglass_images", None, None, True),
+    ("hourglass_images", None, None, False),
+    ("hourglass_paper", None, None, True),
+    ("corotated_corrected", None, None, True),
+    ("mesh_tool", None, None, True),
+    ("corotated", {"deformation": "additive", **ELASTIC}, {}, False),
+]
+
+
+def _table_kernels() -> set:
+    """The kernels docs/method.md's table names (its rows' first cells and the adjoints named
+    in the second), as ``file.function``."""
+    import pathlib
+    import re
+
+    text = (pathlib.Path(__file__).resolve().parent.parent / "docs" / "method.md").read_text()
+    section = text.split("### Which test checks each kernel's adjoint", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split(" | ")[:2] for line in section.splitlines() if line.startswith("| `")]
+    return {name for cells in rows for cell in cells for name in re.findall(r"`([a-z_]+\.(?!py`)[a-z_]+)`", cell)}
+
+
+def test_every_kernel_of_a_taped_step_is_in_the_coverage_table():
+    """Two taped float64 steps (and their backward pass) of each of ``_TABLE_SCENES`` launch only
+    kernels docs/method.md's coverage table names: a new kernel on the step's path needs a
+    float64 central-difference test and its row there. Each kernel the table names exists
+    (``def <function>(`` in ``warp_esph/sim/<file>.py`` or ``warp_esph/<file>.py``)."""
+    import pathlib
+
+    from kernel_log import launched_kernels
+    from warp_esph.sim.fields import CompressionField
+
+    named = _table_kernels()
+    launched = set()
+    for case, options, solver_options, hand in _TABLE_SCENES:
+        model = _model(case, "thrown", options)
+        model.force_fields.append(CompressionField((0.0, 0.0, 0.0), 10.0))
+        log = set()
+        with launched_kernels(log):
+            solver = we.Solver(model, **(CASES[case][1] if solver_options is None else solver_options))
+            solver.hand_adjoints = hand
+            # Two steps: the second checks the neighbour lists' skin (neighbors.displacement_bounds).
+            states = [model.state() for _ in range(3)]
+            loss, tape = taped_rollout_loss(solver, states, DT, random_weights(model.particle_count, 2))
+            tape.backward(loss)
+        assert np.isfinite(states[0].v.grad.numpy()).all() and np.abs(states[0].v.grad.numpy()).max() > 0.0
+        launched |= {name for name, _ in log if not name.startswith("taped_loss.")}
+    missing = sorted(launched - named)
+    assert not missing, f"kernels on the taped step without a row in docs/method.md's coverage table: {missing}"
+    # The scenes reach every row but the two named above, so a kernel the step stops launching shows.
+    assert named - launched == {"comparison.rest_handover", "comparison.rest_handback"}, sorted(named - launched)
+    root = pathlib.Path(__file__).resolve().parent.parent / "warp_esph"
+    for name in named:
+        stem, function = name.split(".")
+        source = root / "sim" / f"{stem}.py"
+        source = source if source.exists() else root / f"{stem}.py"
+        assert f"def {function}(" in source.read_text(), name
