@@ -80,7 +80,7 @@ CASES = {
 }
 
 
-def _model(case, scene, params=None):
+def _model(case, scene, params=None, worlds=1, world1=None):
     """A 4 x 3 x 3 block (36 particles, jittered by 1e-3 dx) whose bottom layer lies on the
     case's floor at y = 0.01: ``rest``, from rest (F = I, v = 0) under gravity; ``thrown``, with
     a stretching and squeezing velocity field, a slide along x and a push into the floor."""
@@ -99,7 +99,10 @@ def _model(case, scene, params=None):
         b.add_tool("cylinder", radius=0.05, half_height=0.05, position=(0.0, -0.04, 0.0), friction=0.5, name="floor")
     else:
         b.add_ground(0.01, friction=0.5, images=floor == "images")
-    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model = b.finalize(dtype=wp.float64, requires_grad=True, worlds=worlds)
+    if world1 is not None:
+        # World 1's material differs from world 0's (stiffer, yielding later).
+        model.set_material(0, we.Material(density=1000.0, **{**p, **world1}), world=1)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * DX, size=model.particle_x0.shape)
     if scene == "thrown":
         x0 = model.particle_x0
@@ -226,3 +229,40 @@ def test_every_kernel_of_a_taped_step_is_in_the_coverage_table():
         source = root / "sim" / f"{stem}.py"
         source = source if source.exists() else root / f"{stem}.py"
         assert f"def {function}(" in source.read_text(), name
+
+
+#: Step paths the worlds' other gradient tests (``test_worlds.py``: the fused linear fit on the
+#: ground, the default elastic solver's rest model beside tools) do not take, each with two worlds.
+WORLD_CASES = ["corotated_unfused", "hourglass_paper", "hourglass_images", "biweight_ghost_floor", "corotated_corrected",
+               "biweight_rest_paper", "biweight_additive", "pinned_floor_elastic"]
+
+
+@pytest.mark.parametrize("case", WORLD_CASES)
+def test_each_worlds_mu_gradient_on_the_other_step_paths_matches_central_differences(case):
+    """Two worlds of different materials in one model (``finalize(worlds=2)``), thrown onto
+    their floor: the tape's gradient in each world's own ``mu`` (its entry of ``Model.mu``) is
+    the central difference of the loss in that world's ``mu`` alone (``set_material(...,
+    world=w)``), at relative steps of 1e-3 and 1e-5, within 1e-4. A per-world index read wrong
+    by a kernel or its adjoint (a material or a particle of world 0 for world 1's) moves the
+    gradient to the other world's entry."""
+    world1 = {"mu": 1.4e3, "lam": 2.0e3, "yield_stress": 14.0}
+    model = _model(case, "thrown", worlds=2, world1=world1)
+    assert model.world_count == 2
+    w = random_weights(model.particle_count, 2)
+    grads = _loss(case, model, w, ("mu",))[0]["mu"]
+    first = model.world_material_start
+    for world, mu in ((0, 1.0e3), (1, world1["mu"])):
+        def loss_with(delta):
+            m = _model(case, "thrown", worlds=2, world1=world1)
+            options = {**CASES[case][0], **(world1 if world else {}), "mu": mu + delta}
+            p = {"lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
+                 "viscosity": 2.0, **options}
+            m.set_material(0, we.Material(density=1000.0, **p), world=world)
+            return _loss(case, m, w)
+
+        g = grads[first[world]]
+        for rel in (1e-3, 1e-5):
+            eps = rel * mu
+            fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+            assert abs(fd) > 1e-11, (world, rel)
+            assert g == pytest.approx(fd, rel=1e-4), (world, rel)
