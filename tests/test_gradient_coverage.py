@@ -52,7 +52,8 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: the ghosts in its linear fit) on a no-slip and on a slip ghost floor, a plastic one on the slip
 #: floor, and an elastic block (the default solver's rest model) on a pinned particle floor, the
 #: combinations the audit of docs/method.md, "Which test checks each kernel's adjoint", found no
-#: float64 central difference passing through.
+#: float64 central difference passing through; a plastic block on an elastic particle floor and
+#: on a capsule tool standing on its axis, which one test each passed through.
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -77,6 +78,8 @@ CASES = {
     "ghost_slip_floor": ({}, {}, {}, "ghost_slip"),
     "ghost_slip_floor_elastic": (ELASTIC, {}, {}, "ghost_slip"),
     "pinned_floor_elastic": (ELASTIC, {}, {}, "pinned"),
+    "elastic_pinned_floor": ({}, {}, {}, "pinned_elastic"),
+    "capsule_tool": ({}, {}, {}, "capsule"),
 }
 
 
@@ -91,12 +94,15 @@ def _model(case, scene, params=None, worlds=1, world1=None):
     b.add_box((0.0, 0.03, 0.0), (4 * DX, 3 * DX, 3 * DX), we.Material(density=1000.0, **p), name="block")
     if floor in ("ghost", "ghost_slip"):
         b.add_particle_floor("block", margin=DX, ghost=True, slip=floor == "ghost_slip")
-    elif floor == "pinned":
-        b.add_particle_floor("block", margin=DX, layers=1)
+    elif floor in ("pinned", "pinned_elastic"):
+        b.add_particle_floor("block", margin=DX, layers=1, elastic=floor == "pinned_elastic")
     elif floor == "mesh":
         b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), position=(0.0, 0.0, 0.0), friction=0.5, name="floor")
     elif floor == "cylinder":
         b.add_tool("cylinder", radius=0.05, half_height=0.05, position=(0.0, -0.04, 0.0), friction=0.5, name="floor")
+    elif floor == "capsule":
+        # Standing on its axis: the block's middle rests on its round cap.
+        b.add_tool("capsule", radius=0.05, half_height=0.02, position=(0.0, -0.059, 0.0), friction=0.5, name="floor")
     else:
         b.add_ground(0.01, friction=0.5, images=floor == "images")
     model = b.finalize(dtype=wp.float64, requires_grad=True, worlds=worlds)
@@ -142,9 +148,9 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
     floor = CASES[case][3]
     if case.startswith("default_elastic"):
         assert solver.rest_model and solver.fit == "curvature_corrected" and solver.hourglass > 0.0
-    if floor in ("mesh", "cylinder"):
+    if floor in ("mesh", "cylinder", "capsule"):
         assert np.abs(states[-1].reaction_force.numpy()).max() > 0.0
-    elif not floor.startswith("ghost") and floor != "pinned":
+    elif not floor.startswith(("ghost", "pinned")):
         assert np.abs(states[-1].collider_force.numpy()).max() > 0.0
     base = getattr(model.materials[0], name)
     for rel in (1e-3, 1e-5):
@@ -152,7 +158,9 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         fd = (_loss(case, _model(case, scene, {name: base + eps}), w)
               - _loss(case, _model(case, scene, {name: base - eps}), w)) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
+        # (Summed over the materials: an elastic particle floor's is a copy of the block's, made
+        # with the same parameter.)
+        assert grads[name].sum() == pytest.approx(fd, rel=1e-4), (name, rel)
     i = int(np.argmin(model.particle_x0[:36, 1]))
     for eps in (1e-4, 1e-6):
         def loss_with(delta):
