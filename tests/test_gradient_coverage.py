@@ -53,7 +53,8 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: floor, and an elastic block (the default solver's rest model) on a pinned particle floor, the
 #: combinations the audit of docs/method.md, "Which test checks each kernel's adjoint", found no
 #: float64 central difference passing through; a plastic block on an elastic particle floor and
-#: on a capsule tool standing on its axis, which one test each passed through.
+#: on a capsule tool standing on its axis, which one test each passed through; a compression
+#: field beside the floor images and on the default elastic solver (two tests passed through a field).
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -80,6 +81,8 @@ CASES = {
     "pinned_floor_elastic": (ELASTIC, {}, {}, "pinned"),
     "elastic_pinned_floor": ({}, {}, {}, "pinned_elastic"),
     "capsule_tool": ({}, {}, {}, "capsule"),
+    "field_images": ({}, {}, {}, "images_field"),
+    "field_default_elastic": (ELASTIC, {}, {}, "ground_field"),
 }
 
 
@@ -104,7 +107,10 @@ def _model(case, scene, params=None, worlds=1, world1=None):
         # Standing on its axis: the block's middle rests on its round cap.
         b.add_tool("capsule", radius=0.05, half_height=0.02, position=(0.0, -0.059, 0.0), friction=0.5, name="floor")
     else:
-        b.add_ground(0.01, friction=0.5, images=floor == "images")
+        b.add_ground(0.01, friction=0.5, images=floor.startswith("images"))
+    if floor.endswith("_field"):
+        # A horizontal squeeze towards the block's axis, on from the start.
+        b.add_compression_field((0.0, 0.0, 0.0), 50.0)
     model = b.finalize(dtype=wp.float64, requires_grad=True, worlds=worlds)
     if world1 is not None:
         # World 1's material differs from world 0's (stiffer, yielding later).
