@@ -830,3 +830,23 @@ def test_a_rollouts_model_and_solver_are_fixed_once_made(small_rollout):
         with pytest.raises(ValueError, match=rf"^Rollout\.{name} = .* is not allowed: this rollout's states"):
             setattr(rollout, name, None)
         assert getattr(rollout, name) is was
+
+
+@pytest.mark.parametrize("value", [np.array(0.3), np.array([]), np.array(["linear"])], ids=["0d_float", "empty", "one_name"])
+def test_numpy_arrays_where_a_vector_a_count_or_a_name_goes_are_refused_by_name(value):
+    """A 0-d array has ``__len__`` and ``__index__`` but neither a length nor (of floats) an
+    index: gravity said Python's 'len() of unsized object', max_neighbors numpy's 'only integer
+    scalar arrays ...', naming neither. An array holding one allowed name compared equal to it
+    and was kept as the array, so finalize failed with 'unhashable type'; an empty one raised
+    numpy's truth-value error."""
+    with pytest.raises(ValueError, match=r"^gravity = .* is not allowed: must be a sequence of 3 numbers"):
+        we.SceneBuilder(spacing=0.05, gravity=value)
+    with pytest.raises(ValueError, match=r"^max_neighbors = .* is not allowed: must be an integer >= 1"):
+        we.SceneBuilder(spacing=0.05, max_neighbors=value)
+    with pytest.raises(ValueError, match=r"^Material\.model = .* is not allowed: must be one of 'linear'"):
+        we.Material(mu=1.0e3, lam=1.0e3, model=value)
+    with pytest.raises(ValueError, match=r"^axis = .* is not allowed: must be one of 'x', 'y', 'z'"):
+        we.SceneBuilder(spacing=0.05).add_cylinder((0.0, 0.2, 0.0), 0.1, 0.2, we.Material.preset("dough"), axis=value)
+    # What numpy gives for a count or a name, a 0-d integer array and a numpy string, stays welcome.
+    assert we.SceneBuilder(spacing=0.05, max_neighbors=np.array(40)).max_neighbors == 40
+    assert we.Material(mu=1.0e3, lam=1.0e3, model=np.str_("stvk")).model == "stvk"

@@ -236,7 +236,11 @@ def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
         _fail(name, value, f"must be a sequence of {length} numbers")
     if isinstance(value, (set, frozenset, Mapping)):  # no order: a set of (2, 1, 0) came back as (0, 1, 2)
         _fail(name, value, f"must be a sequence of {length} numbers in order (not a set or a mapping)")
-    if len(value) != length:
+    try:
+        size = len(value)
+    except TypeError:  # a 0-d numpy array has __len__ but no length: Python's 'len() of unsized object'
+        _fail(name, value, f"must be a sequence of {length} numbers")
+    if size != length:
         _fail(name, value, f"must be a sequence of {length} numbers")
     return tuple(number(f"{name}[{k}]", c) for k, c in enumerate(value))
 
@@ -283,7 +287,10 @@ def positive_int(name: str, value, maximum: int = MAX_INT, minimum: int = 1) -> 
     allowed = "must be an integer >= 1" if minimum == 1 else f"must be an integer in [{minimum}, {maximum}]"
     if isinstance(value, bool) or not isinstance(value, int) and not (hasattr(value, "__index__")):
         _fail(name, value, allowed)
-    v = int(value.__index__())
+    try:
+        v = int(value.__index__())
+    except TypeError:  # a float or empty numpy array has __index__ too, and said only numpy's 'only integer scalar arrays'
+        _fail(name, value, allowed)
     if v < minimum:
         _fail(name, value, allowed)
     if v > maximum:
@@ -413,7 +420,9 @@ def step_states(model, state_in, state_out) -> None:
 
 
 def choice(name: str, value, allowed: Sequence[str]) -> str:
-    if value not in allowed:
+    # Text only: a numpy array of one allowed name compared equal and was kept as the array (a
+    # later lookup failed with 'unhashable type'), an empty one raised numpy's truth-value error.
+    if not isinstance(value, str) or value not in allowed:
         _fail(name, value, "must be one of " + ", ".join(repr(a) for a in allowed))
     return value
 
