@@ -310,6 +310,8 @@ def test_particle_floor_is_pinned_and_holds_a_resting_block_its_pin_reaction_is_
     (lambda b: b.add_particle_floor("e", margin=0.0, layers=2.0), r"layers = 2\.0 is not allowed"),
     (lambda b: b.add_particle_floor("e", margin=1e6), r"margin = 1000000\.0 is not allowed: .*more than"),
     (lambda b: b.add_particle_floor("e", margin=1e300), r"margin = 1e\+300 is not allowed: .*inf particles"),
+    # margin / spacing past the float range (1e308 / 0.02) is inf spacings: an OverflowError from math.floor.
+    (lambda b: b.add_particle_floor("e", margin=1e308), r"margin = 1e\+308 is not allowed: .*inf particles"),
     (lambda b: b.add_particle_floor("e", margin=30.0), r"margin = 30\.0 is not allowed: .*1500 spacings .*column operations"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where="disc"), r"where = 'disc' is not allowed: must be callable"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: p[:, 0] > 1e3), r"keeps none of the floor's positions"),

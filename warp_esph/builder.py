@@ -464,7 +464,8 @@ class SceneBuilder:
         ref = pts[np.argmin(pts[:, 1])]
         cols = np.round((pts[:, [0, 2]] - ref[[0, 2]]) / dx).astype(np.int64)
         # Sizes in floats first: a margin of 1e300 m must be refused, not overflow an integer.
-        reach_f = math.floor(m + 1e-9) * 1.0
+        # A margin near the float range over a spacing below 1 m is inf spacings: math.floor(inf) raised OverflowError.
+        reach_f = math.floor(m + 1e-9) * 1.0 if math.isfinite(m) else math.inf
         span = [float(c) + 1.0 + 2.0 * reach_f for c in cols.max(axis=0) - cols.min(axis=0)]
         if span[0] * span[1] * layers > MAX_PARTICLES_PER_BODY:
             raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} the floor would need "
