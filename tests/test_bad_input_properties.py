@@ -850,3 +850,14 @@ def test_numpy_arrays_where_a_vector_a_count_or_a_name_goes_are_refused_by_name(
     # What numpy gives for a count or a name, a 0-d integer array and a numpy string, stays welcome.
     assert we.SceneBuilder(spacing=0.05, max_neighbors=np.array(40)).max_neighbors == 40
     assert we.Material(mu=1.0e3, lam=1.0e3, model=np.str_("stvk")).model == "stvk"
+
+
+def test_a_monitor_exemption_of_a_0d_array_is_refused_by_name():
+    """A 0-d array has ``__iter__`` but cannot be iterated: simulate raised numpy's
+    'iteration over a 0-d array', naming no parameter; an array of body names is a list of them."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="blk")
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"^monitor_exempt = array\('blk', dtype='<U3'\) is not allowed: must be a list of body names"):
+        we.simulate(model, 1, monitor_exempt=np.array("blk"), progress=False)
+    we.simulate(model, 1, monitor_exempt=np.array(["blk"]), progress=False)

@@ -240,7 +240,10 @@ class DivergenceMonitor:
         names = [b.name for b in model.bodies]
         if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):  # 5 ended in a TypeError, "ab" in 'a', 'b'
             raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names ({names})")
-        exempt = tuple(exempt)
+        try:
+            exempt = tuple(exempt)
+        except TypeError:  # a 0-d numpy array has __iter__ and said numpy's 'iteration over a 0-d array'
+            raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names ({names})") from None
         for name in exempt:
             if name not in names:
                 raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {name!r} is not a body of the model ({names})")
