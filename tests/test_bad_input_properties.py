@@ -861,3 +861,27 @@ def test_a_monitor_exemption_of_a_0d_array_is_refused_by_name():
     with pytest.raises(ValueError, match=r"^monitor_exempt = array\('blk', dtype='<U3'\) is not allowed: must be a list of body names"):
         we.simulate(model, 1, monitor_exempt=np.array("blk"), progress=False)
     we.simulate(model, 1, monitor_exempt=np.array(["blk"]), progress=False)
+
+
+@pytest.mark.parametrize("value", [2.0, np.float64(0.0), np.array(0.0)], ids=["float", "np_float", "0d"])
+def test_a_fits_materials_or_frames_that_are_no_list_are_refused_by_name(value):
+    """``fit(materials=2.0)`` and ``fit(frames=2.0)`` iterated the number: Python's "'float'
+    object is not iterable" (of a 0-d array numpy's "iteration over a 0-d array"), naming
+    neither parameter; a numpy integer material index met the same TypeError, where a Python
+    one was taken. A 0-d integer array is the index it holds."""
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    import warp as wp  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="blk")
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    target = model.state().x.numpy()[None]
+    quick = dict(steps=2, dt=1e-4, iterations=1, progress=False, diagnostics=False)
+    with pytest.raises(ValueError, match=r"^materials = .* is not allowed: give a material index, a body name \(blk\) or a list"):
+        fit(model, target, frames=[2], materials=value, **quick)
+    with pytest.raises(ValueError, match=r"^frames = .* is not allowed: give a step index \(an integer >= 0\) or a list"):
+        fit(model, target, frames=value, **quick)
+    for index in (np.int64(0), np.array(0)):  # numpy's integer index is an index
+        result = fit(model, target, frames=np.array(2), materials=index, **quick)
+        assert set(result.params) == {"yield_stress", "flow_rate"}

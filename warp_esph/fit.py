@@ -315,10 +315,17 @@ def _material_indices(model: Model, materials, what: str = "material") -> list[i
     walls = {b.floor_material for b in model.bodies if b.floor_material >= 0}
     if materials is None:
         return [k for k in range(len(model.materials)) if k not in walls]
-    if isinstance(materials, (int, str)):
-        materials = [materials]
-    out = []
     names = [b.name for b in model.bodies]
+    if isinstance(materials, np.ndarray) and materials.ndim == 0:  # a 0-d array is the value it holds
+        materials = materials.item()
+    if isinstance(materials, (int, np.integer, str)):  # numpy's int too: np.int64(0) was iterated, a TypeError
+        materials = [materials]
+    try:
+        materials = list(materials)
+    except TypeError:  # 0.5, a 0-d array: Python's "'float' object is not iterable", naming no parameter
+        raise ValueError(f"materials = {checks.shorten(materials)!r} is not allowed: give a material index, a body name "
+                         f"({', '.join(names)}) or a list of them") from None
+    out = []
     for m in materials:
         if isinstance(m, str):
             if m not in names:

@@ -236,8 +236,14 @@ def _scalar_of(x: wp.array):
 
 
 def _frames(frames) -> tuple[int, ...]:
+    if isinstance(frames, np.ndarray) and frames.ndim == 0:  # a 0-d array is the value it holds
+        frames = frames.item()
     if isinstance(frames, (int, np.integer)) and not isinstance(frames, bool):
         frames = [frames]
+    try:
+        frames = list(frames)
+    except TypeError:  # 2.0, True, a 0-d array: Python's "'float' object is not iterable", naming no parameter
+        raise ValueError(f"frames = {frames!r} is not allowed: give a step index (an integer >= 0) or a list of them") from None
     out = []
     for f in frames:
         if isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 0:
