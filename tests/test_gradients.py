@@ -1502,3 +1502,27 @@ def test_a_material_changed_in_one_world_after_the_taped_steps_is_named_as_set_m
     model.mu.assign(np.where(np.arange(4) == 2, 5e3, model.mu.numpy()))
     with pytest.raises(RuntimeError, match=r"the model's mu \(material 0 of world 1 \(model material 2\)\) = 5000 now, 1000 when"):
         tape.backward()
+
+
+@pytest.mark.parametrize("adjoint", ["launch_integrate.<locals>.backward",
+                                     "launch_constitutive_forces.<locals>.backward"])
+def test_a_recorded_adjoint_run_after_its_tape_was_freed_says_so(adjoint):
+    """The adjoints a taped step records hold their tape weakly (the tape holds them; a strong
+    reference back made every dropped tape a reference cycle). One run after its tape was
+    freed (a caller who kept only ``tape.launches``) met ``None`` where the tape had been: the
+    integration's ended in ``'NoneType' object has no attribute 'get_adjoint'``, the fused
+    step's ran on without the tape its gradients register on for ``zero()``. Either now
+    refuses, naming the freed tape, before it launches anything."""
+    import gc
+
+    model, states, tape, seed = _two_taped_steps()
+    launches = list(tape.launches)
+    del tape
+    gc.collect()
+    found = [f for f in launches if getattr(f, "__qualname__", "").endswith(adjoint)]
+    assert len(found) == 2, [getattr(f, "__qualname__", f) for f in launches if callable(f)]
+    states[2].x.grad.assign(seed)
+    before = states[1].x.grad.numpy().copy()
+    with pytest.raises(RuntimeError, match=r"recorded on a wp\.Tape .* after that tape was freed"):
+        found[-1]()
+    np.testing.assert_array_equal(states[1].x.grad.numpy(), before)

@@ -32,13 +32,12 @@ the two.
 import contextlib
 import functools
 import types
-import weakref
 
 import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, isotropic, materials, neighbors, plasticity, pressure, smoothing
-from .replay import kept_through_backward
+from .replay import kept_through_backward, weak_tape
 from .roundoff import compensated_sum
 
 #: Where each body's skipped fits are counted (``deformation.COUNT_BODY``).
@@ -329,9 +328,10 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     # The tape keeps this backward: one holding the tape itself made a reference cycle, which
     # left every dropped tape (a checkpointed backward's segments', a full tape at the next
     # forward) with all its step records to the cyclic collector (about 5 kB a step pending).
-    tape_ref = weakref.ref(tape)
+    tape_ref = weak_tape(tape)
 
     def backward():
+        live = tape_ref()  # refused before any launch where the tape was freed
         # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
         # The pressure's pairs go with the variational force's scatter pass where there is one
         # (as this kernel applies both in one loop), else in a pass of their own.
@@ -345,8 +345,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
                                                      scratch.max_condition, sph)
             if sph:
                 pressure.launch_pressure_image_forces_adjoint(model, state_in, state_out)
-        plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters,
-                                                      tape_ref())
+        plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, live)
         if sph:
             pressure.launch_state_densities_adjoint(model, state_in.x, state_out)
 

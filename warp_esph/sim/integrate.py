@@ -21,13 +21,12 @@ act (``launch_floor_image_reaction``).
 
 import functools
 import types
-import weakref
 
 import warp as wp
 
 from .._types import type_set
 from . import colliders, fields
-from .replay import pointer_key, recording_tape
+from .replay import pointer_key, recording_tape, weak_tape
 from .roundoff import compensated_sum
 
 
@@ -292,7 +291,7 @@ def launch_integrate(model, state_in, state_out, dt):
         return
     # Weakly: the tape keeps this backward, and a backward holding the tape made a reference
     # cycle that left every dropped tape with its step records to the cyclic collector.
-    tape_ref = weakref.ref(tape)
+    tape_ref = weak_tape(tape)
 
     def backward():
         tape = tape_ref()

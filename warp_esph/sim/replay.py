@@ -78,6 +78,25 @@ def recording_tape():
     return getattr(_runtime(), "tape", None)
 
 
+def weak_tape(tape):
+    """A function that returns ``tape``, for an adjoint recorded on it to reach it by: the tape
+    holds that adjoint, and an adjoint holding the tape back made every dropped tape a
+    reference cycle with all its steps' records, left to Python's cyclic collector. Called
+    after the tape was freed (its ``launches`` kept and run without it), it refuses: that
+    backward would register its gradients on no tape for ``zero()``."""
+    ref = weakref.ref(tape)
+
+    def live():
+        held = ref()
+        if held is None:
+            raise RuntimeError("a backward pass of a step recorded on a wp.Tape is not allowed after that tape was freed: "
+                               "the step's recorded adjoints hold their tape weakly; keep the tape until its backward "
+                               "pass is done, and run it with tape.backward()")
+        return held
+
+    return live
+
+
 @contextlib.contextmanager
 def outside_recording_tape():
     """Runs its block with no ``wp.Tape`` recording, the caller's (if any) recording again
