@@ -176,3 +176,31 @@ def test_a_viscosity_or_lam_fitted_from_zero_takes_the_same_path_in_any_units(na
         paths.append(np.array([h["params"][name][0] / units for h in r.history]))
     np.testing.assert_allclose(paths[1], paths[0], rtol=1e-6, atol=1e-9 * abs(paths[0]).max())
     assert abs(paths[0][1]) > 0.01 * truth  # lr = 0.1 of its size: a step of its own order
+
+
+@pytest.mark.parametrize("stage, method, kw", [("descent", "value_and_grad", {}),
+                                               ("global stage", "value", {"samples": 3})])
+def test_an_interrupted_fit_records_its_scales(target, monkeypatch, stage, method, kw):
+    """A Ctrl-C keeps the evaluations so far and their best (``FitInterrupted.result``, which
+    ``warp-esph fit`` writes to fit.json): its history's steps were sized by the scales as a
+    finished fit's were, and its ``scales`` came back empty, so the record of an interrupted
+    fit did not say what a step of lr had moved."""
+    from warp_esph import fit as fit_module
+    from warp_esph.fit import FitInterrupted
+
+    calls, original = [], getattr(fit_module._Problem, method)
+
+    def interrupted(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3 - (stage == "global stage"):
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module._Problem, method, interrupted)
+    with pytest.raises(FitInterrupted) as info:
+        _path(target, 1.0, "adam", **kw)
+    result = info.value.result
+    assert result is not None and result.stopped == "interrupted"
+    assert {h["stage"] for h in result.history} == {"sample" if stage == "global stage" else "descent"}
+    assert result.scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu, as the finished fit's
+    assert result.to_dict()["scales"] == result.scales

@@ -1428,6 +1428,10 @@ class _Problem:
                              "it by lr times that size), or finite bounds")
         return s, "material"
 
+    def scales_record(self) -> dict:
+        """``FitResult.scales``: of each parameter fitted as itself, its size and its source."""
+        return {n: {"size": self.scales[n], "from": self.scale_source[n]} for n in self.params if n in self.scales}
+
     def to_z(self, p) -> np.ndarray:
         return np.concatenate([np.log(p[n]) if self.spaces[n] == "log" else p[n] / self.scales[n] for n in self.params])
 
@@ -2280,7 +2284,7 @@ def fit(
                                 "grad": None, "seconds": time.perf_counter() - t_sample, **({"note": note} if note else {})})
                 scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
         except KeyboardInterrupt:
-            raise _fit_interrupted(_interrupted_result(history, runs, params)) from None
+            raise _fit_interrupted(_interrupted_result(history, runs, params, prob)) from None
         say(f"global stage: {len(cands)} forward-only evaluations in {time.perf_counter() - t0:.3g} s; "
             f"best loss {min(s[0] for s in scored):.4g} (guess {scored[0][0]:.4g})")
         scored.sort(key=lambda s: (s[0], s[1]))
@@ -2319,7 +2323,7 @@ def fit(
                 if stop == "callback":
                     break
     except KeyboardInterrupt:
-        raise _fit_interrupted(_interrupted_result(history, runs, params)) from None
+        raise _fit_interrupted(_interrupted_result(history, runs, params, prob)) from None
     finally:
         if state["bar"] is not None:
             state["bar"].close()
@@ -2345,7 +2349,7 @@ def fit(
     result.experiment_materials = fitted
     result.flowed_starts = [r.flowed_start() for r in runs]
     result.starts = stops
-    result.scales = {n: {"size": prob.scales[n], "from": prob.scale_source[n]} for n in params if n in prob.scales}
+    result.scales = prob.scales_record()
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
 
     if stopped == "flat":
@@ -2704,7 +2708,7 @@ def _refused_note(error: FloatingPointError) -> str | None:
     return f"refused: {error}" if isinstance(error, RefusedPoint) else None
 
 
-def _interrupted_result(history, runs, params):
+def _interrupted_result(history, runs, params, prob):
     finite = [h for h in history if h["loss"] is not None and math.isfinite(h["loss"])]
     if not finite:
         return None
@@ -2717,6 +2721,8 @@ def _interrupted_result(history, runs, params):
     result.experiment_materials = fitted
     result.flowed_starts = [r.flowed_start() for r in runs]
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    # Its history's steps were sized as a finished fit's: fit.json says by what.
+    result.scales = prob.scales_record()
     return result
 
 
