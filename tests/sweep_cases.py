@@ -6,6 +6,7 @@ The scene is a 125-particle box of toothpaste (2 cm spacing) dropped 1 cm onto t
 ground, run for 10 frames at 30 fps (a third of a second): enough for a low yield stress
 to slump visibly and a high one to stay a box."""
 
+import os
 import sys
 
 from warp_esph.builder import SceneBuilder
@@ -43,3 +44,23 @@ def _extra_raising_what_pickle_cannot_rebuild(model, state, seed):
 
 def _extra_that_exits(model, state, seed):
     sys.exit(4)
+
+
+def _extra_that_fails(model, state, seed):
+    """An ``extra`` column function: kills its worker process in sample 0, raises in sample 1."""
+    from warp_esph.sweep import _sample_seed
+
+    if seed == _sample_seed(0, 0) and str(os.getpid()) != os.environ[PARENT]:
+        os._exit(7)
+    if seed == _sample_seed(0, 1):
+        raise TypeError("a bug in extra")
+    return {"top_x": float(state.x.numpy()[:, 0].max())}
+
+
+# The spawned workers import this module; they inherit the variable with the test's pid.
+PARENT = "WARP_ESPH_TEST_SWEEP_PARENT"
+os.environ.setdefault(PARENT, str(os.getpid()))
+
+
+def _extra_of_a_function(model, state, seed):
+    return {"top": float(state.x.numpy()[:, 1].max()), "how": _box}

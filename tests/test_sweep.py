@@ -24,7 +24,9 @@ from warp_esph.material import Material
 from warp_esph.scenes import Scene
 from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
 from run_files import run_script
-from sweep_cases import FRAMES, YIELD, _box, _extra_raising_what_pickle_cannot_rebuild, _extra_that_exits, _rows
+from pool_items import _dies_first, _dies_second, _exits_at
+from sweep_cases import (FRAMES, YIELD, _box, _extra_of_a_function, _extra_raising_what_pickle_cannot_rebuild,
+                         _extra_that_exits, _extra_that_fails, _rows)
 
 SCENE_TOML = """
 [scene]
@@ -566,22 +568,6 @@ def test_a_python_sweep_refuses_a_seed_a_grid_without_extra_never_reads():
     handed = [sweep(_box(), ["yield_stress=10"], frames=1, workers=1, extra=_extra_seed, **kw).rows[0]["handed"]
               for kw in ({}, {"seed": 3})]
     assert handed == [_sample_seed(0, 0), _sample_seed(3, 0)] and handed[0] != handed[1]
-
-
-def _extra_that_fails(model, state, seed):
-    """An ``extra`` column function: kills its worker process in sample 0, raises in sample 1."""
-    from warp_esph.sweep import _sample_seed
-
-    if seed == _sample_seed(0, 0) and str(os.getpid()) != os.environ[PARENT]:
-        os._exit(7)
-    if seed == _sample_seed(0, 1):
-        raise TypeError("a bug in extra")
-    return {"top_x": float(state.x.numpy()[:, 0].max())}
-
-
-# The spawned workers import this module too; they inherit the variable with the test's pid.
-PARENT = "WARP_ESPH_TEST_SWEEP_PARENT"
-os.environ.setdefault(PARENT, str(os.getpid()))
 
 
 def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
@@ -1244,29 +1230,6 @@ def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
     assert top[0] < top[1] < top[2] < top[3]
 
 
-def _dies_first(i, notes):
-    """A parallel_map item: item 0 kills its worker once item 3 has started beside it; item 3
-    waits for item 0's note that it dies, then 1 s more, so that it is in flight when the
-    pool breaks (a sleep of 3 s had made that likely, and cost 3 s again in its run alone).
-    Run again, each finds its notes: item 0 dies, item 3 returns, at once."""
-    import time
-
-    started, died = os.path.join(notes, "3 started"), os.path.join(notes, "0 died")
-    if i == 0:
-        for _ in range(6000):  # at most 60 s: then it dies anyway, with the same rows
-            if os.path.exists(started):
-                break
-            time.sleep(0.01)
-        open(died, "w").close()
-        os._exit(7)
-    if i == 3 and not os.path.exists(started):
-        open(started, "w").close()
-        while not os.path.exists(died):
-            time.sleep(0.01)
-        time.sleep(1.0)
-    return i
-
-
 def test_an_item_in_flight_when_another_kills_its_worker_runs_again_alone(tmp_path):
     """Item 3 was running (or queued) in the other worker when item 0 killed its own: the
     broken pool failed it too, a row lost to the timing of another. It runs again alone and
@@ -1278,20 +1241,6 @@ def test_an_item_in_flight_when_another_kills_its_worker_runs_again_alone(tmp_pa
     assert "worker process died running this item alone" in out[0], out[0]
     with pytest.raises(RuntimeError, match="item 0: a worker process died"):
         parallel_map(_dies_first, [(0, str(tmp_path)), (1, str(tmp_path))], workers=2)
-
-
-def _dies_second(i, marker):
-    """A parallel_map item: item 1 kills its worker; item 0 is still running then (it waits
-    for item 1's note, then 1 s more), and returns 0 whenever it runs once item 1 has died."""
-    import time
-
-    if i == 1:
-        open(marker, "w").close()
-        os._exit(7)
-    while not os.path.exists(marker):
-        time.sleep(0.01)
-    time.sleep(1.0)
-    return i
 
 
 def test_without_on_error_the_item_that_kills_its_worker_is_the_one_named(tmp_path):
@@ -1637,10 +1586,6 @@ def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_a
 
 
 # ------------------------------------------------------------------ a sample's own exception, wherever it runs
-def _extra_of_a_function(model, state, seed):
-    return {"top": float(state.x.numpy()[:, 1].max()), "how": _box}
-
-
 def test_a_sample_s_exception_the_parent_cannot_rebuild_is_its_reason_with_workers_too():
     """With worker processes, an exception that pickle cannot rebuild in the parent broke the
     pool: each sample ran again alone, broke it again, and its row said a worker process died
@@ -1661,13 +1606,6 @@ def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on():
     assert [(r["status"], r["reason"]) for r in here.rows] == [("failed", "SystemExit: 4")] * 2
     there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_that_exits)
     assert _rows(there) == _rows(here)
-
-
-def _exits_at(i):
-    """A parallel_map item: item 1 calls sys.exit(5)."""
-    if i == 1:
-        sys.exit(5)
-    return i
 
 
 @pytest.mark.parametrize("workers", [1, 2])
