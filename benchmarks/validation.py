@@ -884,6 +884,28 @@ def column_buckling_length(E: float, width: float) -> float:
     return (7.837 * E * width * width / (12.0 * RHO * G)) ** (1.0 / 3.0)
 
 
+#: The near-yield column's width in the plan's fixed-width study (m): at aspect 5 and E 1.5e5,
+#: 0.79 of ``column_buckling_length``.
+NEAR_YIELD_WIDTH = 0.04
+
+#: The spacing of the columns that take no ``width`` (m): each is then ``n`` cm across, so
+#: its width and height grow with the resolution.
+COLUMN_DX = 0.01
+
+
+def column_spacing(resolution: int, width: float | None) -> float:
+    """The lattice spacing of a column ``resolution`` particles across: ``COLUMN_DX`` without a
+    ``width`` (the column grows with the resolution), else ``width / resolution``, so that
+    its width, height and ``length_over_buckling`` stay put and the resolutions form a
+    convergence study of one column (docs/physics.md, "The near-yield column at a fixed
+    width")."""
+    if width is None:
+        return COLUMN_DX
+    from warp_esph import checks
+
+    return checks.positive("width", width) / resolution
+
+
 def _tilt(state, x0, free, bottom, L0: float, dx: float, tilt: float):
     """Lean the column: each of its particles moved along x by ``tilt dx (h / L0)^2``, h its
     height over the bottom layer's centres (the shape of the heavy column's first buckling
@@ -904,9 +926,10 @@ def _lean(x: np.ndarray, top, bottom) -> float:
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
                   deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground",
-                  fit_weight: str = "poly6", tilt: float = 0.0) -> dict:
+                  fit_weight: str = "poly6", tilt: float = 0.0, width: float | None = None) -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
-    tall, on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
+    tall (``width``: its width in m, the spacing ``width / resolution``; None: spacing 0.01 m,
+    ``column_spacing``), on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
     (``pressure_stiffness``; None: the material's default SPH pressure, which stiffens it), relaxed dynamically. The
     shortening between the centres of the top and bottom layers, against
     ``rho g L (L - dx) / (2 E)`` (the continuum ``rho g L^2 / (2 E)`` integrated between
@@ -915,8 +938,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     over ``column_buckling_length``: past 1 the lean grows (docs/physics.md, "The near-yield
     column's late collapse")."""
     wp, we = _we()
-    dx = 0.01
     n = resolution
+    dx = column_spacing(n, width)
     from warp_esph import checks
 
     tilt = checks.number("tilt", tilt)
@@ -943,7 +966,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     h = np.array(hist)
     rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
     return {"case": "column", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
-            "particles": model.particle_count, "tilt": tilt, "lean": _lean(a.x.numpy().astype(np.float64), top, bottom) / dx,
+            **({"width": width} if width is not None else {}), "particles": model.particle_count, "tilt": tilt, "lean": _lean(a.x.numpy().astype(np.float64), top, bottom) / dx,
             "length_over_buckling": H / column_buckling_length(E, n * dx),
             "shortening": h[-1, 1], "theory": theory, "ratio": h[-1, 1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a),
@@ -963,9 +986,10 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 36.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
                       dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground",
-                      tilt: float = 0.0) -> dict:
+                      tilt: float = 0.0, width: float | None = None) -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
-    ``aspect`` times as tall, frictionless ground collider, relaxed dynamically) of a
+    ``aspect`` times as tall, ``width`` m wide or, without one, spacing 0.01 m, frictionless
+    ground collider, relaxed dynamically) of a
     yield-stress material whose uniaxial yield stress is the weight above the depth
     ``yield_depth`` L: by the 1-D analysis only the bottom ``1 - yield_depth`` of it yields.
     ``floor``: ``"ground"`` (the collider; its one-sided bottom layer holds the base in,
@@ -993,16 +1017,17 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     0.50 x by 36). ``dtype``: ``"float32"`` or ``"float64"``. ``tilt``: an initial lean of the
     top, in spacings (``column_settlement``'s); ``lean`` is the top's at the end, in spacings,
     ``lean_efolds_per_period`` its growth over the last tenth (log per axial period), and
-    ``length_over_buckling`` the column's height over ``column_buckling_length``: the column
-    of E 1.5e5 is past it from 8 across (dx 0.01 m: its width grows with the resolution),
-    and on its yielded base it leans and topples well before (docs/physics.md, "The
-    near-yield column's late collapse")."""
+    ``length_over_buckling`` the column's height over ``column_buckling_length``: without a
+    ``width`` the column of E 1.5e5 is past it from 8 across (dx 0.01 m: its width grows with
+    the resolution), and on its yielded base it leans and topples well before (docs/physics.md,
+    "The near-yield column's late collapse"); ``width=0.04`` keeps it at 0.79 at every
+    resolution ("The near-yield column at a fixed width")."""
     wp, we = _we()
     from warp_esph import checks
 
     _lab_dtype(wp, dtype)  # refused before the elastic reference run
     tilt = checks.number("tilt", tilt)
-    dx = 0.01
+    dx = column_spacing(resolution, width)
     n, nh = resolution, resolution * aspect
     H = nh * dx
     sigma_y = RHO * G * yield_depth * H
@@ -1050,10 +1075,11 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
     # The same column with the yield off: the elastic part the scene's pressure and fit give.
     ref = column_settlement(n, elastic_force, aspect=aspect, E=E, nu=nu, fit=solver.fit, hourglass=solver.hourglass,
-                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor)
+                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor, width=width)
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,
+            **({"width": width} if width is not None else {}), "dx": dx, "height": H,
             "yield_depth": yield_depth, "tilt": tilt, "lean": h[-1, 2] / dx,
             # A lean of round-off size has no rate worth fitting (its log is noise).
             "lean_efolds_per_period": float(np.polyfit(h[:, 0], np.log(np.maximum(h[:, 2], 1e-12)), 1)[0])
@@ -1892,6 +1918,14 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for res in (8, 12, 16):
         for S in (0.1, 0.2, 0.3, 0.5):
             runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
+    # The near-yield column at a fixed width (docs/physics.md, "The near-yield column at a
+    # fixed width"): 4 cm wide and 20 cm tall at every resolution, 0.79 of its self-weight
+    # buckling length, so the resolutions resolve one column (without a width it grows with
+    # them and buckles from 8 across). On the slip ghost floor, whose bottom layer spreads as
+    # the 1-D analysis's, and on the ground collider. 8 across: about 10 minutes on one core.
+    for floor in ("slip_ghost_particles", "ground"):
+        for res in (4, 6, 8):
+            runs.append(("near_yield_column", {"resolution": res, "width": NEAR_YIELD_WIDTH, "floor": floor}))
     return runs
 
 
@@ -1904,7 +1938,7 @@ RESULT_CASES = {"slump": "slump", "spread": "spread", "incline": "incline", "bar
                 "stability": "stability"}
 #: Identity fields (``IDENTITY``) that are numbers, and of those the integers.
 NUMERIC_IDENTITY = ("S", "resolution", "shallowness", "amplitude", "dt_factor", "hourglass", "span_over_thickness",
-                    "aspect", "hold", "strain")
+                    "aspect", "hold", "strain", "width")
 INTEGER_IDENTITY = ("resolution", "span_over_thickness")
 
 
@@ -2089,7 +2123,8 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
 
 #: The result fields that tell one run of a case from another (its parameters, not its outcome).
 IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_factor", "deformation", "fit",
-            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain", "fit_weight")
+            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain", "fit_weight",
+            "width")
 
 
 #: Identity fields whose absence means a value: a row written before the field existed
