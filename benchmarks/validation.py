@@ -1021,7 +1021,8 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     ``width`` the column of E 1.5e5 is past it from 8 across (dx 0.01 m: its width grows with
     the resolution), and on its yielded base it leans and topples well before (docs/physics.md,
     "The near-yield column's late collapse"); ``width=0.04`` keeps it at 0.79 at every
-    resolution ("The near-yield column at a fixed width")."""
+    resolution ("The near-yield column at a fixed width"); ``dx`` and ``height`` are the scene's
+    spacing and the column's height (m), and a run given a ``width`` records it."""
     wp, we = _we()
     from warp_esph import checks
 
