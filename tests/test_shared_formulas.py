@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from warp_esph._types import type_set
-from warp_esph.sim import curvature, deformation
+from warp_esph.sim import curvature, deformation, smoothing
 
 SCALARS = [wp.float32, wp.float64]
 
@@ -506,3 +506,83 @@ def test_position_moments_are_the_fits_moments_bit_for_bit(scalar, images, fit):
             "the floor's images must count in this case"
     assert np.array_equal(sums_pos, sums_fit)
     assert np.array_equal(same_pos, same_fit)
+
+
+@functools.cache
+def _pair_terms_kernel(scalar, weight):
+    T = type_set(scalar)
+    df = deformation.funcs(scalar, weight)
+    cf = curvature.funcs(scalar, weight)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+
+    @wp.kernel
+    def run(xb: wp.array(dtype=T.vec3), yb: wp.array(dtype=T.vec3), h: scalar, lin: wp.array2d(dtype=T.mat33),
+            cor: wp.array2d(dtype=T.mat33), scal: wp.array2d(dtype=scalar)):
+        i = wp.tid()
+        c6 = fw.coef(h)
+        w, dA, c = df.moment_pair_terms(xb[i], h, c6, h * h)
+        r2, w2, dA2 = df.moment_term(xb[i], h, c6)
+        lin[i, 0] = dA
+        lin[i, 1] = dA2
+        scal[i, 0] = w
+        scal[i, 1] = c
+        scal[i, 2] = w2
+        scal[i, 3] = r2
+        cA, cB, cC, cD, cE, cc = cf.moment_pair_terms(xb[i], yb[i], h, c6, h * h)
+        cor[i, 0] = cA
+        cor[i, 1] = cB
+        cor[i, 2] = cC
+        cor[i, 3] = cD
+        cor[i, 4] = cE
+        scal[i, 4] = cc
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+@pytest.mark.parametrize("weight", ["poly6", "biweight"])
+def test_moment_pair_terms_are_eq5s_term_and_the_guards_count(scalar, weight):
+    """``deformation.moment_pair_terms`` (the one pair term every linear fit's moment sum adds:
+    ``fit_pair_sums``, ``position_moments``, the variational force's adjoint) and
+    ``curvature.moment_pair_terms`` (the corrected fit's): the fit's weight ``w(|xb|^2)`` of eq.
+    7 (poly6 ``315/(64 pi h^9) (h^2 - r^2)^3`` or the biweight ``(h^2 - r^2)^2 / h^4``), eq. 5's
+    ``w xb xb^T`` (with the corrected fit's ``w yb xb^T``, ``w xb q^T``, ``w q q^T``, ``w yb q^T``,
+    ``q = (x y, x z, y z) / h``) and the few-neighbours guard's smooth count: 1 up to 0.95 h, 0
+    from h, ``1 - smoothstep`` in ``r^2`` between; nothing at all beyond h."""
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    h = 0.02
+    dirs = np.array([[1.0, 2.0, 2.0], [0.0, 3.0, -4.0], [-2.0, 1.0, 2.0], [6.0, -2.0, 3.0], [1.0, 0.0, 0.0]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radii = np.array([0.3, 0.93, 0.97, 0.995, 1.2]) * h  # inside the fade, in it, beyond h
+    xb = (dirs * radii[:, None]).astype(np_t)
+    yb = (np.random.default_rng(2).normal(scale=h, size=xb.shape)).astype(np_t)
+    n = len(xb)
+    T = type_set(scalar)
+    lin = wp.zeros((n, 2), dtype=T.mat33)
+    cor = wp.zeros((n, 5), dtype=T.mat33)
+    scal = wp.zeros((n, 5), dtype=scalar)
+    wp.launch(_pair_terms_kernel(scalar, weight), n, [wp.array(xb, dtype=T.vec3), wp.array(yb, dtype=T.vec3),
+                                                      scalar(h)], [lin, cor, scal])
+    lin, cor, scal = lin.numpy(), cor.numpy(), scal.numpy()
+    x64, y64 = xb.astype(np.float64), yb.astype(np.float64)
+    r2 = (x64 * x64).sum(1)
+    d = np.maximum(h * h - r2, 0.0)
+    w = 315.0 / (64.0 * np.pi * h ** 9) * d ** 3 if weight == "poly6" else d ** 2 / h ** 4
+    t = np.clip((r2 - (0.95 * h) ** 2) / (h * h - (0.95 * h) ** 2), 0.0, 1.0)
+    count = 1.0 - t * t * (3.0 - 2.0 * t)
+    q = np.stack([x64[:, 0] * x64[:, 1], x64[:, 0] * x64[:, 2], x64[:, 1] * x64[:, 2]], 1) / h
+    outer = lambda a, b: w[:, None, None] * a[:, :, None] * b[:, None, :]  # noqa: E731
+    rtol = 2e-5 if scalar == wp.float32 else 1e-11
+    for got, want in [(scal[:, 0], w), (scal[:, 2], w), (lin[:, 0], outer(x64, x64)), (cor[:, 0], outer(x64, x64)),
+                      (cor[:, 1], outer(y64, x64)), (cor[:, 2], outer(x64, q)), (cor[:, 3], outer(q, q)),
+                      (cor[:, 4], outer(y64, q))]:
+        scale = np.abs(want).max()
+        np.testing.assert_allclose(got, want, rtol=rtol, atol=rtol * scale)
+    # (1e-6 in float64 too: guards.count_weight's fade edge 0.95^2 reaches the kernel as a
+    # float32 literal, which moves t by some 3e-7.)
+    np.testing.assert_allclose(scal[:, 1], count, rtol=0, atol=1e-5 if scalar == wp.float32 else 1e-6)
+    np.testing.assert_allclose(scal[:, 3], r2, rtol=rtol)
+    assert np.array_equal(scal[:, 4], scal[:, 1]), "both fits' guards count a pair alike"
+    assert np.array_equal(lin[:, 1], lin[:, 0]), "moment_term is moment_pair_terms' A term"
+    assert scal[0, 1] == 1.0 and 0.0 < scal[2, 1] < 1.0 and scal[4, 1] == 0.0
+    assert w[-1] == 0.0 and not lin[-1].any() and not cor[-1].any(), "beyond h a pair adds nothing"

@@ -89,6 +89,19 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.outer(wxb, xb), wp.outer(yb, wxb), wp.outer(wxb, q), wp.outer(wq, q), wp.outer(yb, wq)
 
     @wp.func
+    def moment_pair_terms(xb: vec3, yb: vec3, h: scalar, c6: scalar, hh: scalar):
+        """One same-body row pair's ``pair_moments`` at the fit's weight ``w(|xb|^2)`` (eqs. 1,
+        7; ``c6 = fw.coef(h)``) and what it adds to the few-neighbours guard's smooth count
+        (``guards.count_weight``, ``hh = h^2``; rows may reach beyond ``h``: only partners of
+        non-zero weight count): ``(w xb xb^T, w yb xb^T, w xb q^T, w q q^T, w yb q^T, c)``.
+        Every row sum of the corrected fit adds these, so its sums of the same pairs in the
+        same order are the same bits."""
+        r2 = wp.dot(xb, xb)
+        dA, dB, dC, dD, dE = pair_moments(xb, yb, fw.w_c(r2, h, c6), h)
+        c, dc = gf.count_weight(r2, hh)
+        return dA, dB, dC, dD, dE, c
+
+    @wp.func
     def moment_pair_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -128,19 +141,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
             j, p = df.pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
-                xb = p - xi
-                r2 = wp.dot(xb, xb)
                 ub = -ui
                 if image == 0:
                     ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
-                dA, dB, dC, dD, dE = pair_moments(xb, ub, fw.w_c(r2, h, c6), h)
+                dA, dB, dC, dD, dE, c = moment_pair_terms(p - xi, ub, h, c6, hh)
                 A += dA
                 B += dB
                 C += dC
                 D += dD
                 E += dE
-                # Only partners of non-zero weight count (rows may reach beyond h).
-                c, dc = gf.count_weight(r2, hh)
                 same += c
         return A, B, C, D, E, same
 
@@ -219,14 +228,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
-                xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                # (pair_moments' displacement terms, of a zero yb here, are not summed.)
-                dA, dB, dC, dD, dE = pair_moments(xb, vec3(), fw.w_c(r2, h, c6), h)
+                # (The displacement terms, of a zero yb here, are not summed.)
+                dA, dB, dC, dD, dE, c = moment_pair_terms(x[j] - xi, vec3(), h, c6, hh)
                 A += dA
                 C += dC
                 D += dD
-                c, dc = gf.count_weight(r2, hh)
                 same += c
         if images != 0:
             Ag, Bg, Cg, Dg, Eg, sg = moment_pair_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, 1)
@@ -802,7 +808,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return gx_i, gy_i
 
     return types.SimpleNamespace(
-        pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        pair_moments=pair_moments, moment_pair_terms=moment_pair_terms, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
         position_moments=position_moments,
         fit_variational_forces=fit_variational_forces, fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
         moments_adjoint=moments_adjoint, carried_update=df.carried_update,

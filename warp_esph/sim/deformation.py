@@ -158,6 +158,26 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return j, p, q
 
     @wp.func
+    def moment_term(xb: vec3, h: scalar, c6: scalar):
+        """Eq. 5's term of one pair at ``xb``: ``(|xb|^2, w, w xb xb^T)`` with the fit's weight
+        ``w = w(|xb|^2)`` (eqs. 1, 7; ``c6 = fw.coef(h)``). Every sum of the linear fit's moment
+        matrix adds this one product, so sums of the same pairs in the same order are the same
+        bits (``position_moments`` and the variational force's adjoint rely on that)."""
+        r2 = wp.dot(xb, xb)
+        w = fw.w_c(r2, h, c6)
+        return r2, w, w * wp.outer(xb, xb)
+
+    @wp.func
+    def moment_pair_terms(xb: vec3, h: scalar, c6: scalar, hh: scalar):
+        """``moment_term`` of a same-body row pair and what it adds to the few-neighbours
+        guard's smooth count (``guards.count_weight``, ``hh = h^2``): ``(w, w xb xb^T, c)``.
+        Rows may reach beyond ``h`` (``neighbors.select_neighbors``): only partners of non-zero
+        weight count."""
+        r2, w, dA = moment_term(xb, h, c6)
+        c, dc = gf.count_weight(r2, hh)
+        return w, dA, c
+
+    @wp.func
     def fit_pair_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -216,13 +236,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     if given == 0:
                         uj = displacement(x[j], uj, x_lo[j], y_lo[j])
                     ub = uj - ui
-                r2 = wp.dot(xb, xb)
-                w = fw.w_c(r2, h, c6)
-                A += w * wp.outer(xb, xb)
+                w, dA, c = moment_pair_terms(xb, h, c6, hh)
+                A += dA
                 B += w * wp.outer(ub, xb)
-                # Rows may reach beyond h (neighbors.select_neighbors): only partners of
-                # non-zero weight count for the guard.
-                c, dc = gf.count_weight(r2, hh)
                 same += c
         return A, B, same
 
@@ -253,10 +269,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
-                xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                A += fw.w_c(r2, h, c6) * wp.outer(xb, xb)
-                c, dc = gf.count_weight(r2, hh)
+                w, dA, c = moment_pair_terms(x[j] - xi, h, c6, hh)
+                A += dA
                 same += c
         if images != 0:
             Ag, Bg, sg = fit_pair_sums(i, x, x, x, x, body, nbr, n, h, 0, gn, goff, gmin, 1)
@@ -389,8 +403,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
-                xb = x[j] - gi
-                A += fw.w_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
+                r2, w, dA = moment_term(x[j] - gi, h, c6)
+                A += dA
                 if j != i:
                     gb = floor_image(x[j], gn, goff, gmin) - gi
                     pb = x[j] - xi
@@ -760,7 +774,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
-        fit_pair_sums=fit_pair_sums,
+        moment_term=moment_term, moment_pair_terms=moment_pair_terms, fit_pair_sums=fit_pair_sums,
         moment_sums=moment_sums, position_moments=position_moments, floor_image=floor_image,
         image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
         fit_sums=fit_sums,

@@ -523,7 +523,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
     guard_state = neighbors.guard_funcs(scalar).guard
-    count_weight = guards.guard_funcs(scalar).count_weight
+    moment_pair_terms = deformation.funcs(scalar, weight).moment_pair_terms
     Materials = materials.struct(scalar)
     sph_adjoint = pressure.kernels(scalar)
     sph_pair_adjoint = sph_adjoint.pressure_pair_adjoint
@@ -541,8 +541,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_f: wp.array(dtype=vec3),
     ):
         """Over ``i``'s row neighbours: the fit's moment matrix ``A = sum w xb xb^T`` and smooth
-        count ``same`` as ``deformation.moment_sums`` sums them on ``x`` alone (the same terms
-        in the same order, so the same bits), and ``adj M = sum w (adj f_i - adj f_j) xb^T``
+        count ``same`` as ``deformation.moment_sums`` sums them on ``x`` alone (its pair terms,
+        ``deformation.moment_pair_terms``, in the same order, so the same bits), and ``adj M = sum w (adj f_i - adj f_j) xb^T``
         (``variational_forces_adjoint``), in one pass: both weigh the pair by the same ``w``."""
         A = mat33()
         adj_M = mat33()
@@ -556,10 +556,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                w = fw.w_c(r2, h, c6)
-                A += w * wp.outer(xb, xb)
-                c, dc = count_weight(r2, hh)
+                w, dA, c = moment_pair_terms(xb, h, c6, hh)
+                A += dA
                 same += c
                 adj_M += w * wp.outer(ai - adj_f[j], xb)
         return A, same, adj_M
