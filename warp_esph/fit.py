@@ -55,7 +55,7 @@ from ._optimizers import LR_OPTIMIZERS, OPTIMIZERS
 from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
-                     read_tools_csv)
+                     read_tools_csv, surface_particles)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, State, check_material_precision
 from .rollout import FRAME_BUFFERS, PARAMETERS, TOOL_GRADIENTS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
@@ -460,6 +460,24 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
                           f"(RMS distance from their centroid, the median over its {len(ratios)} frames): targets in "
                           "other units than metres? (millimetres are 1000 times, centimetres 100 times the metres' "
                           "numbers); positions are fitted as metres", UserWarning, stacklevel=2)
+
+
+def _watch_scan_coverage(loss: Loss, model: Model, what: str) -> None:
+    """Have each full-coverage ``ChamferLoss`` of ``loss`` check, at its first evaluation,
+    whether its cloud shows only part of the body (``ChamferLoss.watch_coverage``): fitted
+    two-way, a top-half scan pulled the bottom onto the top and the fit from a guess did not
+    move (1.434e-4 -> 1.433e-4 m^2) without a word. The body's surface is the model's
+    surface particles (those a scan can see) among those the loss compares."""
+    leaves = [leaf for leaf in _leaves(loss) if isinstance(leaf, ChamferLoss) and leaf.coverage == "full"]
+    if not leaves:
+        return
+    surface = surface_particles(model)
+    for leaf in leaves:
+        if leaf.particles is None:
+            local = surface
+        else:
+            local = np.flatnonzero(np.isin(np.asarray(leaf.particles), surface))
+        leaf.watch_coverage(local, model.spacing, what)
 
 
 def _warn_surface_scale(leaf, x0: np.ndarray, what: str) -> None:
@@ -952,6 +970,7 @@ class _Run(_Values):
             raise ValueError(f"{name}: target is not allowed for this model: {e}") from None
         _check_target_range(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         _warn_target_scale(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
+        _watch_scan_coverage(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         if exp.steps is None and max(loss.frames) == 0:
             # "steps = 0 is not allowed" named an option the caller had not given.
             raise ValueError(f"{name}: the target's frames = {list(loss.frames)} end at step 0, the initial state, which "

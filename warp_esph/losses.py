@@ -15,6 +15,9 @@ kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
   within ``radius`` contributes ``radius**2`` (no gradient), so the loss is
   ``mean_i min(d_i^2, r^2) + mean_j min(d_j^2, r^2)``: continuous as points cross the
   radius. ``unmatched`` reports how many points found nothing at the last evaluation.
+  ``coverage="partial"`` keeps only the second term, ``mean_j min(d_j^2, r^2)`` (every
+  scanned point must lie on the body; the side the scanner did not see is free): a scan of
+  part of the body pulls no particle it never saw.
 - ``MeshLoss``: mean squared distance of the particles to a triangle mesh
   (``wp.Mesh`` + ``wp.mesh_query_point_no_sign``); ``mode="outside"`` counts only
   particles outside the (closed) mesh. Particles with no surface within ``max_dist``
@@ -48,7 +51,7 @@ from .sim.replay import outside_recording_tape
 from ._types import type_set
 
 __all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles",
-           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv", "unique_points"]
+           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv", "unique_points", "scan_coverage"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -925,15 +928,27 @@ class ChamferLoss(Loss):
     expected particle-to-target gap (a few particle spacings), since nothing beyond it
     pulls. After an evaluation ``unmatched[step] = (particles, targets)`` without a
     match within ``radius``.
+
+    ``coverage``: ``"full"`` (default) where the cloud shows the whole body; ``"partial"``
+    where it shows part of it (one scanner's view, the top of a sample on a plate): only
+    ``mean_j min(d_j^2, r^2)`` over the cloud's points is kept, each to its nearest
+    particle, so the particles the scanner never saw are free (``unmatched[step]`` then
+    counts 0 particles). The two-way loss pulls those particles onto the scanned side and
+    biases the fit (``scan_coverage`` tells such a cloud).
     """
     _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs")
     _TAPED = ("_scratch",)  # the nearest points' indices nearest_term's adjoint reads
 
 
-    def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None):
+    #: ``full``: the cloud shows the whole body (both directions compared); ``partial``: it
+    #: shows part of it (only scan point -> nearest particle).
+    COVERAGES = ("full", "partial")
+
+    def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None, coverage: str = "full"):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
         self.radius = checks.positive("radius", radius)
+        self.coverage = checks.choice("coverage", coverage, self.COVERAGES)
         self.targets = {}
         for f, t in per.items():
             # Unordered, a cloud has no place to hold a gap: a point not seen is left out.
@@ -988,8 +1003,10 @@ class ChamferLoss(Loss):
         r = S(self.radius)
         s.unmatched.zero_()
         wp.launch(k.to_float32, n, [x], [s.x32], device=dev, record_tape=False)
-        # Particles -> nearest target point (grid on the target, built once).
-        wp.launch(k.nearest, n, [ygrid.id, s.x32, x, y, r], [s.idx_x, s.unmatched[0:1]], device=dev, record_tape=False)
+        full = self.coverage == "full"
+        if full:
+            # Particles -> nearest target point (grid on the target, built once).
+            wp.launch(k.nearest, n, [ygrid.id, s.x32, x, y, r], [s.idx_x, s.unmatched[0:1]], device=dev, record_tape=False)
         # Target points -> nearest particle (grid on the particles, rebuilt now).
         xs = s.x32.numpy()
         dims = _grid_dims(xs, self.radius)
@@ -1002,17 +1019,47 @@ class ChamferLoss(Loss):
         wp.launch(k.nearest, m, [grid[1].id, y32, y, x, r], [s.idx_y, s.unmatched[1:2]], device=dev, record_tape=False)
         self._keep.extend([ygrid, grid[1]])
         r2 = S(self.radius * self.radius)
-        wp.launch(k.nearest_term, n, [x, y, s.idx_x, r2, S(scale / n)], [out], device=dev)
+        if full:
+            wp.launch(k.nearest_term, n, [x, y, s.idx_x, r2, S(scale / n)], [out], device=dev)
         wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
         self._sizes[frame] = (n, m)
+        watch = getattr(self, "_coverage_watch", None)
+        if full and watch is not None and frame not in watch[2]:
+            watch[2].add(frame)
+            self._warn_partial_scan(frame, x.numpy()[watch[0]], watch[1], watch[3])
+
+    def watch_coverage(self, surface, spacing: float, what: str = "target") -> None:
+        """Check, at the first evaluation of each frame, whether a ``coverage="full"`` cloud
+        shows only part of the body (``scan_coverage`` of the particles ``surface``, indices
+        into the positions this loss compares), and warn naming ``what`` where it does. A fit
+        asks it of each such loss with the model's surface particles."""
+        self._coverage_watch = (np.asarray(surface, dtype=np.int64), float(spacing), set(), what)
+
+    def _warn_partial_scan(self, frame: int, surface: np.ndarray, spacing: float, what: str) -> None:
+        if len(surface) == 0:
+            return
+        unseen, stray, distance = scan_coverage(surface, self.targets[frame], spacing)
+        if unseen >= UNSEEN_SHARE and stray <= COVERED_NEAR:
+            import warnings  # noqa: PLC0415
+
+            warnings.warn(f"{what}: the point cloud at step {frame} looks like a scan of part of the body: {unseen:.0%} "
+                          f"of the body's surface particles lie more than {distance:.3g} m from every point of it, "
+                          f"while {stray:.0%} of its points lie that far from the body. A full-coverage (two-way) "
+                          "loss pulls the particles the scanner never saw onto the scanned side and biases the fit: "
+                          "give a scan of part of the body as coverage='partial' (warp-esph fit --cloud-coverage "
+                          "partial)", UserWarning, stacklevel=2)
 
     def out_of_reach(self) -> str | None:
         """Where no particle and no target point met within ``radius`` in any frame of the last
         evaluation: the loss is the constant ``2 radius^2`` and its gradient 0 (a cloud in mm,
         or far from the body)."""
-        if not self.unmatched or any(self.unmatched[f] != self._sizes.get(f) for f in self.unmatched):
+        if self.coverage == "partial":
+            # Only the cloud's points are searched: out of reach where none found a particle.
+            if not self.unmatched or any(self.unmatched[f][1] != self._sizes.get(f, (0, -1))[1] for f in self.unmatched):
+                return None
+        elif not self.unmatched or any(self.unmatched[f] != self._sizes.get(f) for f in self.unmatched):
             return None
         return (f"no target point of the point clouds lies within radius = {self.radius:g} m of a particle in any "
                 f"frame (targets in other units than metres, or placed elsewhere?)")
@@ -1051,10 +1098,14 @@ class ChamferLoss(Loss):
             y = self.targets[f]
             n, m = len(x), len(y)
             if f not in pairs:
-                pairs[f] = (_nearest_within(x, y, self.radius), _nearest_within(y, x, self.radius))
+                ix = _nearest_within(x, y, self.radius) if self.coverage == "full" else None
+                pairs[f] = (ix, _nearest_within(y, x, self.radius))
             ix, iy = pairs[f]
             half = 0.5 * (n + m)
-            for src, dst, idx, count in ((x, y, ix, n), (y, x, iy, m)):
+            sides = ((x, y, ix, n), (y, x, iy, m))
+            if self.coverage == "partial":
+                half, sides = m, sides[1:]  # mean_j d_j^2 alone: m points per frame
+            for src, dst, idx, count in sides:
                 r = np.where(idx[:, None] >= 0, src - dst[np.maximum(idx, 0)], 0.0)
                 r = np.concatenate([r.ravel(), np.full(int((idx < 0).sum()), self.radius)])
                 out.append(math.sqrt(half / count) * r)
@@ -1064,18 +1115,23 @@ class ChamferLoss(Loss):
         # mean_i d_i^2 + mean_j d_j^2: with n particles and m target points, (n + m) / 2
         # points per frame give the same sum when every residual is alike.
         m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        if self.coverage == "partial":
+            return len(self.frames) * m / self.weight
         return len(self.frames) * 0.5 * (self._points_per_frame() + m) / self.weight
 
     def observation_count(self) -> int:
         m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        if self.coverage == "partial":
+            return int(round(len(self.frames) * m))
         return int(round(len(self.frames) * (self._points_per_frame() + m)))
 
     def target_items(self, prefix: str = "target") -> dict:
-        return {**super().target_items(prefix), f"{prefix}.radius": self.radius,
+        return {**super().target_items(prefix), f"{prefix}.radius": self.radius, f"{prefix}.coverage": self.coverage,
                 **{f"{prefix}.targets[{f}]": t for f, t in self.targets.items()}}
 
     def __repr__(self):
-        return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g})"
+        shown = "" if self.coverage == "full" else f", coverage={self.coverage!r}"
+        return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g}{shown})"
 
 
 class MeshLoss(Loss):
@@ -1252,6 +1308,51 @@ def _nearest_within(a: np.ndarray, b: np.ndarray, radius: float, chunk: int = 10
         ok = d2[np.arange(len(k)), k] < radius * radius
         out[s: s + chunk] = np.where(ok, k, -1)
     return out
+
+
+#: ``scan_coverage``'s sign of a cloud that shows part of the body: at least this share of
+#: the surface particles far from every point of it, while at most ``COVERED_NEAR`` of its
+#: points lie far from the body (a top-half scan of a cylinder: 45 % and 0 %; a full scan,
+#: a guess that spread more or less than the scan: both shares alike).
+UNSEEN_SHARE = 0.25
+COVERED_NEAR = 0.05
+
+
+def _far_share(a: np.ndarray, b: np.ndarray, distance: float, sample: int = 2000, chunk: int = 256) -> float:
+    """The share of ``a``'s points farther than ``distance`` from every point of ``b``, from
+    at most ``sample`` of them, evenly strided (a scan of 10^5 points is not squared)."""
+    if len(a) > sample:
+        a = a[np.linspace(0, len(a) - 1, sample).astype(np.int64)]
+    far = 0
+    for s in range(0, len(a), chunk):
+        d2 = ((a[s: s + chunk, None, :] - b[None, :, :]) ** 2).sum(axis=2)
+        far += int((d2.min(axis=1) > distance * distance).sum())
+    return far / len(a)
+
+
+def scan_coverage(surface: np.ndarray, cloud: np.ndarray, spacing: float) -> tuple[float, float, float]:
+    """How much of a body a cloud shows: ``(unseen, stray, distance)``, the share of the
+    ``surface`` particles' positions ``(n, 3)`` farther than ``distance`` from every point of
+    ``cloud`` ``(m, 3)``, and the share of the cloud's points that far from every surface
+    particle. ``distance`` is 1.5 times the larger of the particle ``spacing`` and the
+    cloud's own (median nearest-neighbour distance): a sparse but full scan leaves gaps of
+    its own spacing, not more. A cloud of part of the body leaves many surface particles
+    unseen while its points all lie on the body (``UNSEEN_SHARE``, ``COVERED_NEAR``)."""
+    surface = np.asarray(surface, dtype=np.float64)
+    cloud = np.asarray(cloud, dtype=np.float64)
+    own = 0.0
+    if len(cloud) > 1:
+        probe = cloud if len(cloud) <= 512 else cloud[np.linspace(0, len(cloud) - 1, 512).astype(np.int64)]
+        gaps = []
+        for s in range(0, len(probe), 64):
+            d2 = ((probe[s: s + 64, None, :] - cloud[None, :, :]) ** 2).sum(axis=2)
+            d2[d2 == 0.0] = np.inf  # the point itself
+            gaps.append(np.sqrt(d2.min(axis=1)))
+        gaps = np.concatenate(gaps)
+        gaps = gaps[np.isfinite(gaps)]
+        own = float(np.median(gaps)) if len(gaps) else 0.0
+    distance = 1.5 * max(float(spacing), own)
+    return _far_share(surface, cloud, distance), _far_share(cloud, surface, distance), distance
 
 
 def surface_particles(model) -> np.ndarray:
