@@ -152,3 +152,39 @@ def test_a_two_way_loss_on_a_scan_of_part_of_the_body_is_warned_of():
         for loss in (ChamferLoss(full, radius=0.06, frames=[40]), ChamferLoss(full[::4], radius=0.06, frames=[40]),
                      ChamferLoss(_top_half(x, NOISE), radius=0.06, frames=[40], coverage="partial")):
             fit(_cylinder(600.0, 0.05, 0.12, 1.0), loss, ["yield_stress"], **common)
+
+
+def test_the_command_fits_a_scan_of_part_of_the_body_with_cloud_coverage_partial(tmp_path, capsys, dough_scene):
+    """``warp-esph fit --cloud-coverage partial``: the top half of the last frame of the
+    scene's own run (an 81-particle column) scores 0 (the one-way loss reached the command), where the default
+    two-way loss scores the unseen bottom and warns, naming the option; the option is
+    refused for a target that is no point cloud."""
+    import json
+
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    scene = tmp_path / "dough.toml"
+    # A column (3 x 9 x 3 particles): a cube of 4 a side lands to 3 layers, all near its top half.
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2).replace(
+        "center = [0.0, 0.045, 0.0]\nsize = [0.08, 0.08, 0.08]", "center = [0.0, 0.095, 0.0]\nsize = [0.06, 0.18, 0.06]"))
+    assert "size = [0.06, 0.18, 0.06]" in scene.read_text()
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    np.savetxt(tmp_path / "top.xyz", _top_half(load_target(run, frames="last").data[0]))
+    fit = ["fit", str(scene), "--target", str(tmp_path / "top.xyz"), "--params", "yield_stress", "--iterations", "0",
+           "--no-usd", "--no-progress", "--no-diagnostics"]
+    losses = {}
+    for coverage in ("full", "partial"):
+        capsys.readouterr()
+        extra = [] if coverage == "full" else ["--cloud-coverage", "partial"]
+        assert main([*fit, *extra, "--output-dir", str(tmp_path / coverage)]) == 0
+        losses[coverage] = json.loads((tmp_path / coverage / "fit.json").read_text())["loss"]
+        said = capsys.readouterr().err
+        assert ("looks like a scan of part of the body" in said) == (coverage == "full"), said
+        assert ("--cloud-coverage partial" in said) == (coverage == "full"), said
+    assert losses["partial"] < 1e-20 < 1e-6 < losses["full"], losses
+    assert main(["fit", str(scene), "--target", str(run), "--no-progress", "--iterations", "0", "--cloud-coverage",
+                 "partial"]) == 2
+    assert "--cloud-coverage = 'partial' is not allowed: it is how much of the body point-cloud targets show, and the " \
+           "targets are positions" in capsys.readouterr().err

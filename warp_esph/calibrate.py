@@ -862,6 +862,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
+                          coverage=_arg(args, "cloud_coverage") or "full",
                           force_noise=force_noise, force_components=_arg(args, "force_components") or "xyz")
             if t.kind == "forces":
                 zeros = _zero_force_columns(path, term, _arg(args, "force_components") is not None)
@@ -897,6 +898,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if _arg(args, "mesh_mode") is not None and "mesh" not in file_kinds:
         raise ValueError(f"{where}--mesh-mode = {args.mesh_mode!r} is not allowed: it is how mesh targets are compared, "
                          f"and the targets are {kinds}")
+    if _arg(args, "cloud_coverage") is not None and "points" not in file_kinds:
+        raise ValueError(f"{where}--cloud-coverage = {args.cloud_coverage!r} is not allowed: it is how much of the body "
+                         f"point-cloud targets show, and the targets are {kinds}")
     if spec.get("target_body") is not None and not any_usd:
         raise ValueError(f"{where}{key('target_body')} = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
                          f"target, and the targets are {kinds}")

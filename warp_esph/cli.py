@@ -1066,7 +1066,7 @@ def _check_run_record(path, run: dict) -> None:
 
 def add_fit_arguments(parser):
     """Declare the ``warp-esph fit`` options on an ``argparse`` (sub)parser."""
-    from .losses import MeshLoss  # noqa: PLC0415 (Warp is imported only when the parser is built)
+    from .losses import ChamferLoss, MeshLoss  # noqa: PLC0415 (Warp is imported only when the parser is built)
     from .rollout import PARAMETERS  # noqa: PLC0415
 
     parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
@@ -1109,6 +1109,10 @@ def add_fit_arguments(parser):
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
     parser.add_argument("--mesh-mode", choices=MeshLoss.MODES,
                         help="mesh targets: surface (default) or outside")
+    parser.add_argument("--cloud-coverage", choices=ChamferLoss.COVERAGES,
+                        help="point-cloud targets: full (default: the cloud shows the whole body, compared both ways) "
+                             "or partial (a scan of part of it: each scanned point to its nearest particle only, the "
+                             "unseen side free)")
     parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
                         help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
                              "sized from the memory estimate and --memory-limit")

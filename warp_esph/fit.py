@@ -3425,8 +3425,9 @@ class Target:
         return [k for k in keep if k not in blank]
 
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface",
-             force_noise: float | None = None, force_components: str = "xyz") -> Loss:
+             force_noise: float | None = None, force_components: str = "xyz", coverage: str = "full") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step;
+        ``coverage``: how much of the body a point cloud shows (``ChamferLoss``'s);
         ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``);
         ``force_components``: the force log's columns fitted (``ReactionForceLoss``'s
         ``components``)."""
@@ -3488,7 +3489,7 @@ class Target:
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
         if self.kind == "points":
             r = radius if radius is not None else 3.0 * model.spacing
-            return ChamferLoss(self.data, radius=r, frames=steps)
+            return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage)
         return MeshLoss(self.data, frames=steps, mode=mode)
 
 
