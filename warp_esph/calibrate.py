@@ -457,6 +457,8 @@ def run_fit(args, out=None, err=None) -> int:
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {_evaluations_said(result)}", file=out)
     for name, v in result.params.items():
         print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)} {UNITS[name]}", file=out)
+    if result.step_limit_said():
+        print(f"warning: {result.step_limit_said()}", file=out)
     if result.diagnostics is not None:
         print(result.diagnostics.summary(), file=out)
     written = []

@@ -60,7 +60,7 @@ from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, State, check_material_precision
 from .rollout import FRAME_BUFFERS, PARAMETERS, TOOL_GRADIENTS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 from .sim.neighbors import NeighborOverflow
-from .sim.solver import keeps_incremental
+from .sim.solver import STEP_ROUNDING, keeps_incremental
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
            "load_target", "save_target", "Target", "write_fitted_usd"]
@@ -171,6 +171,25 @@ class FitResult:
     #: it came from (``{"size": S, "from": "given" | "start" | "bounds" | "material"}``): what a
     #: step of ``lr`` moves it by, which the history alone does not say.
     scales: dict = dataclasses.field(default_factory=dict)
+    #: The evaluation whose run stepped furthest past its stable step (``Model.stable_dt`` at
+    #: the values it ran, the hourglass control and fields included): ``{"dt_over_stable",
+    #: "dt", "stable_dt", "params", "iteration", "experiment"}``, None where nothing ran. A dt
+    #: chosen from the guess's stable step (``dt=None``) is past it wherever the descent went
+    #: stiffer; ``step_limit_said`` says so.
+    step_limit: dict | None = None
+
+    def step_limit_said(self) -> str:
+        """One sentence where an evaluation ran past its stable step (by more than rounding,
+        ``STEP_ROUNDING``), else ""."""
+        s = self.step_limit
+        if not s or s["dt_over_stable"] <= 1.0 + STEP_ROUNDING:
+            return ""
+        values = ", ".join(f"{k} = {', '.join(f'{x:.4g}' for x in v)}" for k, v in s["params"].items())
+        where = "" if s["experiment"] == "the experiment" else f"{s['experiment']}: "
+        return (f"{where}evaluations ran past the stable step: dt = {s['dt']:.4g} s is {s['dt_over_stable']:.3g} x the "
+                f"stable step {s['stable_dt']:.4g} s at {values} (evaluation {s['iteration']}, the furthest past); "
+                f"such runs may blow up or flow otherwise than a stable step's: give a dt (--dt) of at most the stable "
+                f"step at the stiffest values the fit may reach, or bounds that keep it within")
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -235,6 +254,7 @@ class FitResult:
             **({"signal": self.signal} if self.stopped == "interrupted" and self.signal else {}),
             "starts": list(self.starts),
             "scales": self.scales,
+            "step_limit": self.step_limit,
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "solver": self.solver_record(),
             "history": self.history,
@@ -722,6 +742,31 @@ class _Values:
             if name in full:
                 rows[i] = full[name]
         return m._stable_dt_now(0.3, None, rows)
+
+
+def _step_limit(runs, history) -> dict | None:
+    """``FitResult.step_limit``: over every evaluation of ``history`` (samples, trials and
+    probes ran too) and every run, the one whose ``dt`` stood furthest past the stable step
+    of the values it ran. From the values alone (``_Run.stable_step``): no run again."""
+    rows = [r.model._read_parameters() for r in runs]
+    best = None
+    for h in history:
+        params = h.get("params")
+        if not params:
+            continue
+        p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
+        for r, row in zip(runs, rows):
+            try:
+                stable = r.stable_step(p, row)
+            except (ValueError, FloatingPointError, ZeroDivisionError):
+                continue  # a point the materials refuse ran nothing
+            if not (stable > 0.0 and math.isfinite(stable)):
+                continue
+            ratio = r.dt / stable
+            if best is None or ratio > best["dt_over_stable"]:
+                best = {"dt_over_stable": ratio, "dt": float(r.dt), "stable_dt": float(stable), "params": params,
+                        "iteration": h.get("iteration"), "experiment": r.name}
+    return best
 
 
 class _KeptRun:
@@ -2370,6 +2415,7 @@ def fit(
     result.starts = stops
     result.scales = prob.scales_record()
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    result.step_limit = _step_limit(runs, history)
 
     if stopped == "flat":
         # The generic reason names the material ('no particle reaches the yield stress'): a
