@@ -1,4 +1,4 @@
-"""The step size of a parameter fitted as itself (``fit(..., scales=...)``): a step of ``lr``
+"""The step size of a parameter fitted as itself (``fit(..., param_scales=...)``): a step of ``lr``
 moves it by ``lr`` times its own size, whatever units the problem is written in."""
 
 import numpy as np
@@ -51,9 +51,9 @@ def test_a_hardening_fitted_from_zero_takes_the_same_path_in_any_units(target, o
     leaves 0 by a share of mu, not by a part in 1e4 of it."""
     a, loss_a, ra = _path(target, 1.0, optimizer)
     b, loss_b, rb = _path(target, 1.0e3, optimizer)
-    assert ra.scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu
-    assert rb.scales == {"hardening": {"size": 1.0e6, "from": "material"}}
-    assert ra.to_dict()["scales"] == ra.scales
+    assert ra.param_scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu
+    assert rb.param_scales == {"hardening": {"size": 1.0e6, "from": "material"}}
+    assert ra.to_dict()["param_scales"] == ra.param_scales
     assert len(a) == len(b)
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9 * 1e3)
     np.testing.assert_allclose(loss_b, loss_a, rtol=1e-6, atol=1e-6 * loss_a[0])
@@ -62,37 +62,37 @@ def test_a_hardening_fitted_from_zero_takes_the_same_path_in_any_units(target, o
 
 def test_bounds_and_a_given_scale_size_the_steps_in_the_parameter_units(target):
     """A hardening from 0 bounded to (-500, 500) takes the bounds' width as its size; one
-    given (``scales``) replaces it: the problem in other units with the bounds, or the
+    given (``param_scales``) replaces it: the problem in other units with the bounds, or the
     scale, in those units follows the same path."""
     a, _, r = _path(target, 1.0, "adam", bounds={"hardening": (-500.0, 500.0)})
     b, _, _ = _path(target, 1.0e3, "adam", bounds={"hardening": (-5.0e5, 5.0e5)})
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
-    assert r.scales == {"hardening": {"size": 1000.0, "from": "bounds"}}
+    assert r.param_scales == {"hardening": {"size": 1000.0, "from": "bounds"}}
     assert a[1] == pytest.approx(-100.0, rel=1e-6) or a[1] == pytest.approx(100.0, rel=1e-6)
-    c, _, rc = _path(target, 1.0, "adam", scales={"hardening": 200.0})
-    d, _, _ = _path(target, 1.0e3, "adam", scales={"hardening": 2.0e5})
+    c, _, rc = _path(target, 1.0, "adam", param_scales={"hardening": 200.0})
+    d, _, _ = _path(target, 1.0e3, "adam", param_scales={"hardening": 2.0e5})
     np.testing.assert_allclose(d, c, rtol=1e-6, atol=1e-6)
     assert abs(c[1]) == pytest.approx(20.0, rel=1e-6)
-    assert rc.scales == {"hardening": {"size": 200.0, "from": "given"}}  # lr 0.1 times 200 Pa
+    assert rc.param_scales == {"hardening": {"size": 200.0, "from": "given"}}  # lr 0.1 times 200 Pa
 
 
-@pytest.mark.parametrize("scales, said", [
-    ({"hardening": 0.0}, r"^scales\['hardening'\] = 0\.0 is not allowed: must be > 0"),
-    ({"hardening": float("inf")}, r"^scales\['hardening'\] = inf is not allowed"),
-    ({"hardening": float("nan")}, r"^scales\['hardening'\] = nan is not allowed"),
-    ({"lam": 10.0}, r"^scales for 'lam' is not allowed: lam is not fitted"),
-    ([1.0], r"^scales = \[1\.0\] is not allowed: must be a mapping"),
+@pytest.mark.parametrize("param_scales, said", [
+    ({"hardening": 0.0}, r"^param_scales\['hardening'\] = 0\.0 is not allowed: must be > 0"),
+    ({"hardening": float("inf")}, r"^param_scales\['hardening'\] = inf is not allowed"),
+    ({"hardening": float("nan")}, r"^param_scales\['hardening'\] = nan is not allowed"),
+    ({"lam": 10.0}, r"^param_scales for 'lam' is not allowed: lam is not fitted"),
+    ([1.0], r"^param_scales = \[1\.0\] is not allowed: must be a mapping"),
 ])
-def test_a_scale_that_is_not_a_positive_finite_size_of_a_fitted_parameter_is_refused(scales, said):
+def test_a_scale_that_is_not_a_positive_finite_size_of_a_fitted_parameter_is_refused(param_scales, said):
     with pytest.raises(ValueError, match=said):
-        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["hardening"], steps=2, dt=DT, scales=scales,
-            progress=False, diagnostics=False)
+        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["hardening"], steps=2, dt=DT,
+            param_scales=param_scales, progress=False, diagnostics=False)
 
 
 def test_a_scale_of_a_parameter_fitted_as_its_logarithm_is_refused():
-    with pytest.raises(ValueError, match=r"^scales\['mu'\] = 5\.0 is not allowed: mu is fitted as its logarithm"):
-        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["mu"], steps=2, dt=DT, scales={"mu": 5.0},
-            progress=False, diagnostics=False)
+    with pytest.raises(ValueError, match=r"^param_scales\['mu'\] = 5\.0 is not allowed: mu is fitted as its logarithm"):
+        fit(_block(), PositionLoss(np.zeros((1, 80, 3)), frames=[2]), ["mu"], steps=2, dt=DT,
+            param_scales={"mu": 5.0}, progress=False, diagnostics=False)
 
 
 def test_a_log_space_parameter_starting_at_zero_is_refused_naming_why_and_a_linear_one_takes_its_bounds():
@@ -109,16 +109,16 @@ def test_a_log_space_parameter_starting_at_zero_is_refused_naming_why_and_a_line
     assert [h["params"]["viscosity"][0] for h in r.history] == pytest.approx([0.0, 0.4], rel=1e-6)
 
 
-@pytest.mark.parametrize("params, scales, said", [
-    ("yield_stress", ["hardening=0"], "--scales 'hardening=0' is not allowed: the size must be > 0 and finite"),
-    ("yield_stress", ["hardening=nan"], "--scales 'hardening=nan' is not allowed: the size must be > 0 and finite"),
-    ("yield_stress", ["hardening"], "--scales 'hardening' is not allowed: use NAME=S"),
-    ("yield_stress", ["hardening=5"], "--scales hardening=5 is not allowed: hardening is not fitted (--params = yield_stress)"),
-    ("yield_stress", ["yield_stress=5"], "--scales yield_stress=5 is not allowed: yield_stress is fitted as its logarithm"),
+@pytest.mark.parametrize("params, param_scales, said", [
+    ("yield_stress", ["hardening=0"], "--param-scales 'hardening=0' is not allowed: the size must be > 0 and finite"),
+    ("yield_stress", ["hardening=nan"], "--param-scales 'hardening=nan' is not allowed: the size must be > 0 and finite"),
+    ("yield_stress", ["hardening"], "--param-scales 'hardening' is not allowed: use NAME=S"),
+    ("yield_stress", ["hardening=5"], "--param-scales hardening=5 is not allowed: hardening is not fitted (--params = yield_stress)"),
+    ("yield_stress", ["yield_stress=5"], "--param-scales yield_stress=5 is not allowed: yield_stress is fitted as its logarithm"),
 ])
 @pytest.mark.parametrize("stage", [[], ["--samples", "2"]])
-def test_cli_fit_scales_refused_are_one_line_naming_the_entry(tmp_path, capsys, dough_scene, params, scales, said,
-                                                              stage):
+def test_cli_fit_param_scales_refused_are_one_line_naming_the_entry(tmp_path, capsys, dough_scene, params, param_scales,
+                                                                    said, stage):
     from warp_esph.cli import main
     from warp_esph.scenes import load_scene
 
@@ -129,7 +129,7 @@ def test_cli_fit_scales_refused_are_one_line_naming_the_entry(tmp_path, capsys, 
     np.savez(target, positions=np.stack([x0]), frames=[2])
     capsys.readouterr()
     out = tmp_path / "fit"
-    extra = [a for s in scales for a in ("--scales", s)]
+    extra = [a for s in param_scales for a in ("--param-scales", s)]
     assert main(["fit", str(guess), "--target", str(target), "--params", params, *extra, "--iterations", "1",
                  "--no-progress", "--no-usd", "--output-dir", str(out), *stage]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
@@ -137,8 +137,8 @@ def test_cli_fit_scales_refused_are_one_line_naming_the_entry(tmp_path, capsys, 
     assert not out.exists()
 
 
-def test_cli_fit_scales_reach_the_fit(tmp_path, dough_scene):
-    """--scales hardening=S sizes the steps of a hardening fitted from 0: the first Adam step
+def test_cli_fit_param_scales_reach_the_fit(tmp_path, dough_scene):
+    """--param-scales hardening=S sizes the steps of a hardening fitted from 0: the first Adam step
     moves it by --lr times S."""
     import json
 
@@ -151,11 +151,11 @@ def test_cli_fit_scales_reach_the_fit(tmp_path, dough_scene):
     target = tmp_path / "t.npz"
     np.savez(target, positions=np.stack([x0 + 1e-3]), frames=[2])
     out = tmp_path / "fit"
-    assert main(["fit", str(guess), "--target", str(target), "--params", "hardening", "--scales", "hardening=250",
+    assert main(["fit", str(guess), "--target", str(target), "--params", "hardening", "--param-scales", "hardening=250",
                  "--optimizer", "adam", "--iterations", "1", "--no-progress", "--no-usd", "--no-diagnostics",
                  "--output-dir", str(out)]) == 0
     doc = json.loads((out / "fit.json").read_text())
-    assert doc["scales"] == {"hardening": {"size": 250.0, "from": "given"}}
+    assert doc["param_scales"] == {"hardening": {"size": 250.0, "from": "given"}}
     steps = [h["params"]["hardening"][0] for h in doc["history"]]
     assert steps[0] == 0.0 and abs(steps[1]) == pytest.approx(25.0, rel=1e-6)
 
@@ -170,9 +170,9 @@ def test_a_viscosity_or_lam_fitted_from_zero_takes_the_same_path_in_any_units(na
     for units in (1.0, 1.0e3):
         r = fit(_block(units, **{name: 0.0}), PositionLoss(x, frames=[3, 6]), [name], steps=STEPS, dt=DT,
                 initial={"alpha0": ALPHA0}, iterations=3, optimizer="adam", progress=False, diagnostics=False)
-        assert r.scales[name]["from"] == "material"
+        assert r.param_scales[name]["from"] == "material"
         if size is not None:
-            assert r.scales[name]["size"] == pytest.approx(size * units, rel=1e-12)
+            assert r.param_scales[name]["size"] == pytest.approx(size * units, rel=1e-12)
         paths.append(np.array([h["params"][name][0] / units for h in r.history]))
     np.testing.assert_allclose(paths[1], paths[0], rtol=1e-6, atol=1e-9 * abs(paths[0]).max())
     assert abs(paths[0][1]) > 0.01 * truth  # lr = 0.1 of its size: a step of its own order
@@ -180,10 +180,10 @@ def test_a_viscosity_or_lam_fitted_from_zero_takes_the_same_path_in_any_units(na
 
 @pytest.mark.parametrize("stage, method, kw", [("descent", "value_and_grad", {}),
                                                ("global stage", "value", {"samples": 3})])
-def test_an_interrupted_fit_records_its_scales(target, monkeypatch, stage, method, kw):
+def test_an_interrupted_fit_records_its_param_scales(target, monkeypatch, stage, method, kw):
     """A Ctrl-C keeps the evaluations so far and their best (``FitInterrupted.result``, which
     ``warp-esph fit`` writes to fit.json): its history's steps were sized by the scales as a
-    finished fit's were, and its ``scales`` came back empty, so the record of an interrupted
+    finished fit's were, and its ``param_scales`` came back empty, so the record of an interrupted
     fit did not say what a step of lr had moved."""
     from warp_esph import fit as fit_module
     from warp_esph.fit import FitInterrupted
@@ -202,5 +202,5 @@ def test_an_interrupted_fit_records_its_scales(target, monkeypatch, stage, metho
     result = info.value.result
     assert result is not None and result.stopped == "interrupted"
     assert {h["stage"] for h in result.history} == {"sample" if stage == "global stage" else "descent"}
-    assert result.scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu, as the finished fit's
-    assert result.to_dict()["scales"] == result.scales
+    assert result.param_scales == {"hardening": {"size": 1.0e3, "from": "material"}}  # mu, as the finished fit's
+    assert result.to_dict()["param_scales"] == result.param_scales

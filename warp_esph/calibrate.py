@@ -149,9 +149,9 @@ def run_fit(args, out=None, err=None) -> int:
     err = sys.stderr if err is None else err
     import warp as wp  # noqa: PLC0415
 
-    from .cli import _parse_bounds, _parse_scales, _safe_point, _signal_name, _stopped, option_flag  # noqa: PLC0415
+    from .cli import _parse_bounds, _parse_param_scales, _safe_point, _signal_name, _stopped, option_flag  # noqa: PLC0415
     from .fit import (  # noqa: PLC0415
-        BoundsError, Experiment, FitInterrupted, ScaleRefused, StartRefused, _material_indices, check_options, fit, load_target,
+        BoundsError, Experiment, FitInterrupted, ParamScaleRefused, StartRefused, _material_indices, check_options, fit, load_target,
         solvers_record, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
@@ -166,8 +166,8 @@ def run_fit(args, out=None, err=None) -> int:
     bounds = _parse_bounds(args.bounds)
     # Each entry as typed ('hardening=-1e6:100'), for a refusal to name it so (_parse_bounds refused any other form).
     typed_bounds = {item.split("=", 1)[0].strip(): item for item in args.bounds or []}
-    scales = _parse_scales(_arg(args, "scales", []))
-    typed_scales = {item.split("=", 1)[0].strip(): item for item in _arg(args, "scales", []) or []}
+    param_scales = _parse_param_scales(_arg(args, "param_scales", []))
+    typed_param_scales = {item.split("=", 1)[0].strip(): item for item in _arg(args, "param_scales", []) or []}
     given_range = _arg(args, "sample_range")  # None: not given (a factor 4)
     sample_range = 4.0 if given_range is None else given_range
     lr = _arg(args, "lr")  # None: not given (fit's default; refused with gauss-newton when given)
@@ -178,8 +178,8 @@ def run_fit(args, out=None, err=None) -> int:
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
                          sample_range=sample_range, seed=seed, noise=_arg(args, "noise"),
-                         memory_limit=memory_limit, flag=option_flag, bounds_typed=typed_bounds, scales=scales,
-                         scales_typed=typed_scales)
+                         memory_limit=memory_limit, flag=option_flag, bounds_typed=typed_bounds,
+                         param_scales=param_scales, param_scales_typed=typed_param_scales)
     params = opts["params"]
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:
@@ -289,9 +289,9 @@ def run_fit(args, out=None, err=None) -> int:
             limits = starts_stable_steps([e.model for e in exps], params, materials=[e.materials or None for e in exps],
                                          bounds=bounds, samples=opts["samples"], starts=opts["starts"],
                                          sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps],
-                                         scales=scales)
-        except ScaleRefused as e:
-            raise ValueError(e.said(option_flag, typed_scales.get(e.name))) from None
+                                         param_scales=param_scales)
+        except ParamScaleRefused as e:
+            raise ValueError(e.said(option_flag, typed_param_scales.get(e.name))) from None
         except BoundsError as e:
             # Named as typed: it was "bounds['lam'] = (-1e+05, 100)", fit's parameter.
             raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
@@ -396,14 +396,14 @@ def run_fit(args, out=None, err=None) -> int:
                             for e in exps]}
     try:
         result = fit(experiments, None, params, iterations=args.iterations,
-                     lr=lr, bounds=bounds, scales=scales, clip=args.clip, memory_limit=memory_limit,
+                     lr=lr, bounds=bounds, param_scales=param_scales, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
                      sample_range=sample_range, seed=seed,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
-    except ScaleRefused as e:
-        raise ValueError(e.said(option_flag, typed_scales.get(e.name))) from None
+    except ParamScaleRefused as e:
+        raise ValueError(e.said(option_flag, typed_param_scales.get(e.name))) from None
     except BoundsError as e:
         raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
     except StartRefused as e:

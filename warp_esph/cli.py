@@ -1082,11 +1082,11 @@ def add_fit_arguments(parser):
                         help="evaluations of each start after its first, line-search trials (gauss-newton: Jacobian "
                              "runs) included; --samples' runs not counted (default 50, at most 100000)")
     parser.add_argument("--lr", type=float, metavar="LR",
-                        help="Adam step size, relative (times --scales' size for a parameter fitted from 0 or "
+                        help="Adam step size, relative (times --param-scales' size for a parameter fitted from 0 or "
                              "below); L-BFGS: its first step (default 0.1, at most 10; "
                              "not with gauss-newton)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
-    parser.add_argument("--scales", action="append", default=[], metavar="NAME=S",
+    parser.add_argument("--param-scales", action="append", default=[], metavar="NAME=S",
                         help="the size of a parameter fitted as itself (from 0 or below: lam, hardening, "
                              "pressure_stiffness, viscosity), in its units: a step of --lr moves it by LR times S "
                              "(default: its start's magnitude; from 0, its --bounds' width, else its materials'); "
@@ -1156,7 +1156,7 @@ def _parse_bounds(items) -> dict:
     return out
 
 
-def _parse_scales(items) -> dict:
+def _parse_param_scales(items) -> dict:
     out = {}
     for item in items or []:
         try:
@@ -1165,14 +1165,14 @@ def _parse_scales(items) -> dict:
             if not name:
                 raise ValueError
         except ValueError:
-            raise ValueError(f"--scales {item!r} is not allowed: use NAME=S, e.g. hardening=1e4") from None
+            raise ValueError(f"--param-scales {item!r} is not allowed: use NAME=S, e.g. hardening=1e4") from None
         if not (math.isfinite(size) and size > 0.0):
             # A step of lr moves the value by lr times the size: 0, a negative or a NaN moves it nowhere or backwards.
-            raise ValueError(f"--scales {item!r} is not allowed: the size must be > 0 and finite (a step of --lr moves "
+            raise ValueError(f"--param-scales {item!r} is not allowed: the size must be > 0 and finite (a step of --lr moves "
                              "the parameter by LR times it)")
         if name in out:
-            raise ValueError(f"--scales {item!r} is not allowed: {name} already has scale {out[name]:g}; give one "
-                             "scale per parameter")
+            raise ValueError(f"--param-scales {item!r} is not allowed: {name} already has size {out[name]:g}; give one "
+                             "size per parameter")
         out[name] = size
     return out
 

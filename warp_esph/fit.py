@@ -23,7 +23,7 @@ the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by a size in their
-own units: ``scales={name: size}`` where given, else their initial magnitude, else (from 0)
+own units: ``param_scales={name: size}`` where given, else their initial magnitude, else (from 0)
 their finite bounds' width, else their materials' (``_natural_scale``). ``bounds={"flow_rate": (1, 1e3)}`` keeps them in a box: every evaluated point is
 clipped into it, and the optimisers hold a value on a bound while the loss falls beyond it,
 fitting the others (an active set; Adam drops a held value's moment). ``clip`` caps the norm
@@ -170,7 +170,7 @@ class FitResult:
     #: Of each parameter fitted as itself, the size one unit of optimiser space is and where
     #: it came from (``{"size": S, "from": "given" | "start" | "bounds" | "material"}``): what a
     #: step of ``lr`` moves it by, which the history alone does not say.
-    scales: dict = dataclasses.field(default_factory=dict)
+    param_scales: dict = dataclasses.field(default_factory=dict)
     #: The evaluation whose run stepped furthest past its stable step (``Model.stable_dt`` at
     #: the values it ran, the hourglass control and fields included): ``{"dt_over_stable",
     #: "dt", "stable_dt", "params", "iteration", "experiment"}``, None where nothing ran. A dt
@@ -253,7 +253,7 @@ class FitResult:
             "termination": self.termination,
             **({"signal": self.signal} if self.stopped == "interrupted" and self.signal else {}),
             "starts": list(self.starts),
-            "scales": self.scales,
+            "param_scales": self.param_scales,
             "step_limit": self.step_limit,
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "solver": self.solver_record(),
@@ -1215,17 +1215,19 @@ class BoundsError(ValueError):
         return f"{given} is not allowed: {reason}"
 
 
-class ScaleRefused(ValueError):
+class ParamScaleRefused(ValueError):
     """A given scale of a parameter fitted as its logarithm, refused once the model gives its
     start. ``said(flag, typed)``: named as ``flag`` names options (the command line's
-    ``--scales NAME=S``, ``typed`` the entry as written)."""
+    ``--param-scales NAME=S``, ``typed`` the entry as written). Not ``scenes.ScaleRefused``,
+    a scene's resolution refused."""
 
     def __init__(self, name: str, size: float, reason: str):
         self.name, self.size, self.reason = name, size, reason
         super().__init__(self.said())
 
     def said(self, flag=lambda name: name, typed: str | None = None) -> str:
-        given = f"{flag('scales')} {typed}" if typed is not None else f"{flag('scales')}[{self.name!r}] = {self.size!r}"
+        given = (f"{flag('param_scales')} {typed}" if typed is not None
+                 else f"{flag('param_scales')}[{self.name!r}] = {self.size!r}")
         return f"{given} is not allowed: {self.reason}"
 
 
@@ -1384,7 +1386,7 @@ class _Problem:
     ``bounds`` clip.
     """
 
-    def __init__(self, runs: list[_Run], params, bounds, scales=None):
+    def __init__(self, runs: list[_Run], params, bounds, param_scales=None):
         self.runs, self.params = runs, params
         first = runs[0]
         self.k = len(first.idx)
@@ -1407,12 +1409,12 @@ class _Problem:
                 self.spaces[name] = "log"
             else:
                 self.spaces[name] = "linear"
-        for name, s in (scales or {}).items():  # their form checked by check_options
+        for name, s in (param_scales or {}).items():  # their form checked by check_options
             if self.spaces[name] == "log":
-                raise ScaleRefused(name, s, f"{name} is fitted as its logarithm (its initial value"
+                raise ParamScaleRefused(name, s, f"{name} is fitted as its logarithm (its initial value"
                                    f"{'s' if self.k > 1 else ''} {', '.join(f'{x:g}' for x in values[name][first.idx])} "
-                                   "being positive), whose steps are relative to the value and take no scale; give "
-                                   "scales of parameters fitted from 0 or below it")
+                                   "being positive), whose steps are relative to the value and take no size; give "
+                                   "sizes only of parameters fitted from 0 or below it")
         self.bounds = {}
         for name, (lo, hi) in (bounds or {}).items():  # their form checked by check_options
             lo, hi = float(lo), float(hi)
@@ -1434,7 +1436,7 @@ class _Problem:
         guess = {name: values[name][first.idx] for name in params}
         for name in params:
             if self.spaces[name] == "linear":
-                self.scales[name], self.scale_source[name] = self._linear_scale(name, guess, scales or {})
+                self.scales[name], self.scale_source[name] = self._linear_scale(name, guess, param_scales or {})
         for name, (lo, hi) in self.bounds.items():
             # A bound a material refuses would only make refused trials: said at once.
             for side, end in (("lower", lo), ("upper", hi)):
@@ -1471,14 +1473,14 @@ class _Problem:
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
         self.labels = [name if self.k == 1 else f"{name}[{j}]" for name in params for j in range(self.k)]
 
-    def _linear_scale(self, name: str, guess, scales) -> tuple[float, str]:
+    def _linear_scale(self, name: str, guess, param_scales) -> tuple[float, str]:
         """The size of one unit of ``z`` for a parameter fitted as itself, and where it came
         from. A step of ``lr`` moves the value by ``lr`` times it, so it must be the value's
         own size: it was ``max(|start|, 1)`` in whatever units the parameter has, so a
         hardening fitted from 0 Pa against mu = 1e5 Pa moved 0.1 Pa a step, and the same
         problem in other units took another path."""
-        if name in scales:
-            return float(scales[name]), "given"
+        if name in param_scales:
+            return float(param_scales[name]), "given"
         v = float(np.abs(guess[name]).max())
         if v > 0.0:
             return v, "start"
@@ -1488,12 +1490,12 @@ class _Problem:
         s = _natural_scale(name, self.runs[0], guess)
         if not (math.isfinite(s) and s > 0.0):
             raise ValueError(f"{name} starts at 0 without finite bounds, and its materials give it no size "
-                             f"({_NATURAL_SCALE_SAID[name]} = {s:g}): give scales={{{name!r}: size}} (a step of lr moves "
+                             f"({_NATURAL_SCALE_SAID[name]} = {s:g}): give param_scales={{{name!r}: size}} (a step of lr moves "
                              "it by lr times that size), or finite bounds")
         return s, "material"
 
-    def scales_record(self) -> dict:
-        """``FitResult.scales``: of each parameter fitted as itself, its size and its source."""
+    def param_scales_record(self) -> dict:
+        """``FitResult.param_scales``: of each parameter fitted as itself, its size and its source."""
         return {n: {"size": self.scales[n], "from": self.scale_source[n]} for n in self.params if n in self.scales}
 
     def to_z(self, p) -> np.ndarray:
@@ -1648,7 +1650,7 @@ def _choose_steps(runs: list[_Run], prob: _Problem, candidates) -> list[str]:
 
 
 def starts_stable_steps(models, params, *, materials=None, bounds=None, samples=0, starts=1, sample_range=4.0,
-                        seed=0, tie_pressure=None, names=None, scales=None) -> list[float]:
+                        seed=0, tie_pressure=None, names=None, param_scales=None) -> list[float]:
     """For each of ``models`` (a joint fit's, the first holding the guess), the smallest
     ``Model.stable_dt()`` over the points ``fit(..., samples, starts, sample_range, seed)``
     starts from (the guess among them), before any run: the step at which a fit of
@@ -1659,7 +1661,7 @@ def starts_stable_steps(models, params, *, materials=None, bounds=None, samples=
     vals = [_Values(m, _material_indices(m, sel), name) for m, sel, name in zip(models, materials, names)]
     for v in vals:
         v.setup_tie(params, tie_pressure)
-    prob = _Problem(vals, params, bounds, scales)
+    prob = _Problem(vals, params, bounds, param_scales)
     candidates = _start_candidates(prob, samples, starts, sample_range, seed)
     out = []
     for v in vals:
@@ -1705,14 +1707,14 @@ def _step_size(name: str, value) -> float:
 
 def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
                   samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT, xtol=XTOL,
-                  flag=lambda name: name, bounds_typed: Mapping | None = None, scales=None,
-                  scales_typed: Mapping | None = None) -> dict:
+                  flag=lambda name: name, bounds_typed: Mapping | None = None,
+                  param_scales=None, param_scales_typed: Mapping | None = None) -> dict:
     """``fit``'s options that need no model, checked (as ``fit`` checks them, before any
     rollout): a dict of the validated values. ``flag(name)`` is how a message names an
     option (the command line passes ``--lr`` for ``lr``). ``lr``: ``None`` is ``LR``, and
     one given is refused with ``optimizer = "gauss-newton"``, which never reads it. Bounds
     are checked here for their form (``lo < hi``, a fitted parameter); ``fit`` checks
-    ``lo > 0`` of a positive one. ``scales`` (``{name: size}``): each a fitted parameter's
+    ``lo > 0`` of a positive one. ``param_scales`` (``{name: size}``): each a fitted parameter's
     positive, finite size; ``fit`` refuses one of a parameter fitted as its logarithm."""
     if isinstance(params, str):
         params = [p.strip() for p in params.split(",") if p.strip()]
@@ -1794,24 +1796,25 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
                              "open end is -inf or inf)")
         if not lo < hi:
             raise ValueError(f"{said(name, lo, hi)} is not allowed: need lo < hi")
-    out["scales"] = _check_scales(scales, params, flag, scales_typed or {})
+    out["param_scales"] = _check_param_scales(param_scales, params, flag, param_scales_typed or {})
     return out
 
 
-def _check_scales(scales, params, flag, typed) -> dict[str, float]:
-    """``scales`` as ``{name: size}`` of fitted parameters, each size positive and finite;
+def _check_param_scales(param_scales, params, flag, typed) -> dict[str, float]:
+    """``param_scales`` as ``{name: size}`` of fitted parameters, each size positive and finite;
     ``typed``: the command line's entries as written, by name."""
-    if scales is None:
+    if param_scales is None:
         return {}
-    if not isinstance(scales, Mapping):
-        raise ValueError(f"{flag('scales')} = {checks.shorten(scales)!r} is not allowed: must be a mapping {{name: size}}")
+    if not isinstance(param_scales, Mapping):
+        raise ValueError(f"{flag('param_scales')} = {checks.shorten(param_scales)!r} is not allowed: must be a mapping "
+                         "{name: size}")
     out = {}
-    for name, size in scales.items():
+    for name, size in param_scales.items():
         if name not in params:
-            given = f"{flag('scales')} {typed[name]}" if name in typed else f"{flag('scales')} for {name!r}"
+            given = f"{flag('param_scales')} {typed[name]}" if name in typed else f"{flag('param_scales')} for {name!r}"
             raise ValueError(f"{given} is not allowed: {name} is not fitted ({flag('params')} = "
-                             f"{','.join(params)}); give the scale of a fitted parameter")
-        out[name] = checks.positive(f"{flag('scales')}[{name!r}]", size)
+                             f"{','.join(params)}); give the size of a fitted parameter")
+        out[name] = checks.positive(f"{flag('param_scales')}[{name!r}]", size)
     return out
 
 
@@ -1880,7 +1883,7 @@ def fit(
     lr: float | None = None,
     lr_end: float | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
-    scales: Mapping[str, float] | None = None,
+    param_scales: Mapping[str, float] | None = None,
     clip: float | None = None,
     checkpoint_every: int | str | None = "auto",
     memory_limit: float = MEMORY_LIMIT,
@@ -1918,7 +1921,7 @@ def fit(
     - ``materials``: indices (or body names) of the materials to fit; default all. With a
       per-particle model (``rollout.split_materials``) this fits a field.
     - ``iterations``, ``lr``: optimiser steps and step size (in optimiser space: relative for
-      a parameter fitted as its logarithm, times its size for one fitted as itself, ``scales``;
+      a parameter fitted as its logarithm, times its size for one fitted as itself, ``param_scales``;
       default ``LR`` = 0.1; Adam's step and L-BFGS's first step, refused with
       ``"gauss-newton"``, which never reads it);
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
@@ -1926,7 +1929,7 @@ def fit(
       on a bound whose gradient points out of the box and step the others alone, so a
       fit whose optimum lies beyond a bound converges to the others' optimum there
       (docs/fitting.md, "Bounds"). ``clip``: gradient norm cap.
-    - ``scales``: ``{name: size}`` (positive, finite, in the parameter's units) of a parameter
+    - ``param_scales``: ``{name: size}`` (positive, finite, in the parameter's units) of a parameter
       fitted as itself (one whose initial value is 0 or below; ``lam``, ``hardening``,
       ``pressure_stiffness``, ``viscosity``): a step of ``lr`` moves it by ``lr`` times the
       size. Without one the size is the start's largest magnitude; from 0, the width of
@@ -1994,7 +1997,8 @@ def fit(
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
                       optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
-                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol, scales=scales)
+                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol,
+                      param_scales=param_scales)
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
     noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]
@@ -2066,7 +2070,7 @@ def fit(
     _refuse_unread_noise(runs, noise if len(exps) > 1 else None)
     for r in runs:
         r.setup_tie(params, tie_pressure)
-    prob = _Problem(runs, params, bounds, o["scales"])
+    prob = _Problem(runs, params, bounds, o["param_scales"])
     if optimizer == "gauss-newton":
         from .diagnostics import leaf_terms  # noqa: PLC0415
 
@@ -2413,7 +2417,7 @@ def fit(
     result.experiment_materials = fitted
     result.flowed_starts = [r.flowed_start() for r in runs]
     result.starts = stops
-    result.scales = prob.scales_record()
+    result.param_scales = prob.param_scales_record()
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     result.step_limit = _step_limit(runs, history)
 
@@ -2787,7 +2791,7 @@ def _interrupted_result(history, runs, params, prob):
     result.flowed_starts = [r.flowed_start() for r in runs]
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     # Its history's steps were sized as a finished fit's: fit.json says by what.
-    result.scales = prob.scales_record()
+    result.param_scales = prob.param_scales_record()
     return result
 
 
