@@ -86,3 +86,29 @@ def test_the_command_says_in_its_summary_and_fit_json_that_evaluations_ran_past_
     assert f"warning: dough_block: evaluations ran past the stable step: dt = {record['dt']:.4g} s is " \
            f"{record['dt_over_stable']:.3g} x the stable step {record['stable_dt']:.4g} s at mu = " \
            f"{record['params']['mu'][0]:.4g}" in out, out
+
+
+@pytest.mark.filterwarnings("ignore:dt = .* is above the explicit stability limit:RuntimeWarning")
+def test_an_interrupted_fit_records_how_far_past_the_stable_step_its_evaluations_ran():
+    """Ctrl-C (a KeyboardInterrupt from the callback) after the descent went stiffer than the
+    guess: the interrupted result, which ``warp-esph fit`` writes to fit.json as a finished
+    one's, holds the same ``step_limit`` over the evaluations that ran, not None."""
+    guess = _cube(1e3)
+    dt = guess.stable_dt()
+    target = Rollout(_cube(2e3), 2 * STEPS, 0.5 * dt, frames=[2 * STEPS]).forward()
+
+    def interrupt(evaluation, loss, params):
+        if params["mu"][0] > 1.2e3:  # stiffer than the guess: past its step
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt) as info:
+        fit(guess, target, ["mu"], steps=STEPS, frames=[STEPS], optimizer="lbfgs", iterations=6, progress=False,
+            diagnostics=False, callback=interrupt)
+    result = info.value.result
+    assert result is not None and result.stopped == "interrupted"
+    ratios = [dt / _cube(h["params"]["mu"][0], lam=1.5e3).stable_dt() for h in result.history]
+    assert max(ratios) > 1.05
+    assert result.step_limit is not None
+    assert result.step_limit["dt_over_stable"] == pytest.approx(max(ratios), rel=1e-9)
+    assert "x the stable step" in result.step_limit_said()
+    assert result.to_dict()["step_limit"] == result.step_limit

@@ -173,7 +173,8 @@ class FitResult:
     param_scales: dict = dataclasses.field(default_factory=dict)
     #: The evaluation whose run stepped furthest past its stable step (``Model.stable_dt`` at
     #: the values it ran, the hourglass control and fields included): ``{"dt_over_stable",
-    #: "dt", "stable_dt", "params", "iteration", "experiment"}``, None where nothing ran. A dt
+    #: "dt", "stable_dt", "params", "iteration", "experiment"}``, None where nothing ran (an
+    #: interrupted fit's too, over what it ran). A dt
     #: chosen from the guess's stable step (``dt=None``) is past it wherever the descent went
     #: stiffer; ``step_limit_said`` says so.
     step_limit: dict | None = None
@@ -2792,6 +2793,9 @@ def _interrupted_result(history, runs, params, prob):
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     # Its history's steps were sized as a finished fit's: fit.json says by what.
     result.param_scales = prob.param_scales_record()
+    # Its evaluations ran as a finished fit's did: a run past the stable step is as much in
+    # doubt when the fit is cut short, and fit.json is written for it all the same.
+    result.step_limit = _step_limit(runs, history)
     return result
 
 
