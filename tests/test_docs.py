@@ -525,6 +525,25 @@ def _vj_matches(row: dict, filters: list[str]) -> bool:
     return True
 
 
+def test_accuracy_md_quotes_the_near_yield_column_from_the_fixed_width_study():
+    """docs/accuracy.md's near-yield column is judged on the fixed-width study (docs/validation.md,
+    the plan's ``near_yield_column:width=0.04`` rows): the dx = 0.01 m columns grew with their
+    resolution and reached their buckling length, so their shortenings are no convergence. Its
+    plastic shortenings carry those rows (``test_every_number_accuracy_md_quotes...`` checks the
+    values), every across the study measured on each floor."""
+    text = (DOCS / "accuracy.md").read_text()
+    section = text.split("**The near-yield column", 1)[1].split("\n\n", 1)[0]
+    quoted = {(dict(f.partition("=")[::2] for f in m.group("sel").split()).get("floor"),
+               int(dict(f.partition("=")[::2] for f in m.group("sel").split()).get("resolution", -1)))
+              for m in VJ.finditer(section)
+              if m.group("expr") == "plastic_over_theory" and "case=near_yield_column" in m.group("sel")
+              and "width=0.04" in m.group("sel")}
+    results = _vj_rows()[0]
+    study = {(r["floor"], r["resolution"]) for r in results if r["case"] == "near_yield_column" and r.get("width") == 0.04}
+    assert study, "docs/validation.json holds no fixed-width near-yield rows"
+    assert quoted == study, (sorted(quoted), sorted(study))
+
+
 def test_every_number_accuracy_md_quotes_from_a_validation_row_is_the_rows():
     """docs/accuracy.md answers "how far can I trust a fitted parameter" with numbers of
     docs/validation.json; each carries the row it was read from, so a re-measured row that moves
