@@ -45,6 +45,30 @@ def test_tiny_benchmark_writes_the_expected_json(tmp_path):
     assert 45e3 < paper["fig5"]["particle_steps_per_second"] < 47e3
 
 
+def test_fit_weight_option_reaches_the_benchmarked_models(tmp_path):
+    """``--fit-weight`` names the weight of every model the main benchmark times (the fused
+    forward and the taped window), and ``--fit-weights`` times the taped forward + backward
+    window of each weight beside the forward rates: the benchmark behind the cost of a
+    switch of the default (docs/physics.md, "The fit weight's default: the evidence")."""
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
+
+    other = next(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT)
+    out = tmp_path / "bench.json"
+    argv = ["--sizes", "64", "--devices", "cpu", "--steps", "1", "--warmup", "1", "--blocks", "1",
+            "--phase-steps", "1", "--taped-steps", "1", "--taped-repeats", "1", "--no-splishsplash", "--fit-weights",
+            "--fit-weight", other, "--json", str(out)]
+    assert step.main(argv) == 0
+    report = json.loads(out.read_text())
+    assert report["config"]["fit_weight"] == other
+    r = report["warp_esph"]["cpu"]["64"]
+    assert r["fit_weight"] == other and r["forward_backward"]["fit_weight"] == other
+    taped = report["fit_weights"]["cpu"]["64"]["taped"]
+    assert {w: taped[w]["fit_weight"] for w in ("poly6", "biweight")} == {"poly6": "poly6", "biweight": "biweight"}
+    assert all(taped[w]["backward_ms_per_step"] > 0 and taped[w]["gradients_finite"] for w in ("poly6", "biweight"))
+    assert taped["biweight_over_poly6"]["backward_ms_per_step"] == pytest.approx(
+        taped["biweight"]["backward_ms_per_step"] / taped["poly6"]["backward_ms_per_step"])
+
+
 def test_floors_benchmark_times_every_floor_against_the_particle_floor(tmp_path):
     """``benchmarks.floors`` at a tiny size: every floor of the validation suite (and the
     particle floor's non-fused step) as a ratio to the particle floor's fused step, and the
