@@ -232,7 +232,8 @@ def test_splishsplash_refuses_bad_values_and_names_its_optional_package(refused,
 
 @pytest.mark.parametrize("argv,option", [(["--sizes", "abc"], "--sizes = 'abc'"), (["--devices", "gpu9"], "--devices = 'gpu9'"),
                                          (["--steps", "0"], "--steps = 0"), (["--blocks", "0"], "--blocks = 0"),
-                                         (["--variants", "--baseline-commit", "nosuchcommit"], "--baseline-commit = 'nosuchcommit'")])
+                                         (["--variants", "--baseline-commit", "nosuchcommit"], "--baseline-commit = 'nosuchcommit'"),
+                                         (["--fit-weight", "gauss"], "--fit-weight = 'gauss'")])
 def test_step(refused, argv, option):
     refused("step", argv, option)
 
