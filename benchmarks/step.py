@@ -290,28 +290,32 @@ def time_taped(we, n: int, device, source_state, taped_steps: int, repeats: int,
         loss.zero_()
         tape = wp.Tape()
         _sync(device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         with tape:
             for k in range(taped_steps):
                 solver.step(states[k], states[k + 1], DT)
             wp.launch(kernel, model.particle_count, [states[-1].x, weights], [loss], device=device)
         _sync(device)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.thread_time()
         tape.backward(loss)
         _sync(device)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.thread_time()
         grad_ok = bool(np.isfinite(model.mu.grad.numpy()).all() and np.isfinite(states[0].v.grad.numpy()).all())
         tape.zero()
         if best is None or t2 - t0 < best[2] - best[0]:
-            best = (t0, t1, t2, grad_ok)
+            best = (t0, t1, t2, grad_ok, c0, c1, c2)
         del tape
-    t0, t1, t2, grad_ok = best
+    t0, t1, t2, grad_ok, c0, c1, c2 = best
     npart = model.particle_count
     return {
         "taped_steps": taped_steps,
         "fit_weight": model.fit_weight,
         "forward_ms_per_step": 1e3 * (t1 - t0) / taped_steps,
         "backward_ms_per_step": 1e3 * (t2 - t1) / taped_steps,
+        # Thread CPU time (Warp's CPU kernels run on the calling thread): steadier than the
+        # wall clock on a shared machine, as the forward blocks' CPU-time rates.
+        "forward_cpu_ms_per_step": 1e3 * (c1 - c0) / taped_steps,
+        "backward_cpu_ms_per_step": 1e3 * (c2 - c1) / taped_steps,
         "particle_steps_per_second": npart * taped_steps / (t2 - t0),
         "gradients_finite": grad_ok,
     }, states[1]
@@ -447,7 +451,8 @@ def fit_weight_rates(n: int, device, args) -> dict:
                 best[w] = r
     taped = dict(best)
     taped["biweight_over_poly6"] = {k: best["biweight"][k] / best["poly6"][k]
-                                    for k in ("forward_ms_per_step", "backward_ms_per_step", "particle_steps_per_second")}
+                                    for k in ("forward_ms_per_step", "backward_ms_per_step", "particle_steps_per_second",
+                                              "forward_cpu_ms_per_step", "backward_cpu_ms_per_step")}
     out["taped"] = taped
     return out
 
@@ -837,6 +842,11 @@ def main(argv=None):
                                        for f in choices)
                       + f"; {choices[-1]} / {choices[0]}: " + ", ".join(f"{v:.3f}" for v in r[ratio].values()),
                       flush=True)
+                if "taped" in r:
+                    t = r["taped"]
+                    print("  taped: " + ", ".join(f"{f}: {t[f]['forward_ms_per_step']:.1f} ms forward, "
+                                                  f"{t[f]['backward_ms_per_step']:.1f} ms backward per step" for f in choices)
+                          + f"; {ratio}: " + ", ".join(f"{k} {v:.3f}" for k, v in t[ratio].items()), flush=True)
     if args.no_splishsplash or args.comparisons_only:
         report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}
     else:
