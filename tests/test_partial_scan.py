@@ -188,3 +188,53 @@ def test_the_command_fits_a_scan_of_part_of_the_body_with_cloud_coverage_partial
                  "partial"]) == 2
     assert "--cloud-coverage = 'partial' is not allowed: it is how much of the body point-cloud targets show, and the " \
            "targets are positions" in capsys.readouterr().err
+
+
+def _block_on_floor(yield_stress, worlds=1):
+    """A 3 x 5 x 3 column (2 cm spacing) on a plastic particle floor of its own material
+    (two pinned layers, two spacings beyond its footprint), float64."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.07, 0.0), (0.06, 0.10, 0.06), we.Material(
+        mu=2e3, lam=3e3, density=1000.0, yield_stress=yield_stress, flow_rate=10.0), name="block")
+    b.add_particle_floor("block", margin=0.04)
+    return b.finalize(dtype=wp.float64, requires_grad=True, worlds=worlds)
+
+
+def test_a_full_scan_of_a_sample_on_a_particle_floor_is_not_taken_for_part_of_it():
+    """The floor's particles are the block's body and pinned: a full scan of the block's
+    final shape (no floor in it) left the floor's surface unseen and was warned of as a
+    scan of part of the body (59 % unseen). Pinned particles are held, not unseen: the full
+    scan passes, and a scan of the block's top half is still warned of."""
+    truth = _block_on_floor(300.0)
+    dt = 0.5 * truth.stable_dt()
+    x = Rollout(truth, 20, dt, frames=[20]).forward()[-1]
+    pinned = truth.tools.pin.numpy() >= 0
+    assert 0 < pinned.sum() < len(x)
+    block = x[~pinned]
+    common = dict(steps=20, dt=dt, iterations=0, progress=False, diagnostics=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit(_block_on_floor(600.0), ChamferLoss(block, radius=0.06, frames=[20]), ["yield_stress"], **common)
+    with pytest.warns(UserWarning, match="target: the point cloud at step 20 looks like a scan of part of the body"):
+        fit(_block_on_floor(600.0), ChamferLoss(_top_half(block), radius=0.06, frames=[20]), ["yield_stress"], **common)
+
+
+def test_a_scan_of_part_of_the_body_in_a_world_loss_is_warned_of_naming_its_world():
+    """A ``WorldLoss`` of two worlds, world 0 with a full scan and world 1 with a top-half
+    scan of the same run, both two-way: the fit warns of world 1's cloud alone."""
+    from warp_esph.losses import WorldLoss
+
+    truth = _cylinder(300.0, radius=0.05, height=0.12, speed=1.0)
+    dt = 0.5 * truth.stable_dt()
+    x = Rollout(truth, 40, dt, frames=[40]).forward()[-1]
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_cylinder((0.0, 0.065, 0.0), 0.05, 0.12, we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=600.0,
+                                                              flow_rate=10.0), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    worlds = b.finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    assert worlds.world_start[1] == len(x)
+    loss = WorldLoss(worlds, [ChamferLoss(x, radius=0.06, frames=[40]), ChamferLoss(_top_half(x), radius=0.06, frames=[40])])
+    with pytest.warns(UserWarning) as record:
+        fit(worlds, loss, ["yield_stress"], steps=40, dt=dt, iterations=0, progress=False, diagnostics=False)
+    said = [str(w.message) for w in record if "scan of part of the body" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("target (world 1): the point cloud at step 40"), said

@@ -488,17 +488,29 @@ def _watch_scan_coverage(loss: Loss, model: Model, what: str) -> None:
     whether its cloud shows only part of the body (``ChamferLoss.watch_coverage``): fitted
     two-way, a top-half scan pulled the bottom onto the top and the fit from a guess did not
     move (1.434e-4 -> 1.433e-4 m^2) without a word. The body's surface is the model's
-    surface particles (those a scan can see) among those the loss compares."""
-    leaves = [leaf for leaf in _leaves(loss) if isinstance(leaf, ChamferLoss) and leaf.coverage == "full"]
+    surface particles (those a scan can see) among those the loss compares; a pinned one
+    (a particle floor's, a clamp's) is held, not counted unseen where a scan of the sample
+    leaves it out. A ``WorldLoss``'s losses each watch their own world's particles."""
+    leaves = [(leaf, world) for leaf, world in _world_leaves(loss, None)
+              if isinstance(leaf, ChamferLoss) and leaf.coverage == "full"]
     if not leaves:
         return
     surface = surface_particles(model)
-    for leaf in leaves:
+    tools = getattr(model, "tools", None)
+    pinned = np.zeros(model.particle_count, dtype=bool) if tools is None else tools.pin.numpy() >= 0
+    starts = np.asarray(model.world_start, dtype=np.int64)
+    for leaf, world in leaves:
+        lo, hi = (0, model.particle_count) if world is None else (int(starts[world]), int(starts[world + 1]))
+        mine = surface[(surface >= lo) & (surface < hi)] - lo
         if leaf.particles is None:
-            local = surface
+            local = mine
+            held = pinned[lo:hi][local]
         else:
-            local = np.flatnonzero(np.isin(np.asarray(leaf.particles), surface))
-        leaf.watch_coverage(local, model.spacing, what)
+            compared = np.asarray(leaf.particles, dtype=np.int64)
+            local = np.flatnonzero(np.isin(compared, mine))
+            held = pinned[lo:hi][compared[local]]
+        label = what if world is None else f"{what} (world {world})"
+        leaf.watch_coverage(local[~held], model.spacing, label, held=local[held])
 
 
 def _warn_surface_scale(leaf, x0: np.ndarray, what: str) -> None:

@@ -1028,19 +1028,24 @@ class ChamferLoss(Loss):
         watch = getattr(self, "_coverage_watch", None)
         if full and watch is not None and frame not in watch[2]:
             watch[2].add(frame)
-            self._warn_partial_scan(frame, x.numpy()[watch[0]], watch[1], watch[3])
+            xs = x.numpy()
+            self._warn_partial_scan(frame, xs[watch[0]], watch[1], watch[3], xs[watch[4]])
 
-    def watch_coverage(self, surface, spacing: float, what: str = "target") -> None:
+    def watch_coverage(self, surface, spacing: float, what: str = "target", held=()) -> None:
         """Check, at the first evaluation of each frame, whether a ``coverage="full"`` cloud
         shows only part of the body (``scan_coverage`` of the particles ``surface``, indices
         into the positions this loss compares), and warn naming ``what`` where it does. A fit
-        asks it of each such loss with the model's surface particles."""
-        self._coverage_watch = (np.asarray(surface, dtype=np.int64), float(spacing), set(), what)
+        asks it of each such loss with the model's surface particles. ``held``: surface
+        particles held in place (a pinned set, a particle floor), indices as ``surface``'s:
+        a scan need not show them (``scan_coverage``'s ``held``)."""
+        self._coverage_watch = (np.asarray(surface, dtype=np.int64), float(spacing), set(), what,
+                                np.asarray(held, dtype=np.int64))
 
-    def _warn_partial_scan(self, frame: int, surface: np.ndarray, spacing: float, what: str) -> None:
+    def _warn_partial_scan(self, frame: int, surface: np.ndarray, spacing: float, what: str,
+                           held: np.ndarray | None = None) -> None:
         if len(surface) == 0:
             return
-        unseen, stray, distance = scan_coverage(surface, self.targets[frame], spacing)
+        unseen, stray, distance = scan_coverage(surface, self.targets[frame], spacing, held=held)
         if unseen >= UNSEEN_SHARE and stray <= COVERED_NEAR:
             import warnings  # noqa: PLC0415
 
@@ -1330,16 +1335,25 @@ def _far_share(a: np.ndarray, b: np.ndarray, distance: float, sample: int = 2000
     return far / len(a)
 
 
-def scan_coverage(surface: np.ndarray, cloud: np.ndarray, spacing: float) -> tuple[float, float, float]:
+def scan_coverage(surface: np.ndarray, cloud: np.ndarray, spacing: float, held=None) -> tuple[float, float, float]:
     """How much of a body a cloud shows: ``(unseen, stray, distance)``, the share of the
     ``surface`` particles' positions ``(n, 3)`` farther than ``distance`` from every point of
     ``cloud`` ``(m, 3)``, and the share of the cloud's points that far from every surface
     particle. ``distance`` is 1.5 times the larger of the particle ``spacing`` and the
     cloud's own (median nearest-neighbour distance): a sparse but full scan leaves gaps of
     its own spacing, not more. A cloud of part of the body leaves many surface particles
-    unseen while its points all lie on the body (``UNSEEN_SHARE``, ``COVERED_NEAR``)."""
+    unseen while its points all lie on the body (``UNSEEN_SHARE``, ``COVERED_NEAR``).
+
+    ``held``: positions ``(k, 3)`` of surface particles held in place (a pinned set, a
+    particle floor, ``SceneBuilder.add_particle_floor``), not in ``surface``. A scan of the
+    sample alone need not show them, so they are not in the unseen share (a full scan of a
+    block on a floor left 59 % of the surface unseen, the floor's); a cloud point near one
+    is still on the body (not stray)."""
     surface = np.asarray(surface, dtype=np.float64)
     cloud = np.asarray(cloud, dtype=np.float64)
+    body = surface
+    if held is not None and len(held):
+        body = np.concatenate([surface, np.asarray(held, dtype=np.float64).reshape(-1, 3)])
     own = 0.0
     if len(cloud) > 1:
         probe = cloud if len(cloud) <= 512 else cloud[np.linspace(0, len(cloud) - 1, 512).astype(np.int64)]
@@ -1352,7 +1366,7 @@ def scan_coverage(surface: np.ndarray, cloud: np.ndarray, spacing: float) -> tup
         gaps = gaps[np.isfinite(gaps)]
         own = float(np.median(gaps)) if len(gaps) else 0.0
     distance = 1.5 * max(float(spacing), own)
-    return _far_share(surface, cloud, distance), _far_share(cloud, surface, distance), distance
+    return _far_share(surface, cloud, distance), _far_share(cloud, body, distance), distance
 
 
 def surface_particles(model) -> np.ndarray:
