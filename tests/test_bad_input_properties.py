@@ -885,3 +885,19 @@ def test_a_fits_materials_or_frames_that_are_no_list_are_refused_by_name(value):
     for index in (np.int64(0), np.array(0)):  # numpy's integer index is an index
         result = fit(model, target, frames=np.array(2), materials=index, **quick)
         assert set(result.params) == {"yield_stress", "flow_rate"}
+
+
+@pytest.mark.parametrize("value", [b"0", bytearray(b"0"), {0: "dough"}, {"blk": 1}], ids=["bytes", "bytearray", "dict", "dict_name"])
+def test_a_fits_materials_as_bytes_or_a_dict_are_refused_by_name(value):
+    """``materials=b'0'`` was iterated as its byte values ("material 48 is not allowed") and a
+    dict was taken by its keys (``{0: ...}`` fitted material 0): neither is a selection."""
+    from warp_esph.fit import _material_indices  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="blk")
+    model = b.finalize()
+    kind = type(value).__name__
+    with pytest.raises(ValueError, match=rf"^materials = .* is not allowed: a {kind} is no selection; give a material "
+                                         r"index, a body name \(blk\) or a list of them"):
+        _material_indices(model, value)
+    assert _material_indices(model, [0]) == [0] and _material_indices(model, "blk") == [0]

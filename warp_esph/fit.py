@@ -339,6 +339,10 @@ def _material_indices(model: Model, materials, what: str = "material") -> list[i
     names = [b.name for b in model.bodies]
     if isinstance(materials, np.ndarray) and materials.ndim == 0:  # a 0-d array is the value it holds
         materials = materials.item()
+    if isinstance(materials, (bytes, bytearray, memoryview, Mapping)):
+        # Iterated, b'0' was the index 48 ("material 48 is not allowed") and a dict its keys.
+        raise ValueError(f"materials = {checks.shorten(materials)!r} is not allowed: a {type(materials).__name__} is no "
+                         f"selection; give a material index, a body name ({', '.join(names)}) or a list of them")
     if isinstance(materials, (int, np.integer, str)):  # numpy's int too: np.int64(0) was iterated, a TypeError
         materials = [materials]
     try:
