@@ -1923,7 +1923,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     # fixed width"): 4 cm wide and 20 cm tall at every resolution, 0.79 of its self-weight
     # buckling length, so the resolutions resolve one column (without a width it grows with
     # them and buckles from 8 across). On the slip ghost floor, whose bottom layer spreads as
-    # the 1-D analysis's, and on the ground collider. 8 across: about 10 minutes on one core.
+    # the 1-D analysis's, and on the ground collider. Measured (R63, one process beside other
+    # jobs, load 8-14 on 2 cores): 230 / 584 / 1397 s at 4 / 6 / 8 across on the slip ghost floor.
     for floor in ("slip_ghost_particles", "ground"):
         for res in (4, 6, 8):
             runs.append(("near_yield_column", {"resolution": res, "width": NEAR_YIELD_WIDTH, "floor": floor}))

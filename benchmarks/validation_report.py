@@ -797,10 +797,11 @@ def near_yield_at_rest(r: dict) -> bool:
 def _near_yield_target(results) -> list[tuple[str, str, str, str]]:
     """The near-yield column's row: its fixed-width study (``near_yield_column`` with a
     ``width``; docs/physics.md, "The near-yield column at a fixed width") per floor, judged on
-    the finest resolution: holds (no lean past a spacing, shortened less than twice the
-    theory, at rest), yields only within a width of the 1-D yield depth, and its plastic
-    shortening within 10 % of the 1-D analysis's and converging; then the dx = 0.01 m rows
-    (``NEAR_YIELD_GROWING``), whose columns grow with the resolution."""
+    the finest resolution: holds (at every resolution no lean past a spacing and shortened
+    less than twice the theory) and yields only within a width of the 1-D yield depth, and
+    its plastic shortening within 10 % of the 1-D analysis's and converging. Rest is not part
+    of "holds": a resolution not at rest (``near_yield_at_rest``) is named after the verdict.
+    Then the dx = 0.01 m rows (``NEAR_YIELD_GROWING``), whose columns grow with the resolution."""
     rows = [r for r in results if r["case"] == "near_yield_column" and r.get("width") is not None
             and r.get("elastic_force") == "variational" and r.get("dtype", "float32") == "float32"
             and not r.get("tilt")]
