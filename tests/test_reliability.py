@@ -1641,3 +1641,43 @@ def test_the_monitor_counts_the_lift_of_a_moving_tool_as_its_work():
     assert mon.check(x, np.tile([0.0, 4.0, 0.0], (model.particle_count, 1)), 0.2) is None
     what, _ = mon.check(x, np.tile([0.0, 4.0 * 9.0, 0.0], (model.particle_count, 1)), 0.2)
     assert what.startswith("kinetic energy") or what.startswith("speed")
+
+
+def test_a_step_too_long_for_the_precision_to_resolve_its_fall_is_refused():
+    """One float64 step of 1e30 s put every particle of a dough box at exactly (0, 0, 0) at
+    rest, with only the stability warning: the ground took the particles back from a height
+    of 1e61 m, whose round-off was larger than the box, and the finite state at rest passed
+    every divergence bound (``fit(dt=1e30)`` returned a result, ``Rollout.forward`` zeros).
+    Such a ``dt`` is refused by name (``Solver.step``, ``Rollout``, its ``dt`` setter); just
+    below the bound the step is still the method's: the box lands on the ground with every
+    particle where it was across it (sticking friction)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    a, c = model.state(), model.state()
+    refusal = r"dt = 1e\+30 is not allowed: one step's fall under gravity, \|g\| dt\^2 = 9.81e\+60 m, is more than float64"
+    with pytest.raises(ValueError, match=refusal):
+        we.Solver(model).step(a, c, 1e30)
+    with pytest.raises(ValueError, match=refusal):
+        Rollout(model, 2, 1e30)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # far above the stable step, as meant
+        rollout = Rollout(model, 1, 1e-3)
+        with pytest.raises(ValueError, match=refusal):
+            rollout.dt = 1e30
+        longest = math.sqrt(model.spacing / (np.finfo(np.float64).eps * 9.81))
+        we.Solver(model).step(a, c, 0.98 * longest)
+    x0, x1 = a.x.numpy(), c.x.numpy()
+    np.testing.assert_allclose(x1[:, [0, 2]], x0[:, [0, 2]], atol=1e-12)
+    np.testing.assert_array_equal(x1[:, 1], 0.0)
+    np.testing.assert_array_equal(c.v.numpy(), 0.0)
+
+
+def test_run_names_a_dt_too_long_for_the_precision_as_typed(tmp_path, capsys):
+    """``warp-esph run --fps 1e-30 --dt 1e30`` (a frame of one step) ran the step of 1e30 s
+    and wrote a star flattened by round-off, exit 0. Refused in one line, exit 2, naming
+    ``--dt`` and the value typed (the solver's step is 1/fps / steps, 9.999999999999999e+29)."""
+    line = one_error_line(refused_run(capsys, "star", tmp_path / "o.usdc", "--frames", "1", "--fps", "1e-30", "--dt", "1e30"))
+    assert line.startswith("warp-esph: error: --dt = 1e+30 is not allowed: one step's fall under gravity"), line
+    assert "float32 resolves at the spacing" in line and "the stable step" in line, line

@@ -562,6 +562,7 @@ def _cmd_run(args) -> int:
             raise scene_dt_refusal(f"{scene.name}'s dt", scene.dt, fps, f"--fps = {args.fps:g}", "--dt") from None
         raise
     dt_given = dt is not None and not adaptive
+    dt_typed = dt
     if not adaptive:
         dt = dt_shown
     try:
@@ -577,6 +578,14 @@ def _cmd_run(args) -> int:
                 ", or a smaller --scale (a larger spacing, whose stable step is longer)")
         raise ValueError(f"{named} is not allowed: {e.detail}; give fewer --frames{cure}") from None
     solver = Solver(model)
+    if dt_given:
+        # Before check_dt, whose refusal names Python's dt, at 1/fps / steps, not the value given.
+        from .sim.solver import resolvable_dt  # noqa: PLC0415
+
+        named = flag("dt")
+        if named == "dt" and args.resume is None and str(args.scene).lower().endswith(".toml"):
+            named = f"{args.scene}: [scene] dt"
+        resolvable_dt(model, float(dt_typed), named, "the stable step")
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     try:
         # Before the writer replaces an earlier run's file; simulate does not repeat them.

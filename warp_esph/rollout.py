@@ -77,7 +77,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State, flowed_by_hardening, precision_problem
-from .sim.solver import GUARD_NAMES, Solver, representable_dt
+from .sim.solver import GUARD_NAMES, Solver, representable_dt, resolvable_dt
 from .simulate import SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
@@ -622,8 +622,9 @@ class Rollout:
 
     @property
     def dt(self) -> float:
-        """The step (s) every run takes. Checked when set (``ValueError`` unless positive and
-        representable in the model's precision); a step above ``Model.stable_dt`` is warned of
+        """The step (s) every run takes. Checked when set (``ValueError`` unless positive,
+        representable in the model's precision and short enough for it to resolve a step's
+        fall, ``sim.solver.resolvable_dt``); a step above ``Model.stable_dt`` is warned of
         by the solver's step, as any run's. Set it between runs, not between a forward and its
         backward (``backward`` refuses that run)."""
         return self._dt
@@ -632,7 +633,7 @@ class Rollout:
     def dt(self, value):
         # Any value was taken (0, -1, NaN, a string) and refused only by the next step, or by
         # repr as a format error.
-        self._dt = representable_dt(self.model.scalar, value)
+        self._dt = resolvable_dt(self.model, representable_dt(self.model.scalar, value))
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
                  checkpoint_every: int | None = None, solver: Solver | None = None, taped: bool = True):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import math
 import time
 import warnings
 import weakref
@@ -81,6 +82,28 @@ def representable_dt(scalar, dt) -> float:
         # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
         raise ValueError(f"dt = {dt!r} is not allowed in {scalar.__name__}: must be in "
                          f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
+    return dt
+
+
+def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Model.stable_dt() =") -> float:
+    """``dt``, refused (ValueError) where one step's fall under gravity, ``|g| dt^2``, is so
+    long that the model's precision holds a position after it to no better than a spacing
+    (``eps |g| dt^2 > spacing``). A collider then takes the particle back from a height whose
+    round-off is larger than the body, and the state it leaves is round-off that looks like a
+    result: one float64 step of 1e30 s put every particle of a dough box at exactly (0, 0, 0)
+    at rest, finite and inside every divergence bound. The bound reads no parameter, so a fit
+    meets it at its start or never. ``name``, ``stable``: how the refusal names ``dt`` and the
+    stable step (the CLI's ``--dt``)."""
+    g = float(np.linalg.norm(np.asarray(model.gravity, dtype=np.float64)))
+    eps = float(np.finfo(np.float32 if model.scalar is wp.float32 else np.float64).eps)
+    fall = g * dt * dt
+    if eps * fall > model.spacing:
+        longest = math.sqrt(model.spacing / (eps * g))
+        raise ValueError(
+            f"{name} = {dt!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
+            f"{model.scalar.__name__} resolves at the spacing {model.spacing:.3g} m (spacing / eps = {model.spacing / eps:.3g} m), "
+            f"so the positions after it would be round-off; must be at most {longest:.3g} s (and for a stable run at most "
+            f"{stable} {model.stable_dt():.3g} s)")
     return dt
 
 
@@ -758,12 +781,12 @@ class Solver:
         self.scratch.counters.zero_()
 
     def check_dt(self, dt) -> float:
-        """``dt`` as a float, refused (ValueError) unless positive and representable in the
-        model's precision; warns once per value above ``Model.stable_dt`` (with the
+        """``dt`` as a float, refused (ValueError) unless positive, representable in the
+        model's precision and short enough for it to resolve a step's fall (``resolvable_dt``); warns once per value above ``Model.stable_dt`` (with the
         hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``, and
         again for that value only where new parameters put it ``STEP_REWARN`` times further
         past its limit than when it last warned. ``step`` calls it."""
-        dt = representable_dt(self.model.scalar, dt)
+        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt))
         stable = self.model.stable_dt(hourglass=self.hourglass)
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
