@@ -854,3 +854,28 @@ def test_a_hessian_of_a_loss_linear_in_the_positions_is_refused_not_zero():
     with pytest.raises(RuntimeError) as e:
         torch.autograd.functional.hessian(lambda m: rollout_positions(rollout, {"mu": m}).sum(), mu)
     assert str(e.value) == SECOND_DERIVATIVES
+
+
+def test_a_forward_that_blows_up_while_finite_raises_not_a_result():
+    """``rollout_positions(R, {"mu": 1e30})`` returned positions 1.5e5 m out of a 0.1 m box,
+    finite, with only the stability warning: a torch optimiser took their loss as a result. The
+    bridge applies the bounds ``fit`` fails its trials on (``Rollout.bounds_hit``,
+    ``simulate.DivergenceMonitor``) and raises ``DivergedRollout`` (a ``FloatingPointError``)
+    naming the particle and the stable step; the model keeps the values it held, and a run at a
+    sound stiffness is returned as before."""
+    from warp_esph.rollout import DivergedRollout  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    rollout = Rollout(model, 2, 1e-4, frames=[1, 2])
+    mu = rollout.get_parameters()["mu"].tolist()
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        with pytest.raises(FloatingPointError, match=r"^the rollout blew up while staying finite: a particle .* m outside "
+                                                     r"the scene.*after step 2 of 2.*use a smaller dt") as info:
+            rollout_positions(rollout, {"mu": torch.tensor([1e30], dtype=torch.float64)})
+    assert isinstance(info.value, DivergedRollout) and info.value.step == 2
+    assert rollout.get_parameters()["mu"].tolist() == mu
+    y = rollout_positions(rollout, {"mu": torch.tensor([2.0 * mu[0]], dtype=torch.float64)})
+    assert float(y.abs().max()) < 0.3

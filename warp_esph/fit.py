@@ -1352,8 +1352,6 @@ def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0, 
     guess had gone on and reported 'converged'). The particle is named by its index less
     ``first``: a world's first particle, so that a start run as a world is noted as it is run
     alone (its history describes the one-world model)."""
-    from .simulate import DivergenceMonitor  # noqa: PLC0415
-
     checked = particles if checked is None else checked
     bad = rollout.first_non_finite(particles)
     if bad is not None:
@@ -1361,9 +1359,7 @@ def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0, 
         since = "" if step - last_finite <= 1 else f", finite after step {last_finite}"
         return (f"diverged: non-finite position or velocity (particle {p - first}, after step {step} of "
                 f"{rollout.steps}{since})")
-    monitor = DivergenceMonitor(model, rollout._initial, particles=checked, solver=rollout.solver)
-    final = rollout.final_state()
-    hit = monitor.check(final.x.numpy(), final.v.numpy(), rollout.steps * rollout.dt)
+    hit = rollout.bounds_hit(checked)
     return None if hit is None else f"diverged: {hit[0]} (particle {hit[1] - first}, at the rollout's last step)"
 
 

@@ -78,7 +78,7 @@ from . import checks
 from ._types import type_set
 from .model import Model, State, flowed_by_hardening, precision_problem
 from .sim.solver import GUARD_NAMES, Solver, representable_dt, resolvable_dt
-from .simulate import SimulationError
+from .simulate import DivergenceMonitor, SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
            "COLLIDER_NAMES", "NonFiniteRollout", "RolloutMemoryError"]
@@ -135,6 +135,15 @@ class NonFiniteRollout(SimulationError, FloatingPointError):
     def __init__(self, message: str, *, step: int, particle: int, body: str, last_finite: int):
         super().__init__(message, step=step, particle=particle, body=body)
         self.last_finite = last_finite
+
+
+class DivergedRollout(SimulationError, FloatingPointError):
+    """A run that blew up while staying finite: its last state is past
+    ``simulate.DivergenceMonitor``'s bounds from its initial state (``Rollout.bounds_hit``, the
+    test ``fit`` fails its trials on and ``simulate`` stops on). Raised by the torch bridge,
+    whose caller's optimiser would otherwise take a loss of positions 1e5 m out as a result;
+    ``step``: the rollout's steps (the last state is what is checked), ``particle``, ``body``:
+    the particle farthest past its bound and its body's name."""
 
 
 def _first_non_finite(*arrays) -> int | None:
@@ -853,7 +862,8 @@ class Rollout:
         returns it as it is (``fit`` does, and fails such a trial itself). Only non-finite
         values are caught: a run that blew up while staying finite (particles far away) is
         returned as a result; ``simulate.DivergenceMonitor`` holds the bounds that catch it
-        (``fit`` applies them). The check reads the last state's velocities (and its
+        (``bounds_hit``: ``fit`` fails its trials on them, the torch bridge raises
+        ``DivergedRollout``). The check reads the last state's velocities (and its
         positions where ``steps`` is not a frame) once per forward.
 
         The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
@@ -1012,6 +1022,32 @@ class Rollout:
         step, p = min((k, p) for k, p, _ in known if p is not None)
         last_finite = max([0] + [k for k, p, full in known if p is None and full and k < step])
         return step, p, last_finite
+
+    def bounds_hit(self, checked=None) -> tuple[str, int] | None:
+        """``(why, particle)`` where the last state of the latest forward is past
+        ``simulate.DivergenceMonitor``'s bounds from the run's initial state (among the
+        particles of the boolean mask ``checked``; None: all), else None: a blow-up that
+        stayed finite. ``fit`` fails its trials on it; the torch bridge raises on it."""
+        monitor = DivergenceMonitor(self.model, self._initial, particles=checked, solver=self.solver)
+        final = self.final_state()
+        return monitor.check(final.x.numpy(), final.v.numpy(), self.steps * self.dt)
+
+    def _check_bounds(self):
+        """Raise ``DivergedRollout`` where ``bounds_hit`` finds the last state past the bounds."""
+        hit = self.bounds_hit()
+        if hit is None:
+            return
+        why, p = hit
+        m = self.model
+        body = m.bodies[int(m.particle_body_np[p])].name
+        stable = m.stable_dt(hourglass=self.solver.hourglass)
+        advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "
+                  "materials' makes the stable step smaller)" if self.dt > stable else
+                  "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
+        raise DivergedRollout(
+            f"the rollout blew up while staying finite: {why} (particle {p} of body {body!r}, after step {self.steps} "
+            f"of {self.steps}), at dt = {self.dt:.4g} s (Model.stable_dt() = {stable:.3g} s); {advice}",
+            step=self.steps, particle=p, body=body)
 
     def _check_finite(self, positions: np.ndarray):
         """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's

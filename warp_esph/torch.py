@@ -27,7 +27,10 @@ device (two are refused by name); they are copied to and from the model's device
 positions come back on theirs, in their dtype promoted with the model's precision (float64
 where no float tensor is given); use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
-the model keeping the values it held, instead of returning a tensor of NaN positions.
+the model keeping the values it held, instead of returning a tensor of NaN positions; one that
+blows up while staying finite (past ``simulate.DivergenceMonitor``'s bounds, the test ``fit``
+fails its trials on: ``Rollout.bounds_hit``) raises ``warp_esph.rollout.DivergedRollout``, also
+a ``FloatingPointError``, instead of positions 1e5 m out taken as a result.
 
 ``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
 positive ones) so ``torch.optim.Adam`` can drive a fit.
@@ -135,6 +138,8 @@ def _function():
             ctx.starts = starts
             try:
                 out = rollout._forward_checked(starts, taped=taped)
+                # A finite blow-up too (fit's test of its trials): its loss is no result.
+                rollout._check_bounds()
             except BaseException:
                 # A forward that fails (a step's refusal) left the model running the new values.
                 rollout._set_parameters(before, ctx.params)
