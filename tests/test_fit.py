@@ -2577,3 +2577,25 @@ def test_evaluations_past_the_stable_step_are_warned_of_once_until_the_step_is_f
     assert (dt / limit) / 1.5 > STEP_REWARN
     with pytest.warns(RuntimeWarning, match=f"above the explicit stability limit {limit:.3g} s"):
         r.forward()
+
+
+@pytest.mark.parametrize("target, said", [
+    (1j, r"target = 1j is not allowed: it holds complex numbers; positions are real"),
+    ("complex positions", r"target = array\(.* is not allowed: it holds complex numbers; positions are real"),
+    ([[0.0, 0.1], [0.2]], r"target = \[\[0.0, 0.1\], \[0.2\]\] is not allowed: must be positions"),
+])
+def test_a_target_that_is_no_real_positions_is_refused_by_name(target, said):
+    """``fit(target=1j)`` raised numpy's bare TypeError ('float() argument must be a string or a
+    real number, not complex'), naming no parameter; complex positions of the right shape were
+    cast to their real part with only a ComplexWarning, and the fit ran on them; ragged rows
+    met numpy's 'setting an array element with a sequence'."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    if isinstance(target, str):
+        target = model.particle_x0[None] + 1e-3j
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning either
+        with pytest.raises(ValueError, match=said):
+            fit(model, target, steps=2, dt=1e-4, frames=[2], iterations=1, progress=False, diagnostics=False)

@@ -379,7 +379,17 @@ def _target_loss(target, frames) -> Loss:
         raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use 'warp-esph fit')")
     if isinstance(target, Mapping):
         return PositionLoss(target)
-    a = np.asarray(checks.host_values("target", target), dtype=np.float64)
+    a = checks.host_values("target", target)
+    # Refused before the cast: numpy's float() of 1j raised a bare TypeError, and of an array of
+    # complex positions kept the real part with only a ComplexWarning.
+    try:
+        complex_ = np.iscomplexobj(a)
+        a = None if complex_ else np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"target = {checks.shorten(target)!r} is not allowed: must be positions, an array of shape (n, 3) "
+                         "or (frames, n, 3), a {step: positions} mapping or a Loss") from None
+    if complex_:
+        raise ValueError(f"target = {checks.shorten(target)!r} is not allowed: it holds complex numbers; positions are real")
     if frames is None:
         raise ValueError("frames is required with target positions: the step index of each target frame")
     return PositionLoss(a, frames=frames)
