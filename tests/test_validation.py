@@ -95,6 +95,10 @@ def test_material_accepts_inf_yield_and_converts_young():
         # Said 'it is smaller than the spacing', a shape's words, of no positions at all.
         (lambda: we.SceneBuilder().add_particles(np.zeros((0, 3)), DOUGH),
          r"^positions with shape \(0, 3\) is not allowed: body 'particles0' would have no particles; give at least one"),
+        # Any kind was kept: 'xx' named the body 'xx0', 3 named it '30'.
+        (lambda: we.SceneBuilder().add_particles([(0.0, 0.5, 0.0)], DOUGH, kind="xx"),
+         r"^kind = 'xx' is not allowed: must be one of 'particles', 'box', 'sphere', 'cylinder', 'star', 'mesh'"),
+        (lambda: we.SceneBuilder().add_particles([(0.0, 0.5, 0.0)], DOUGH, kind=3), r"^kind = 3 is not allowed: must be one of"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity with shape \(2,\) is not allowed: must be 3 finite numbers or one per particle"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, angular_velocity=(1, float("nan"), 0)), r"angular_velocity\[1\] = nan .* finite"),
     ],

@@ -93,6 +93,10 @@ def _margin_unresolved(reach: float, spacing: float) -> str:
             f"(a thousandth of the spacing {spacing:g}): particles that touch it would be put inside it")
 
 
+#: What a body may be (``Body.kind``): given particles, or the shape of an ``add_*``.
+BODY_KINDS = ("particles", "box", "sphere", "cylinder", "star", "mesh")
+
+
 class SceneBuilder:
     """Collects bodies and colliders; ``finalize`` makes the ``Model``.
 
@@ -241,7 +245,13 @@ class SceneBuilder:
         Every ``add_*`` takes ``velocity`` (3 numbers, or one per particle) and
         ``angular_velocity`` (rad/s, about the body's centroid): the body starts with
         ``velocity + angular_velocity x (x - centroid)``.
+
+        ``kind``: what the body is, one of ``BODY_KINDS`` (``Body.kind``; the ``add_*`` shapes
+        pass their own): it names an unnamed body (``box0``) and is kept in a checkpoint's
+        record of the bodies.
         """
+        # Any text was kept (kind='xx' named the body 'xx0'; kind=3, '30').
+        kind = checks.choice("kind", kind, BODY_KINDS)
         positions = checks.host_values("positions", positions)
         velocity = checks.host_values("velocity", velocity)
         try:
