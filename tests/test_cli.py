@@ -2062,3 +2062,28 @@ def test_an_unexpected_error_in_the_last_force_log_write_is_one_line_exit_1(tmp_
     assert "wrote" not in captured.out
     assert frames_in(out_path) == [float(k) for k in range(6)]
     assert log_frames(out_path) == {"plane0": [0, 1, 2, 3, 4]}
+
+
+@pytest.mark.parametrize("extra, said", [
+    # A frame of inf s: 'would take inf steps', and with --dt the advice 'use --dt >= inf s'.
+    (["--fps", "5e-324"], "--fps = 5e-324 is not allowed: it is too small to step"),
+    (["--fps", "5e-324", "--dt", "1e-3"], "--fps = 5e-324 is not allowed: it is too small to step"),
+    # argparse took these for options ('expected one argument'), where '--dt -1' was read as -1.
+    (["--fps", "-inf"], "--fps = -inf is not allowed: must be a finite number"),
+    (["--dt", "-1e-3"], "--dt = -0.001 is not allowed: must be > 0"),
+    (["--scale", "-.5"], "--scale = -0.5 is not allowed: must be > 0"),
+    (["--dt", "-1"], "--dt = -1.0 is not allowed: must be > 0"),
+])
+def test_run_refuses_a_frame_too_long_and_negative_words_as_the_values_they_are(tmp_path, capsys, extra, said):
+    err = refused_run(capsys, "star", tmp_path / "o.usdc", "--frames", "1", *extra)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == [f"warp-esph: error: {lines[0].split('error: ', 1)[1]}"] and said in lines[0], err
+
+
+def test_sweep_refuses_a_frame_too_long_to_step_as_run_does(tmp_path, capsys):
+    """The sweep's own check of --fps (before any sample) is run's: 5e-324 had passed it and
+    each sample then named Python's 'fps'."""
+    assert main(["sweep", "star", "--param", "star.mu=1e3,1e4", "--frames", "1", "--workers", "1", "-o",
+                 str(tmp_path / "sw"), "--fps", "5e-324"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("warp-esph: error: --fps = 5e-324 is not allowed: it is too small to step"), err

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import signal
 import sys
 import uuid
@@ -70,6 +71,11 @@ class _Parser(argparse.ArgumentParser):
         # argparse looks its converters up here by the type given (groups share the registry).
         self.register("type", int, _integer)
         self.register("type", float, _number)
+        # A value after its option that argparse took for an option: '--fps -inf' and '--dt -1e-3'
+        # said 'expected one argument', where '--dt -1' was read as the number it is and refused
+        # by name. No option of the CLI looks like a number, so every such word is a value.
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$",
+                                                   re.IGNORECASE)
 
     def _check_value(self, action, value):
         if action.choices is not None and value not in action.choices:

@@ -540,6 +540,21 @@ def _warn_worlds_step(model: Model, courant: float, hourglass, frame_dt: float, 
                       "separate runs", RuntimeWarning, stacklevel=3)
 
 
+def check_fps(name: str, fps) -> float:
+    """``fps`` as a float, refused (ValueError naming ``name``) unless a positive rate whose
+    frames can be stepped: at most ``MAX_FPS``, and with a frame ``1 / fps`` a float holds."""
+    fps = checks.positive(name, fps)
+    if fps > MAX_FPS:
+        # 1e300 frames a second ran with dt = 1e-300 s, 0 in float32, and exited 0.
+        raise ValueError(f"{name} = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
+    if not math.isfinite(1.0 / fps):
+        # 5e-324 frames a second: a frame of inf s, refused as needing 'inf steps' or with the
+        # advice 'use dt >= inf s'.
+        raise ValueError(f"{name} = {fps!r} is not allowed: it is too small to step, a frame (1/fps) being longer "
+                         f"than a float holds; must be above {1.0 / sys.float_info.max:.3g}")
+    return fps
+
+
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
                      hourglass: float | None = None, flag=None, limit: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
@@ -553,10 +568,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     ``fit.starts_stable_steps``).
     """
     flag = flag or (lambda name: name)
-    fps = checks.positive(flag("fps"), fps)
-    if fps > MAX_FPS:
-        # 1e300 frames a second ran with dt = 1e-300 s, 0 in float32, and exited 0.
-        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
+    fps = check_fps(flag("fps"), fps)
     frame_dt = 1.0 / fps
     if substeps is not None and dt is not None:
         raise ValueError(f"{flag('substeps')} = {substeps!r} and {flag('dt')} = {dt!r} are not allowed together: give one of them (or neither)")

@@ -1426,11 +1426,10 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if duration is not None:
         duration = checks.positive("--duration", duration)
     if fps is not None:
-        from .simulate import MAX_FPS  # noqa: PLC0415
+        from .simulate import check_fps  # noqa: PLC0415
 
-        fps = checks.positive("--fps", fps)
-        if fps > MAX_FPS:  # before --duration is read in frames of it, and before any sample is built
-            raise ValueError(f"--fps = {fps!r} is not allowed: must be at most {MAX_FPS:g}")
+        # Before --duration is read in frames of it, and before any sample is built.
+        fps = check_fps("--fps", fps)
     if dt is not None:
         dt = checks.positive("--dt", dt)
     # The normaliser SceneBuilder.finalize and fit use, so the sweep takes the same spellings ('f8',
