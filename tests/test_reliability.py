@@ -1661,6 +1661,10 @@ def test_a_step_too_long_for_the_precision_to_resolve_its_fall_is_refused():
         we.Solver(model).step(a, c, 1e30)
     with pytest.raises(ValueError, match=refusal):
         Rollout(model, 2, 1e30)
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match=refusal):  # it returned a FitResult of the zeros, loss 0.0419
+        fit(model, model.particle_x0[None], steps=2, dt=1e30, frames=[2], iterations=1, progress=False, diagnostics=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # far above the stable step, as meant
         rollout = Rollout(model, 1, 1e-3)
