@@ -81,7 +81,7 @@ from .sim.solver import GUARD_NAMES, Solver, representable_dt, resolvable_dt
 from .simulate import DivergenceMonitor, SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
-           "COLLIDER_NAMES", "NonFiniteRollout", "RolloutMemoryError"]
+           "COLLIDER_NAMES", "NonFiniteRollout", "DivergedRollout", "RolloutMemoryError"]
 
 #: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
 PARAMETERS = Model.MATERIAL_FIELDS

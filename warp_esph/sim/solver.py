@@ -782,7 +782,8 @@ class Solver:
 
     def check_dt(self, dt) -> float:
         """``dt`` as a float, refused (ValueError) unless positive, representable in the
-        model's precision and short enough for it to resolve a step's fall (``resolvable_dt``); warns once per value above ``Model.stable_dt`` (with the
+        model's precision and short enough for it to resolve a step's fall (``resolvable_dt``);
+        warns once per value above ``Model.stable_dt`` (with the
         hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``, and
         again for that value only where new parameters put it ``STEP_REWARN`` times further
         past its limit than when it last warned. ``step`` calls it."""
