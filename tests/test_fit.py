@@ -2317,16 +2317,19 @@ def test_a_fit_whose_guess_runs_to_non_finite_values_fails_naming_the_step(world
     inf; with worlds that world alone), and at the guess it stops saying where the run went
     non-finite (it said only that the loss was NaN, as a divergence that stayed finite names
     its bound). (A start at ``BLOWING_UP`` is refused before any rollout now, as faster than a
-    spacing a step: here gravity of 2e37 m/s^2 takes the cube past the float32 range in the
-    third step, from rest.)"""
-    model = _overflowing_cube()
+    spacing a step, and so is gravity of 2e37 m/s^2, which had driven it, as a step's fall float32
+    does not resolve: here a compression field of 1e19 1/s^2, an explicit spring of k dt^2 = 4e19
+    a step, takes the cube past the float32 range in the second step, from rest.)"""
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, yield_stress=1e9,
+                                                               pressure_stiffness=0.0, density=1000.0), name="cube")
+    b.add_compression_field((0.5, 0.0, 0.0), 1e19)
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
     target = PositionLoss({4: model.particle_x0.astype(np.float64)}, frames=[4])
-    model.particle_v0 = np.zeros_like(model.particle_v0)
-    model.gravity = (2.0e37, 0.0, 0.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         with pytest.raises(FloatingPointError, match=r"^the rollout at the initial guess diverged: non-finite position "
-                                                        r"or velocity \(particle 0, after step 3 of 4\)$"):
+                                                        r"or velocity \(particle 0, after step 2 of 4\)$"):
             fit(model, target, ["mu"], steps=4, dt=BLOWING_DT, iterations=2, worlds=worlds, starts=2 if worlds else 1,
                 progress=False, diagnostics=False)
 
