@@ -986,7 +986,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 36.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
                       dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground",
-                      tilt: float = 0.0, width: float | None = None) -> dict:
+                      tilt: float = 0.0, width: float | None = None, fit_weight: str = "poly6") -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
     ``aspect`` times as tall, ``width`` m wide or, without one, spacing 0.01 m, frictionless
     ground collider, relaxed dynamically) of a
@@ -1022,7 +1022,9 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     the resolution), and on its yielded base it leans and topples well before (docs/physics.md,
     "The near-yield column's late collapse"); ``width=0.04`` keeps it at 0.79 at every
     resolution ("The near-yield column at a fixed width"); ``dx`` and ``height`` are the scene's
-    spacing and the column's height (m), and a run given a ``width`` records it."""
+    spacing and the column's height (m), and a run given a ``width`` records it. ``fit_weight``:
+    ``SceneBuilder(fit_weight=)``, the weight of the incremental fit, for the plastic run and
+    its elastic reference alike (the row records the model's)."""
     wp, we = _we()
     from warp_esph import checks
 
@@ -1036,7 +1038,8 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, yield_stress=Y,
                                  flow_rate=flow_rate, elastic_force=elastic_force)
     mu = mat.mu
-    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, dtype=dtype, floor=floor)
+    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, dtype=dtype, floor=floor,
+                                                       fit_weight=fit_weight)
     # Initial depth of each particle over L (a floor's particles: below 1, never yielded).
     depth = (x0[:, 1].max() + 0.5 * dx - x0[:, 1]) / H
     elastic = RHO * G * H * (H - dx) / (2.0 * E)
@@ -1076,11 +1079,12 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
     # The same column with the yield off: the elastic part the scene's pressure and fit give.
     ref = column_settlement(n, elastic_force, aspect=aspect, E=E, nu=nu, fit=solver.fit, hourglass=solver.hourglass,
-                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor, width=width)
+                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor, width=width,
+                            fit_weight=model.fit_weight)
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,
-            **({"width": width} if width is not None else {}), "dx": dx, "height": H,
+            "fit_weight": model.fit_weight, **({"width": width} if width is not None else {}), "dx": dx, "height": H,
             "yield_depth": yield_depth, "tilt": tilt, "lean": h[-1, 2] / dx,
             # A lean of round-off size has no rate worth fitting (its log is noise).
             "lean_efolds_per_period": float(np.polyfit(h[:, 0], np.log(np.maximum(h[:, 2], 1e-12)), 1)[0])

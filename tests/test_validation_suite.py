@@ -796,6 +796,24 @@ def test_near_yield_column_at_a_fixed_width_keeps_its_size_and_holds_its_top():
     assert abs(r["shortening"]) < r["theory"] * 2.0, r
 
 
+def test_near_yield_column_passes_its_fit_weight_to_the_column_and_its_elastic_reference(monkeypatch):
+    """``fit_weight`` reaches the model of the plastic run and of the yield-off reference whose
+    shortening it subtracts (a reference with the other weight would leave its elastic
+    difference in the plastic part), and the row records the model's."""
+    built = []
+    free_column = validation._free_column
+
+    def recording(*args, **kwargs):
+        out = free_column(*args, **kwargs)
+        built.append(out[0].fit_weight)
+        return out
+
+    monkeypatch.setattr(validation, "_free_column", recording)
+    r = validation.near_yield_column(resolution=4, width=0.06, ramp=0.5, periods=1.0, elastic_periods=0.5,
+                                     floor="slip_ghost_particles", fit_weight="biweight")
+    assert built == ["biweight", "biweight"] and r["fit_weight"] == "biweight", (built, r.get("fit_weight"))
+
+
 def test_the_fixed_width_near_yield_study_stays_short_of_buckling_at_every_resolution():
     """The plan's fixed-width near-yield runs: one column (``NEAR_YIELD_WIDTH`` wide, 5 x as
     tall) at 4, 6 and 8 across on both floors, its height 0.79 of the buckling length (closed
