@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from warp_esph._types import type_set
-from warp_esph.sim import curvature, deformation, smoothing
+from warp_esph.sim import curvature, deformation, guards, neighbors, smoothing
 
 SCALARS = [wp.float32, wp.float64]
 
@@ -578,11 +578,63 @@ def test_moment_pair_terms_are_eq5s_term_and_the_guards_count(scalar, weight):
                       (cor[:, 4], outer(y64, q))]:
         scale = np.abs(want).max()
         np.testing.assert_allclose(got, want, rtol=rtol, atol=rtol * scale)
-    # (1e-6 in float64 too: guards.count_weight's fade edge 0.95^2 reaches the kernel as a
-    # float32 literal, which moves t by some 3e-7.)
-    np.testing.assert_allclose(scal[:, 1], count, rtol=0, atol=1e-5 if scalar == wp.float32 else 1e-6)
+    np.testing.assert_allclose(scal[:, 1], count, rtol=0, atol=1e-5 if scalar == wp.float32 else 1e-11)
     np.testing.assert_allclose(scal[:, 3], r2, rtol=rtol)
     assert np.array_equal(scal[:, 4], scal[:, 1]), "both fits' guards count a pair alike"
     assert np.array_equal(lin[:, 1], lin[:, 0]), "moment_term is moment_pair_terms' A term"
     assert scal[0, 1] == 1.0 and 0.0 < scal[2, 1] < 1.0 and scal[4, 1] == 0.0
     assert w[-1] == 0.0 and not lin[-1].any() and not cor[-1].any(), "beyond h a pair adds nothing"
+
+
+@functools.cache
+def _python_constant_kernel():
+    T = type_set(wp.float64)
+    gf = guards.guard_funcs(wp.float64)
+    cf = curvature.funcs(wp.float64, "poly6")
+    nk = neighbors.kernels(wp.float64, "poly6")
+
+    @wp.kernel
+    def run(r2: wp.array(dtype=wp.float64), hh: wp.float64, A: T.mat33, F: T.mat33, det: wp.float64,
+            count: wp.array2d(dtype=wp.float64), mats: wp.array(dtype=T.mat33)):
+        i = wp.tid()
+        c, dc = gf.count_weight(r2[i], hh)
+        count[i, 0] = c
+        count[i, 1] = dc
+        if i == 0:
+            mats[0] = cf.ridge_inverse(A, T.mat33())
+            mats[1] = nk.flow_inverse_bound(F, det)
+
+    return run
+
+
+def test_float64_kernels_take_constants_of_python_arithmetic_in_float64():
+    """A float64 model's constants that are Python arithmetic (the few-neighbours count's fade
+    edge ``COUNT_FADE^2 h^2``, the curvature fit's ridge ``1e-4 tr(A) / 3``, the flow bound's
+    ``J^(1/3)``) are float64 in its kernels: Warp evaluates such arithmetic inside a kernel in
+    float32 whatever it is cast to, which put the fade edge 2.6e-8 h^2 low. Checked against
+    numpy float64 where each constant decides the result: the count is exactly 1 with slope 0
+    at the fade edge and the smoothstep's to round-off in the band; ``(0 + eps I)^-1 = I /
+    eps``; ``G = I / clamp(J)^(1/3)`` for ``F = 0.5 I``."""
+    h = 0.02
+    hh = h * h
+    q0 = guards.COUNT_FADE**2 * hh
+    f = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    r2 = np.concatenate([[0.5 * q0], q0 + f * (hh - q0)])
+    A = np.diag([2.0, 3.0, 4.0]) * 1e-3
+    det = 1.2
+    count = wp.zeros((len(r2), 2), dtype=wp.float64)
+    mats = wp.zeros(2, dtype=wp.mat33d)
+    wp.launch(_python_constant_kernel(), len(r2), [wp.array(r2, dtype=wp.float64), hh, wp.mat33d(*A.ravel()),
+                                                   wp.mat33d(*(0.5 * np.eye(3)).ravel()), det], [count, mats])
+    count, mats = count.numpy(), mats.numpy()
+    band = hh - q0
+    t = np.clip((r2 - q0) / band, 0.0, 1.0)
+    want_c = np.where(r2 < hh, 1.0 - t * t * (3.0 - 2.0 * t), 0.0)
+    want_dc = np.where((r2 > q0) & (r2 < hh), -6.0 * t * (1.0 - t) / band, 0.0)
+    assert count[1, 0] == 1.0 and count[1, 1] == 0.0, f"the fade edge q0 counts {count[1, 0]!r}, slope {count[1, 1]!r}"
+    np.testing.assert_allclose(count[:, 0], want_c, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(count[:, 1], want_dc, rtol=1e-12, atol=0)
+    eps = curvature.CURVATURE_RIDGE * np.trace(A) / 3.0
+    np.testing.assert_allclose(mats[0], np.eye(3) / eps, rtol=1e-14, atol=0)
+    # (the SVD leaves round-off off the diagonal)
+    np.testing.assert_allclose(mats[1], np.eye(3) / det ** (1.0 / 3.0), rtol=1e-13, atol=1e-15)

@@ -68,6 +68,9 @@ COUNT_BODY = deformation.COUNT_BODY
 def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
+    # Divided in Python (float64) and cast once: Warp evaluates arithmetic of Python constants
+    # inside a kernel in float32, which a float64 model's ridge would inherit.
+    ridge_third = scalar(CURVATURE_RIDGE / 3.0)
     fw = smoothing.fit_weight_funcs(scalar, weight)
     df = deformation.funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
@@ -372,7 +375,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def ridge_inverse(A: mat33, D: mat33) -> mat33:
         """``(D + eps I)^-1``, ``eps = 1e-4 tr(A) / 3`` (``CURVATURE_RIDGE``)."""
-        eps = scalar(CURVATURE_RIDGE / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
+        eps = ridge_third * (A[0, 0] + A[1, 1] + A[2, 2])
         return wp.inverse(D + eps * wp.identity(n=3, dtype=scalar))
 
     @wp.func
@@ -405,7 +408,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         adj_K_all = adj_K - wp.transpose(C) * adj_At
         adj_C = -(adj_At * KT) + kept * (wp.transpose(adj_K_all) * D_inv)
         adj_D = -(kept * (wp.transpose(D_inv) * adj_K_all * KT))
-        adj_A = adj_At + scalar(CURVATURE_RIDGE / 3.0) * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * wp.identity(
+        adj_A = adj_At + ridge_third * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * wp.identity(
             n=3, dtype=scalar)
         return adj_A, adj_C, adj_D
 

@@ -61,6 +61,10 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
     ``guard_code`` (the switch, for the neighbour pass) and ``guard_scale`` (the fade)."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
+    # Squared in Python (float64) and cast once: Warp evaluates arithmetic of Python constants
+    # inside a kernel in float32, so ``scalar(COUNT_FADE * COUNT_FADE)`` put the float64
+    # count's fade edge 2.6e-8 h^2 low.
+    count_fade_sq = scalar(COUNT_FADE * COUNT_FADE)
 
     @wp.func
     def well_conditioned(A: mat33, limit: scalar) -> bool:
@@ -95,7 +99,7 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         h``, 0 from ``h`` (where its fit weight ends), ``1 - smoothstep`` in ``r2`` between."""
         c = scalar(0.0)
         dc = scalar(0.0)
-        q0 = scalar(COUNT_FADE * COUNT_FADE) * hh
+        q0 = count_fade_sq * hh
         if r2 <= q0:
             c = scalar(1.0)
         elif r2 < hh:

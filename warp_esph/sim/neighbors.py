@@ -139,6 +139,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     # imports the modules that import this one.
     from .plasticity import VOLUME_PRESERVING_RANGE  # noqa: PLC0415
     j_lo, j_hi = scalar(VOLUME_PRESERVING_RANGE[0]), scalar(VOLUME_PRESERVING_RANGE[1])
+    # Divided in Python (float64) and cast once: Warp evaluates ``1.0 / 3.0`` inside a kernel in
+    # float32, whatever the scalar it is cast to.
+    third = scalar(1.0 / 3.0)
 
     @wp.func
     def stretch_bound2(F: mat33) -> scalar:
@@ -331,7 +334,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         sg = vec3()
         V = mat33()
         wp.svd3(F, U, sg, V)
-        t = wp.pow(wp.min(wp.max(det, j_lo), j_hi), scalar(1.0 / 3.0))
+        t = wp.pow(wp.min(wp.max(det, j_lo), j_hi), third)
         inv = vec3(scalar(1.0) / wp.max(wp.abs(sg[0]), t), scalar(1.0) / wp.max(wp.abs(sg[1]), t),
                    scalar(1.0) / wp.max(wp.abs(sg[2]), t))
         return V * wp.diag(inv) * wp.transpose(U)
@@ -570,6 +573,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         displacement_bounds=displacement_bounds,
         select_neighbors=select_neighbors,
         guard_code=guard_code,
+        flow_inverse_bound=flow_inverse_bound,
     )
 
 
