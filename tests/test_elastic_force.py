@@ -382,17 +382,19 @@ def test_linear_stiffness_is_symmetric_only_for_the_variational_force(fused):
     assert rates["paper"] > 1.0, rates
 
 
-def _vibrate(elastic_force, dt_factor, duration, stop_at=None, fit=None, deformation="incremental", hourglass=None):
+def _vibrate(elastic_force, dt_factor, duration, stop_at=None, fit=None, deformation="incremental", hourglass=None,
+             jitter=0.0):
     """A 6^3 cube set breathing (v = 5 (x - c)), undamped; the largest kinetic energy
     reached over ``duration``, relative to the initial one, and when it passed ``stop_at``
-    (``fit``, ``hourglass``: ``Solver(fit=..., hourglass=...)``, None the default)."""
+    (``fit``, ``hourglass``: ``Solver(fit=..., hourglass=...)``, None the default; ``jitter``:
+    the standard deviation in m/s of a random velocity, seed 0, added to the breathing)."""
     mat = we.Material.from_young(2.0e5, 0.3, elastic_force=elastic_force, deformation=deformation)  # default SPH pressure
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (6 * SPACING,) * 3, mat)
     model = b.finalize()
     a, c = model.state(), model.state()
     x = a.x.numpy()
-    v0 = 5.0 * (x - x.mean(axis=0))
+    v0 = 5.0 * (x - x.mean(axis=0)) + jitter * np.random.default_rng(0).standard_normal(x.shape)
     a.v.assign(v0)
     mass = model.particle_mass.numpy()[:, None]
     ke0 = 0.5 * (mass * v0**2).sum()
@@ -426,7 +428,11 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
     nearest it was 1.74 s and 1.59 s; the wide rows that reach h sigma_max(F) give each
     particle every neighbour inside its support and move it to the spread above. So the test
     asks only that halving the step does not postpone it (by more than the scatter between
-    step sizes).
+    step sizes). To reach it in fewer steps the paper's runs start with a random velocity of
+    0.03 m/s (seed 0; 3 % of the kinetic energy) on top of the breathing: measured, it passes
+    10x after 1.33 s at the stable step and 1.28 s at half of it (0.1 m/s: 1.08 and 1.12 s;
+    0.01 m/s: 1.55 and 1.76 s), where the variational force (default fit) from a 0.01 m/s
+    start still peaks at 1.00001 over 3 s at both steps.
 
     The variational force's own gain is the drift of the incremental composition F <- dF F
     (docs/physics.md, "The energy of undamped elastic bodies"): it goes as dt^2, with either
@@ -453,8 +459,10 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
         peak, _ = _vibrate("variational", 1.0, 1.5, fit="curvature_corrected", deformation="rest", hourglass=0.05)
         assert peak < 1.001
     else:
-        _, t_full = _vibrate("paper", 1.0, 3.0, stop_at=10.0)
-        _, t_half = _vibrate("paper", 0.5, 3.0, stop_at=10.0)
+        # Seeded, the flutter's onset is set by its growth rate, not by when rounding first
+        # excites it, and comes about twice as soon (half the steps).
+        _, t_full = _vibrate("paper", 1.0, 3.0, stop_at=10.0, jitter=0.03)
+        _, t_half = _vibrate("paper", 0.5, 3.0, stop_at=10.0, jitter=0.03)
         assert t_full is not None and t_half is not None, "the paper's force gains energy"
         assert t_half < 1.25 * t_full, (t_full, t_half)
 
