@@ -17,7 +17,11 @@ kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
   radius. ``unmatched`` reports how many points found nothing at the last evaluation.
   ``coverage="partial"`` keeps only the second term, ``mean_j min(d_j^2, r^2)`` (every
   scanned point must lie on the body; the side the scanner did not see is free): a scan of
-  part of the body pulls no particle it never saw.
+  part of the body pulls no particle it never saw. ``surface_offset=s`` is for a scan of
+  the material's surface, which lies about half a spacing outside the outer particles'
+  centres: each matched distance ``d`` scores ``(d - s)^2`` (``d`` smoothed below ``s/2``
+  so that the gradient stays continuous where a point sits on a centre), an unmatched
+  point ``(r - s)^2``.
 - ``MeshLoss``: mean squared distance of the particles to a triangle mesh
   (``wp.Mesh`` + ``wp.mesh_query_point_no_sign``); ``mode="outside"`` counts only
   particles outside the (closed) mesh. Particles with no surface within ``max_dist``
@@ -137,6 +141,38 @@ def _kernels(scalar):
             wp.atomic_add(out, 0, w * r2)
 
     @wp.func
+    def surface_gap(d2: scalar, s: scalar, eps: scalar) -> scalar:
+        # (d - s)^2, the squared distance to the sphere of radius s about the matched point,
+        # where d = |d2|^(1/2). Below eps, d is replaced by the parabola (d^2 + eps^2) / (2 eps),
+        # which meets it at eps with slope 1: |x - y| has a cone at 0, whose gradient flips
+        # direction there; the parabola's is continuous and 0 at coincidence. The sqrt reads
+        # max(d2, eps^2) so that its infinite derivative at 0 is never taken.
+        d = wp.sqrt(wp.max(d2, eps * eps))
+        if d2 < eps * eps:
+            d = (d2 + eps * eps) / (scalar(2.0) * eps)
+        return (d - s) * (d - s)
+
+    @wp.kernel(module="unique")
+    def offset_term(
+        src: wp.array(dtype=vec3),
+        dst: wp.array(dtype=vec3),
+        idx: wp.array(dtype=wp.int32),
+        r: scalar,
+        s: scalar,
+        eps: scalar,
+        w: scalar,
+        out: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        j = idx[i]
+        if j >= 0:
+            d = src[i] - dst[j]
+            wp.atomic_add(out, 0, w * surface_gap(wp.dot(d, d), s, eps))
+        else:
+            # (r - s)^2: what a match at the radius scores, so the loss is continuous there.
+            wp.atomic_add(out, 0, w * (r - s) * (r - s))
+
+    @wp.func
     def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> vec3:
         # Ericson, Real-Time Collision Detection, 5.1.5, in the loss's precision.
         zero = scalar(0.0)
@@ -226,7 +262,7 @@ def _kernels(scalar):
     return types.SimpleNamespace(
         gather=gather, add_scalar=add_scalar, to_float32=to_float32, squared_distance=squared_distance,
         masked_squared_distance=masked_squared_distance, nearest=nearest,
-        nearest_term=nearest_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
+        nearest_term=nearest_term, offset_term=offset_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
     )
 
 
@@ -935,6 +971,16 @@ class ChamferLoss(Loss):
     particle, so the particles the scanner never saw are free (``unmatched[step]`` then
     counts 0 particles). The two-way loss pulls those particles onto the scanned side and
     biases the fit (``scan_coverage`` tells such a cloud).
+
+    ``surface_offset`` (m, default 0: the cloud is of particle centres, as a run's own
+    output is): how far outside the particles' centres the scanned points lie. A scanner
+    sees the material's surface, about dx/2 outside the outer centres (``0.5 *
+    model.spacing``, where ``surface.particle_surface`` draws it); compared with the
+    centres, such a scan has the body grow to meet it and biases the fit (docs/fitting.md,
+    "Losses"). Each matched distance ``d`` then scores ``(d - s)^2``, with ``d`` replaced
+    below ``s/2`` by the parabola ``(d^2 + (s/2)^2) / s`` that meets it there with slope 1
+    (``|x - y|`` has a cone at 0 whose gradient flips); an unmatched point scores
+    ``(radius - s)^2``. Must be below ``radius``.
     """
     _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs")
     _TAPED = ("_scratch",)  # the nearest points' indices nearest_term's adjoint reads
@@ -944,11 +990,16 @@ class ChamferLoss(Loss):
     #: shows part of it (only scan point -> nearest particle).
     COVERAGES = ("full", "partial")
 
-    def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None, coverage: str = "full"):
+    def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None, coverage: str = "full",
+                 surface_offset: float = 0.0):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
         self.radius = checks.positive("radius", radius)
         self.coverage = checks.choice("coverage", coverage, self.COVERAGES)
+        self.surface_offset = checks.non_negative("surface_offset", surface_offset)
+        if self.surface_offset >= self.radius:
+            raise ValueError(f"surface_offset = {surface_offset!r} is not allowed: must be below radius = {self.radius:g} "
+                             "(a match is searched within the radius, and the scan lies surface_offset from the particles)")
         self.targets = {}
         for f, t in per.items():
             # Unordered, a cloud has no place to hold a gap: a point not seen is left out.
@@ -1019,9 +1070,15 @@ class ChamferLoss(Loss):
         wp.launch(k.nearest, m, [grid[1].id, y32, y, x, r], [s.idx_y, s.unmatched[1:2]], device=dev, record_tape=False)
         self._keep.extend([ygrid, grid[1]])
         r2 = S(self.radius * self.radius)
-        if full:
-            wp.launch(k.nearest_term, n, [x, y, s.idx_x, r2, S(scale / n)], [out], device=dev)
-        wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
+        if self.surface_offset > 0.0:
+            so, eps = S(self.surface_offset), S(self._smoothing())
+            if full:
+                wp.launch(k.offset_term, n, [x, y, s.idx_x, r, so, eps, S(scale / n)], [out], device=dev)
+            wp.launch(k.offset_term, m, [y, x, s.idx_y, r, so, eps, S(scale / m)], [out], device=dev)
+        else:
+            if full:
+                wp.launch(k.nearest_term, n, [x, y, s.idx_x, r2, S(scale / n)], [out], device=dev)
+            wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
         self._sizes[frame] = (n, m)
@@ -1069,6 +1126,18 @@ class ChamferLoss(Loss):
         return (f"no target point of the point clouds lies within radius = {self.radius:g} m of a particle in any "
                 f"frame (targets in other units than metres, or placed elsewhere?)")
 
+    def _smoothing(self) -> float:
+        # Half the offset: the distance is exact from there out, and a scan point lies about
+        # the offset from its particle, so the parabola only shapes points that sit nearly on
+        # a particle centre, where the exact term's gradient would flip.
+        return 0.5 * self.surface_offset
+
+    def _gap(self, d2: np.ndarray) -> np.ndarray:
+        """``surface_gap``'s ``d - s`` on the host (the residuals' and the tests' reference)."""
+        eps, s = self._smoothing(), self.surface_offset
+        d = np.where(d2 < eps * eps, (d2 + eps * eps) / (2.0 * eps), np.sqrt(np.maximum(d2, eps * eps)))
+        return d - s
+
     def reset_residuals(self):
         """Forget the correspondences ``residuals`` fixed (the next call chooses them anew)."""
         self._pairs = {}
@@ -1112,6 +1181,13 @@ class ChamferLoss(Loss):
                 half, sides = m, sides[1:]  # mean_j d_j^2 alone: m points per frame
             for src, dst, idx, count in sides:
                 r = np.where(idx[:, None] >= 0, src - dst[np.maximum(idx, 0)], 0.0)
+                if self.surface_offset > 0.0:
+                    # One residual a point: its distance to the offset surface (the normal
+                    # gap), which is all the offset term scores.
+                    r = self._gap((r * r).sum(axis=1))[idx >= 0]
+                    r = np.concatenate([r, np.full(int((idx < 0).sum()), self.radius - self.surface_offset)])
+                    out.append(math.sqrt(half / count) * r)
+                    continue
                 r = np.concatenate([r.ravel(), np.full(int((idx < 0).sum()), self.radius)])
                 out.append(math.sqrt(half / count) * r)
         return np.concatenate(out)
@@ -1132,10 +1208,12 @@ class ChamferLoss(Loss):
 
     def target_items(self, prefix: str = "target") -> dict:
         return {**super().target_items(prefix), f"{prefix}.radius": self.radius, f"{prefix}.coverage": self.coverage,
+                f"{prefix}.surface_offset": self.surface_offset,
                 **{f"{prefix}.targets[{f}]": t for f, t in self.targets.items()}}
 
     def __repr__(self):
         shown = "" if self.coverage == "full" else f", coverage={self.coverage!r}"
+        shown += f", surface_offset={self.surface_offset:g}" if self.surface_offset > 0.0 else ""
         return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g}{shown})"
 
 
