@@ -96,3 +96,36 @@ def test_a_surface_scan_ranks_the_true_yield_stress_first_only_with_the_offset()
         loss = ChamferLoss(scan, radius=3 * DX, frames=[80], surface_offset=offset)
         scores = {ys: loss.value({80: wp.array(x, dtype=wp.vec3d)}) for ys, x in runs.items()}
         assert min(scores, key=scores.get) == best, (offset, scores)
+
+
+def test_the_command_reads_cloud_offset_surface_as_half_a_spacing(tmp_path, capsys, dough_scene):
+    """``warp-esph fit --cloud-offset surface``: the scene's own last frame as a cloud of
+    centres, each point on its particle, scores the smoothed cone's floor both ways,
+    ``2 (s - s/4)^2`` with s = dx/2 (0 without the option: the option reached the loss);
+    a distance in m is taken as given; the option is refused for a target that is no point
+    cloud, and a negative distance by the parser."""
+    import json
+
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    scene = tmp_path / "dough.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    dx = float(next(line for line in scene.read_text().splitlines() if line.startswith("spacing")).split("=")[1])
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    np.savetxt(tmp_path / "last.xyz", load_target(run, frames="last").data[0])
+    fit = ["fit", str(scene), "--target", str(tmp_path / "last.xyz"), "--params", "yield_stress", "--iterations", "0",
+           "--no-usd", "--no-progress", "--no-diagnostics"]
+    for extra, s in (([], 0.0), (["--cloud-offset", "surface"], 0.5 * dx), (["--cloud-offset", "0.004"], 0.004)):
+        out = tmp_path / f"fit{len(extra)}{s}"
+        assert main([*fit, *extra, "--output-dir", str(out)]) == 0
+        value = json.loads((out / "fit.json").read_text())["loss"]
+        assert value == pytest.approx(2 * (0.75 * s) ** 2, rel=1e-9, abs=1e-20), (extra, value)
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(run), "--no-progress", "--iterations", "0", "--cloud-offset",
+                 "surface"]) == 2
+    assert "--cloud-offset = 'surface' is not allowed: it is how far outside the particles' centres point-cloud " \
+           "targets lie, and the targets are positions" in capsys.readouterr().err
+    assert main([*fit, "--cloud-offset", "-0.01"]) == 2
+    assert "--cloud-offset = '-0.01' is not allowed: must be a distance in m (>= 0) or 'surface'" in capsys.readouterr().err

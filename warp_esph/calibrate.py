@@ -863,8 +863,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if max(t.frames) > frames:
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
+            offset = _arg(args, "cloud_offset") or 0.0
+            if offset == "surface":
+                offset = 0.5 * model.spacing
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
-                          coverage=_arg(args, "cloud_coverage") or "full",
+                          coverage=_arg(args, "cloud_coverage") or "full", surface_offset=offset,
                           force_noise=force_noise, force_components=_arg(args, "force_components") or "xyz")
             if t.kind == "forces":
                 zeros = _zero_force_columns(path, term, _arg(args, "force_components") is not None)
@@ -903,6 +906,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if _arg(args, "cloud_coverage") is not None and "points" not in file_kinds:
         raise ValueError(f"{where}--cloud-coverage = {args.cloud_coverage!r} is not allowed: it is how much of the body "
                          f"point-cloud targets show, and the targets are {kinds}")
+    if _arg(args, "cloud_offset") is not None and "points" not in file_kinds:
+        raise ValueError(f"{where}--cloud-offset = {args.cloud_offset!r} is not allowed: it is how far outside the "
+                         f"particles' centres point-cloud targets lie, and the targets are {kinds}")
     if spec.get("target_body") is not None and not any_usd:
         raise ValueError(f"{where}{key('target_body')} = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
                          f"target, and the targets are {kinds}")

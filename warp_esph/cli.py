@@ -1128,6 +1128,10 @@ def add_fit_arguments(parser):
                         help="point-cloud targets: full (default: the cloud shows the whole body, compared both ways) "
                              "or partial (a scan of part of it: each scanned point to its nearest particle only, the "
                              "unseen side free)")
+    parser.add_argument("--cloud-offset", type=_cloud_offset, metavar="M|surface",
+                        help="point-cloud targets: how far outside the particles' centres the scanned points lie, in "
+                             "m (default 0: the cloud is of centres, as a run's own output is); 'surface' for a scan "
+                             "of the material's surface: half a spacing")
     parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
                         help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
                              "sized from the memory estimate and --memory-limit")
@@ -1141,6 +1145,19 @@ def add_fit_arguments(parser):
 
     add_calibration_arguments(parser)
     return parser
+
+
+def _cloud_offset(text):
+    if str(text).strip().lower() == "surface":
+        return "surface"
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not (value >= 0.0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a distance in m (>= 0) or 'surface' "
+                                         "(half a spacing)")
+    return value
 
 
 def _checkpoint_every(text):

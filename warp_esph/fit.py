@@ -3501,9 +3501,12 @@ class Target:
         return [k for k in keep if k not in blank]
 
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface",
-             force_noise: float | None = None, force_components: str = "xyz", coverage: str = "full") -> Loss:
+             force_noise: float | None = None, force_components: str = "xyz", coverage: str = "full",
+             surface_offset: float = 0.0) -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step;
         ``coverage``: how much of the body a point cloud shows (``ChamferLoss``'s);
+        ``surface_offset``: how far outside the particles' centres a point cloud lies (m,
+        ``ChamferLoss``'s; a scan of the material's surface: half a spacing);
         ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``);
         ``force_components``: the force log's columns fitted (``ReactionForceLoss``'s
         ``components``)."""
@@ -3565,7 +3568,10 @@ class Target:
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
         if self.kind == "points":
             r = radius if radius is not None else 3.0 * model.spacing
-            return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage)
+            if surface_offset >= r:
+                raise ValueError(f"surface_offset (--cloud-offset) = {surface_offset:g} m is not allowed: must be below the "
+                                 f"search radius (--radius) = {r:g} m (a scanned point is matched within the radius)")
+            return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset)
         return MeshLoss(self.data, frames=steps, mode=mode)
 
 
