@@ -129,3 +129,27 @@ def test_the_command_reads_cloud_offset_surface_as_half_a_spacing(tmp_path, caps
            "targets lie, and the targets are positions" in capsys.readouterr().err
     assert main([*fit, "--cloud-offset", "-0.01"]) == 2
     assert "--cloud-offset = '-0.01' is not allowed: must be a distance in m (>= 0) or 'surface'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("coverage", ["full", "partial"])
+def test_the_offset_loss_differentiates_through_a_rollout(coverage):
+    """d loss / d yield_stress through the landing, the scan the truth's surface and the
+    offset dx/2, float64, against central differences."""
+    from warp_esph.surface import particle_surface
+
+    truth = _cylinder(300.0)
+    dt = 0.5 * truth.stable_dt()
+    scan, _ = particle_surface(Rollout(truth, 80, dt, frames=[80]).forward()[-1], DX)
+    r = Rollout(_cylinder(450.0), 80, dt, frames=[80])
+    loss = ChamferLoss(scan, radius=3 * DX, frames=[80], coverage=coverage, surface_offset=0.5 * DX)
+    _, grads = r.value_and_grad(loss)
+    base = r.get_parameters()
+    h = 1e-5 * base["yield_stress"][0]
+    vals = []
+    for d in (h, -h):
+        r.set_parameters({"yield_stress": base["yield_stress"] + d})
+        r.forward()
+        vals.append(loss.value(dict(zip(r.frames, r.frame_positions))))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    assert abs(fd) > 1e-12
+    assert grads["yield_stress"][0] == pytest.approx(fd, rel=1e-4)
