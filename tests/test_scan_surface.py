@@ -127,6 +127,9 @@ def test_the_command_reads_cloud_offset_surface_as_half_a_spacing(tmp_path, caps
                  "surface"]) == 2
     assert "--cloud-offset = 'surface' is not allowed: it is how far outside the particles' centres point-cloud " \
            "targets lie, and the targets are positions" in capsys.readouterr().err
+    assert main([*fit, "--cloud-offset", "surface", "--radius", "0.005"]) == 2
+    assert "surface_offset (--cloud-offset) = 0.01 m is not allowed: must be below the search radius (--radius) = " \
+           "0.005 m" in capsys.readouterr().err
     assert main([*fit, "--cloud-offset", "-0.01"]) == 2
     assert "--cloud-offset = '-0.01' is not allowed: must be a distance in m (>= 0) or 'surface'" in capsys.readouterr().err
 
