@@ -2602,3 +2602,30 @@ def test_a_target_that_is_no_real_positions_is_refused_by_name(target, said):
         warnings.simplefilter("error")  # no ComplexWarning either
         with pytest.raises(ValueError, match=said):
             fit(model, target, steps=2, dt=1e-4, frames=[2], iterations=1, progress=False, diagnostics=False)
+
+
+def test_a_finite_blow_up_beside_a_scripted_tool_fails_the_fit_as_the_sweep_fails_it():
+    """The run ``blowup_cases`` describes (``sweep`` fails it, ``simulate.energy_growth``) was a
+    fit's valid evaluation: a scripted tool turns the divergence monitor's bounds off, and a
+    guess whose particles end 30 m out, finite, was fed to the optimiser. The fit's evaluation
+    now runs the sweep's energy test too: the guess fails, naming the energy grown; a guess of
+    a stable stiffness fits as before, no evaluation failed."""
+    from blowup_cases import BLOWN_MU, DT, HEALTHY_MU, STEPS, scripted_box_builder  # noqa: PLC0415
+
+    def model(mu):
+        m = scripted_box_builder().finalize(dtype=wp.float64, requires_grad=True)
+        m.set_material(0, m.materials[0].replace(mu=mu))
+        return m
+
+    target = Rollout(model(HEALTHY_MU), STEPS, DT, frames=[STEPS]).forward()
+    loss = PositionLoss(target, frames=[STEPS])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the guess's dt past its stable step
+        warnings.filterwarnings("ignore", "tools .'far'. follow tools.Scripted motions", UserWarning)
+        with pytest.raises(FloatingPointError, match=r"the rollout at the initial guess diverged: the simulation blew up: "
+                                                     r"kinetic \+ gravitational energy grew by "):
+            fit(model(BLOWN_MU), loss, ["mu"], steps=STEPS, dt=DT, iterations=1, progress=False, diagnostics=False)
+        result = fit(model(2.0 * HEALTHY_MU), loss, ["mu"], steps=STEPS, dt=DT, iterations=2, progress=False,
+                     diagnostics=False)
+    assert not any("diverged" in h.get("note", "") for h in result.history), [h.get("note") for h in result.history]
+    assert all(math.isfinite(h["loss"]) for h in result.history)

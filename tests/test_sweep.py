@@ -225,9 +225,13 @@ def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path
 
 # ------------------------------------------------------------------ the command
 def test_energy_blow_up_check_is_ten_times_the_energy_scale():
-    """``_blew_up`` on an end state: at rest and in place, the energy grew by 0.5 M u^2 for
-    a uniform speed u, a blow-up past 10 x (KE0 + M |g| L), i.e. u^2 > 20 |g| L here."""
-    from warp_esph.sweep import BLOWUP_FACTOR, _blew_up
+    """``simulate.energy_growth`` on an end state: at rest and in place, the energy grew by
+    0.5 M u^2 for a uniform speed u, a blow-up past 10 x (KE0 + M |g| L), i.e. u^2 > 20 |g| L here."""
+    from warp_esph.simulate import BLOWUP_FACTOR, energy_growth
+
+    def _blew_up(model, state):
+        hit = energy_growth(model, model.particle_x0, model.particle_v0, state.x.numpy(), state.v.numpy())
+        return None if hit is None else hit[0]
 
     b = SceneBuilder(spacing=0.1)
     b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"))
@@ -1704,6 +1708,19 @@ def test_a_blow_up_beside_a_scripted_tool_fails_its_sample():
     table = sweep(_far_scripted_tool_scene(), ["paste.mu=1000,1000000"], workers=1, dt=1.0 / 300.0)
     assert [r["status"] for r in table.rows] == ["ok", "failed"], [r["reason"] for r in table.rows]
     assert "blew up" in table.rows[1]["reason"], table.rows[1]["reason"]
+
+
+def test_the_finite_blow_up_fit_and_torch_fail_fails_its_sample():
+    """The run ``blowup_cases`` describes, as a sweep's sample (1 frame at 10 fps, ``DT``: its
+    ``STEPS`` steps): failed by ``simulate.energy_growth``, the test ``fit`` and the torch
+    bridge apply to the same run (test_fit, test_torch), and ok at the stable stiffness."""
+    from blowup_cases import BLOWN_MU, DT, HEALTHY_MU, STEPS, scripted_box_builder
+
+    scene = Scene("far", "a blow-up beside a scripted tool", scripted_box_builder(), frames=1, fps=10.0)
+    table = sweep(scene, [f"paste.mu={HEALTHY_MU:g},{BLOWN_MU:g}"], workers=1, dt=DT)
+    assert [r["steps"] for r in table.rows] == [STEPS, STEPS]
+    assert [r["status"] for r in table.rows] == ["ok", "failed"], [r["reason"] for r in table.rows]
+    assert table.rows[1]["reason"].startswith("the simulation blew up: kinetic + gravitational energy grew by ")
 
 
 def _rise(t):

@@ -879,3 +879,26 @@ def test_a_forward_that_blows_up_while_finite_raises_not_a_result():
     assert rollout.get_parameters()["mu"].tolist() == mu
     y = rollout_positions(rollout, {"mu": torch.tensor([2.0 * mu[0]], dtype=torch.float64)})
     assert float(y.abs().max()) < 0.3
+
+
+def test_a_finite_blow_up_beside_a_scripted_tool_raises_as_the_sweep_fails_it():
+    """The run ``blowup_cases`` describes (``sweep`` fails it, ``simulate.energy_growth``)
+    was returned as a result: a scripted tool turns the divergence monitor's bounds off, and
+    positions 30 m out, finite, went on to the caller's optimiser. The bridge now applies the
+    sweep's energy test too and raises ``DivergedRollout`` naming the energy grown; at a
+    stable stiffness the run is returned as before."""
+    import warnings  # noqa: PLC0415
+
+    from blowup_cases import BLOWN_MU, DT, HEALTHY_MU, STEPS, scripted_box_builder  # noqa: PLC0415
+    from warp_esph.rollout import DivergedRollout  # noqa: PLC0415
+
+    model = scripted_box_builder().finalize(dtype=wp.float64, requires_grad=True)
+    rollout = Rollout(model, STEPS, DT, frames=[STEPS])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the dt past the stiff material's stable step
+        warnings.filterwarnings("ignore", "tools .'far'. follow tools.Scripted motions", UserWarning)
+        with pytest.raises(DivergedRollout, match=r"^the rollout blew up while staying finite: the simulation blew up: "
+                                                  r"kinetic \+ gravitational energy grew by .*after step 30 of 30"):
+            rollout_positions(rollout, {"mu": torch.tensor([BLOWN_MU], dtype=torch.float64)})
+        y = rollout_positions(rollout, {"mu": torch.tensor([HEALTHY_MU], dtype=torch.float64)})
+    assert bool(torch.isfinite(y).all()) and float(y.abs().max()) < 1.0

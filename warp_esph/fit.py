@@ -1325,7 +1325,7 @@ class RefusedPoint(FloatingPointError):
 class Diverged(FloatingPointError):
     """A rollout that blew up, to non-finite values or while staying finite
     (``simulate.DivergenceMonitor``'s bounds, which stop ``simulate`` and the CLI's runs, on
-    its last state): a failed trial, its reason kept in the history's note. Its loss, finite,
+    its last state, or ``simulate.energy_growth``, which fails a ``sweep`` sample): a failed trial, its reason kept in the history's note. Its loss, finite,
     had been taken as a result (a block at 1 km scored 1.6e6 m^2 and the fit reported its
     values); a NaN one was recorded as NaN with no word of where the run went non-finite."""
 
@@ -1355,7 +1355,7 @@ def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0, 
     """Why the rollout is a blow-up, or None: a non-finite position or velocity among
     ``particles`` (a boolean mask, None: all; at a frame or in the last state; the first step
     found so), else ``simulate.DivergenceMonitor``'s bounds from its initial state on the last
-    state, of ``checked`` (``particles`` less the monitor's exempt bodies; None: ``particles``).
+    state, or the energy growth ``sweep`` fails a sample on (``Rollout.bounds_hit``), of ``checked`` (``particles`` less the monitor's exempt bodies; None: ``particles``).
     An exempt body is left out of the bounds alone, as ``simulate`` leaves it: a non-finite
     value is no blow-up a scene shows but a lost state, which spreads to what it meets and
     makes the gradient of its material NaN (a fit whose exempt body went non-finite at the

@@ -78,7 +78,7 @@ from . import checks
 from ._types import type_set
 from .model import Model, State, flowed_by_hardening, precision_problem
 from .sim.solver import GUARD_NAMES, Solver, representable_dt, resolvable_dt
-from .simulate import DivergenceMonitor, SimulationError
+from .simulate import DivergenceMonitor, SimulationError, energy_growth
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
            "COLLIDER_NAMES", "NonFiniteRollout", "DivergedRollout", "RolloutMemoryError"]
@@ -139,8 +139,10 @@ class NonFiniteRollout(SimulationError, FloatingPointError):
 
 class DivergedRollout(SimulationError, FloatingPointError):
     """A run that blew up while staying finite: its last state is past
-    ``simulate.DivergenceMonitor``'s bounds from its initial state (``Rollout.bounds_hit``, the
-    test ``fit`` fails its trials on and ``simulate`` stops on). Raised by the torch bridge,
+    ``simulate.DivergenceMonitor``'s bounds from its initial state, or its kinetic +
+    gravitational energy grew past ``simulate.energy_growth``'s limit (``Rollout.bounds_hit``,
+    the test ``fit`` fails its trials on; ``simulate`` stops on the bounds, ``sweep`` fails a
+    sample on the energy growth). Raised by the torch bridge,
     whose caller's optimiser would otherwise take a loss of positions 1e5 m out as a result;
     ``step``: the rollout's steps (the last state is what is checked), ``particle``, ``body``:
     the particle farthest past its bound and its body's name."""
@@ -861,10 +863,10 @@ class Rollout:
         as NaN. The run stays readable (``positions()``, ``final_state()``); ``check=False``
         returns it as it is (``fit`` does, and fails such a trial itself). Only non-finite
         values are caught: a run that blew up while staying finite (particles far away) is
-        returned as a result; ``simulate.DivergenceMonitor`` holds the bounds that catch it
-        (``bounds_hit``: ``fit`` fails its trials on them, the torch bridge raises
-        ``DivergedRollout``). The check reads the last state's velocities (and its
-        positions where ``steps`` is not a frame) once per forward.
+        returned as a result; ``simulate.DivergenceMonitor``'s bounds and
+        ``simulate.energy_growth`` catch it (``bounds_hit``: ``fit`` fails its trials on them,
+        the torch bridge raises ``DivergedRollout``). The check reads the last state's
+        velocities (and its positions where ``steps`` is not a frame) once per forward.
 
         The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
         0, the floor images' too, whatever an earlier forward started from), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding: ``x0``
@@ -1025,15 +1027,26 @@ class Rollout:
 
     def bounds_hit(self, checked=None) -> tuple[str, int] | None:
         """``(why, particle)`` where the last state of the latest forward is past
-        ``simulate.DivergenceMonitor``'s bounds from the run's initial state (among the
-        particles of the boolean mask ``checked``; None: all), else None: a blow-up that
-        stayed finite. ``fit`` fails its trials on it; the torch bridge raises on it."""
+        ``simulate.DivergenceMonitor``'s bounds from the run's initial state, or its kinetic +
+        gravitational energy grew past ``simulate.energy_growth``'s limit (the test ``sweep``
+        fails its samples on; the stored elastic energy the monitor finds at the start counts
+        as energy the run may release), among the particles of the boolean mask ``checked``
+        (None: all), else None: a blow-up that stayed finite. ``fit`` fails its trials on it;
+        the torch bridge raises on it. It reads the initial and last states once (no step's)."""
         monitor = DivergenceMonitor(self.model, self._initial, particles=checked, solver=self.solver)
         final = self.final_state()
-        return monitor.check(final.x.numpy(), final.v.numpy(), self.steps * self.dt)
+        x, v = final.x.numpy(), final.v.numpy()
+        hit = monitor.check(x, v, self.steps * self.dt)
+        if hit is not None:
+            return hit
+        # A Scripted tool turns the bounds off: a box beside one, 5 x past its stable step, was
+        # a fit's trial and a torch result at 1e35 J, where a sweep failed the same run.
+        init = self._initial
+        return energy_growth(self.model, init.x.numpy(), init.v.numpy(), x, v, t0=float(init.time), dt=self.dt,
+                             steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0))
 
     def _check_bounds(self):
-        """Raise ``DivergedRollout`` where ``bounds_hit`` finds the last state past the bounds."""
+        """Raise ``DivergedRollout`` where ``bounds_hit`` finds the last state blown up."""
         hit = self.bounds_hit()
         if hit is None:
             return

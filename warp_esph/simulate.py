@@ -463,6 +463,115 @@ class DivergenceMonitor:
         return None
 
 
+#: A run whose kinetic + gravitational energy grew by more than this many times the scene's
+#: energy scale has blown up (see ``energy_growth``).
+BLOWUP_FACTOR = 10.0
+
+
+def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v: np.ndarray, *, t0: float = 0.0,
+                  dt: float | None = None, steps: int | None = None, particles=None,
+                  stored: float = 0.0) -> tuple[str, int] | None:
+    """``(why, particle)`` where a run from positions and velocities ``x0, v0`` (at time
+    ``t0``) to ``x, v`` has blown up without a non-finite value, else ``None``: the one test of
+    energy growth that ``sweep``'s samples, ``fit``'s evaluations and the torch bridge share
+    (``Rollout.bounds_hit`` runs it after ``DivergenceMonitor``'s bounds); ``particle`` is the
+    one holding the most kinetic energy.
+
+    Without force fields and moving tools nothing does work on the bodies but gravity (colliders
+    are at rest, pressure and elastic forces are internal, viscosity and plasticity dissipate),
+    so kinetic plus gravitational energy cannot grow: at the end it is at most its
+    initial value plus the elastic energy stored at the start (``stored``, J; zero at rest),
+    which it only takes from. An explicit step above the stable limit makes it grow without
+    bound while the guards keep every value finite, and may stay inside the monitor's bounds
+    (which allow a floor of ``0.5 M (0.1 c_P)^2``, the strain a rest-configuration body may
+    hold). Growth beyond ``BLOWUP_FACTOR`` times the scale ``KE0 + M |g| L + stored`` (``L``
+    the initial bounding-box diagonal plus the spacing) is taken as a blow-up.
+
+    A tool or pinned set of known speed (``Velocity``, ``Keyframes``) is left to the monitor,
+    which counts its work. A ``Scripted`` one has no speed known beforehand, and the monitor
+    runs only its non-finite check: here its fastest point over the poses of the run's
+    ``steps`` steps of ``dt`` from ``t0`` joins the scale as ``0.5 M v^2``, and the height it
+    lifts the bodies by is its work, not growth. ``particles``: a boolean mask of the particles
+    read (one world of a model of worlds, the bodies not exempt), None: all.
+    """
+    if getattr(model, "force_fields", None):
+        return None
+    keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
+    if not keep.any():
+        return None
+    x0, v0 = np.asarray(x0, dtype=np.float64)[keep], np.asarray(v0, dtype=np.float64)[keep]
+    x1, v1 = np.asarray(x, dtype=np.float64)[keep], np.asarray(v, dtype=np.float64)[keep]
+    moving = _tools_move(model)
+    scripted = _scripted_speed(model, x0, x1, t0, dt, steps) if moving else 0.0
+    if scripted is None:
+        return None  # the monitor's energy bound counts the tools' work
+    m = model.particle_mass.numpy().astype(np.float64)[keep]
+    g = np.asarray(model.gravity, dtype=np.float64)
+    # A blown-up speed past 1e154 m/s squares to inf, which is past the limit as it should be.
+    with np.errstate(over="ignore", invalid="ignore"):
+        ke = 0.5 * m * (v1 * v1).sum(axis=1)
+        kinetic = float(ke.sum() - 0.5 * (m * (v0 * v0).sum(axis=1)).sum())
+        lifted = float(-(m * ((x1 - x0) @ g)).sum())
+    grew = kinetic + (min(lifted, 0.0) if moving else lifted)
+    size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
+    scale = (0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
+             + 0.5 * float(m.sum()) * scripted ** 2 + max(float(stored), 0.0))
+    if grew > BLOWUP_FACTOR * scale:
+        does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
+                else "nothing does work on the bodies")
+        return (f"the simulation blew up: kinetic + gravitational energy grew by {grew:.4g} J, more than "
+                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J ({does}); "
+                f"the time step is likely above the stable limit {model.stable_dt():.3g} s"), \
+            int(np.flatnonzero(keep)[int(np.argmax(ke))])
+    return None
+
+
+def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, steps) -> float | None:
+    """The fastest point (m/s) of the moving tools and pinned sets of ``model`` over a run of
+    ``steps`` steps of ``dt`` from ``t0`` (particles from ``x0`` to ``x``) where one is
+    ``Scripted`` (its poses read at each step's time, as the run read them), else None: every
+    motion's speed is known and the monitor bounds the energy with it."""
+    motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
+    if not any(isinstance(mo, tools.Scripted) for mo in motions):
+        return None
+    if dt is None or steps is None:
+        raise ValueError(f"dt = {dt!r}, steps = {steps!r} is not allowed: a scene with a Scripted tool or pinned set "
+                         "needs the run's step (s) and step count to be checked for a blow-up")
+    times = float(t0) + dt * np.arange(steps + 1)
+    xs = np.concatenate([x0, x])
+    lo, hi = xs.min(axis=0), xs.max(axis=0)
+    speeds = []
+    for mo in motions:
+        if isinstance(mo, tools.Scripted):
+            poses = [mo.pose(t) for t in times]
+            at = np.array([p for p, _ in poses], dtype=np.float64)
+            q = np.array([q for _, q in poses], dtype=np.float64)
+            lin = float((np.linalg.norm(np.diff(at, axis=0), axis=1) / dt).max()) if steps else 0.0
+            cos = np.clip(np.abs((q[1:] * q[:-1]).sum(axis=1)), 0.0, 1.0)
+            ang = float((2.0 * np.arccos(cos) / dt).max()) if steps else 0.0
+        else:
+            lin, ang, at = _driven_motion(mo)
+        if len(at):
+            lo, hi = np.minimum(lo, np.min(at, axis=0)), np.maximum(hi, np.max(at, axis=0))
+        speeds.append((lin, ang))
+    # A turning tool's fastest point that can touch a particle: its angular speed times the
+    # farthest a particle or a pose lies from another.
+    reach = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
+    return max(lin + ang * reach for lin, ang in speeds)
+
+
+def _tools_move(model: Model) -> bool:
+    """Whether a tool or pinned set of ``model`` moves (a scripted motion may): it does work on
+    the bodies, which the divergence monitor counts where the motion's speed is known, and
+    ``energy_growth`` counts for a scripted one (a blob a rising floor lifted 1.2 m was a blow-up
+    in every sample)."""
+    if getattr(model, "tools", None) is None:
+        return False
+    motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
+    driven = [_driven_motion(mo) for mo in motions]
+    return any(d is None or d[0] > 0.0 or d[1] > 0.0 for d in driven)
+
+
 def _stored_energy_bound(model: Model, p: dict, F: np.ndarray, keep: np.ndarray) -> float:
     """An upper bound (J) of the elastic energy the particles ``keep`` hold at deformation
     gradients ``F`` (a prestrained ``F0``, a resumed state): its recoil is no blow-up.

@@ -689,59 +689,13 @@ def _summary(model, state, solver) -> dict:
     return out
 
 
-#: A run whose mechanical energy grew by more than this many times the scene's energy
-#: scale has blown up (see ``_blew_up``).
-BLOWUP_FACTOR = 10.0
-
-
-def _blew_up(model, state, dt: float | None = None, steps: int | None = None) -> str | None:
-    """Why the run has blown up without a non-finite value, or ``None``.
-
-    Without force fields and moving tools nothing does work on the bodies but gravity (colliders
-    are at rest, pressure and elastic forces are internal, viscosity and plasticity dissipate),
-    so kinetic plus gravitational energy cannot grow: at the end it is at most its
-    initial value (the elastic energy, zero at rest, only takes from it). An explicit
-    step above the stable limit makes it grow without bound while the guards keep every
-    value finite, so ``simulate`` sees nothing. Growth beyond ``BLOWUP_FACTOR`` times the
-    scale ``KE0 + M |g| L`` (``L`` the initial bounding-box diagonal) is taken as a blow-up.
-
-    A tool or pinned set of known speed (``Velocity``, ``Keyframes``) is left to ``simulate``'s
-    monitor, which counts its work. A ``Scripted`` one has no speed known beforehand, and the
-    monitor runs only its non-finite check: here its fastest point over the poses of the run's
-    ``steps`` steps of ``dt`` joins the scale as ``0.5 M v^2``, and the height it lifts the
-    bodies by is its work, not growth.
-    """
-    if getattr(model, "force_fields", None):
-        return None
-    scripted = _scripted_speed(model, state, dt, steps) if _tools_move(model) else 0.0
-    if scripted is None:
-        return None  # the monitor's energy bound counts the tools' work
-    m = model.particle_mass.numpy().astype(np.float64)
-    g = np.asarray(model.gravity, dtype=np.float64)
-    x0, v0 = model.particle_x0.astype(np.float64), model.particle_v0.astype(np.float64)
-    x1, v1 = state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64)
-    kinetic = float(0.5 * (m * (v1 * v1).sum(axis=1)).sum() - 0.5 * (m * (v0 * v0).sum(axis=1)).sum())
-    lifted = float(-(m * ((x1 - x0) @ g)).sum())
-    grew = kinetic + (min(lifted, 0.0) if _tools_move(model) else lifted)
-    size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
-    scale = (0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
-             + 0.5 * float(m.sum()) * scripted ** 2)
-    if grew > BLOWUP_FACTOR * scale:
-        does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
-                else "nothing does work on the bodies")
-        return (f"the simulation blew up: kinetic + gravitational energy grew by {grew:.4g} J, more than "
-                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J ({does}); "
-                f"the time step is likely above the stable limit {model.stable_dt():.3g} s")
-    return None
-
-
 def _exempt_blew_up(model, state, bounds, exempt: tuple[str, ...], seconds: float) -> str | None:
     """Why a body the scene shows blowing up (``Scene.diverges``, which the run's monitor leaves
     out so that the run goes on) has blown up by the run's end, or ``None``: the monitor's
     bounds ``bounds`` (made from the run's first state with no body left out) read the final
     state. A row's summary is of every particle, so a sample whose exempt body blew up, finite
     (``fig8_comparison``'s plastic rest-configuration cube reaches 1.8e5 m/s), is no ok row: its
-    force fields keep ``_blew_up`` off, and it was one, its summary that of the debris."""
+    force fields keep ``simulate.energy_growth`` off, and it was one, its summary that of the debris."""
     if bounds is None or not exempt or not bounds.enabled:
         return None
     hit = bounds.check(state.x.numpy(), state.v.numpy(), seconds)
@@ -755,58 +709,6 @@ def _exempt_blew_up(model, state, bounds, exempt: tuple[str, ...], seconds: floa
             f"blew up: at the run's end, {what}; the row's summary would be of its blown-up state")
 
 
-def _scripted_speed(model, state, dt, steps) -> float | None:
-    """The fastest point (m/s) of the moving tools and pinned sets of ``model`` over a run of
-    ``steps`` steps of ``dt`` to ``state`` where one is ``Scripted`` (its poses read at each
-    step's time, as the run read them), else None: every motion's speed is known and
-    ``simulate``'s monitor bounds the energy with it."""
-    from .simulate import _driven_motion  # noqa: PLC0415
-    from . import tools  # noqa: PLC0415
-
-    motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
-    if not any(isinstance(mo, tools.Scripted) for mo in motions):
-        return None
-    if dt is None or steps is None:
-        raise ValueError(f"dt = {dt!r}, steps = {steps!r} is not allowed: a scene with a Scripted tool or pinned set "
-                         "needs the run's step (s) and step count to be checked for a blow-up")
-    t0 = float(state.time) - steps * dt
-    times = t0 + dt * np.arange(steps + 1)
-    x = np.concatenate([model.particle_x0.astype(np.float64), state.x.numpy().astype(np.float64)])
-    lo, hi = x.min(axis=0), x.max(axis=0)
-    speeds = []
-    for mo in motions:
-        if isinstance(mo, tools.Scripted):
-            poses = [mo.pose(t) for t in times]
-            at = np.array([p for p, _ in poses], dtype=np.float64)
-            q = np.array([q for _, q in poses], dtype=np.float64)
-            lin = float((np.linalg.norm(np.diff(at, axis=0), axis=1) / dt).max()) if steps else 0.0
-            cos = np.clip(np.abs((q[1:] * q[:-1]).sum(axis=1)), 0.0, 1.0)
-            ang = float((2.0 * np.arccos(cos) / dt).max()) if steps else 0.0
-        else:
-            lin, ang, at = _driven_motion(mo)
-        if len(at):
-            lo, hi = np.minimum(lo, np.min(at, axis=0)), np.maximum(hi, np.max(at, axis=0))
-        speeds.append((lin, ang))
-    # A turning tool's fastest point that can touch a particle: its angular speed times the
-    # farthest a particle or a pose lies from another.
-    reach = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
-    return max(lin + ang * reach for lin, ang in speeds)
-
-
-def _tools_move(model) -> bool:
-    """Whether a tool or pinned set of ``model`` moves (a scripted motion may): it does work on
-    the bodies, which ``simulate``'s divergence monitor counts where the motion's speed is known,
-    and ``_blew_up`` counts for a scripted one (a blob a rising floor lifted 1.2 m was a blow-up in
-    every sample)."""
-    from .simulate import _driven_motion  # noqa: PLC0415 (the monitor's reading of a motion)
-
-    if getattr(model, "tools", None) is None:
-        return False
-    motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
-    driven = [_driven_motion(mo) for mo in motions]
-    return any(d is None or d[0] > 0.0 or d[1] > 0.0 for d in driven)
-
-
 def _one_line(text) -> str:
     return " ".join(str(text).split())
 
@@ -816,8 +718,8 @@ def _run_sample(scene, task: _Task) -> dict:
     from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
 
     init_warp(task.device)
-    from .simulate import (DivergenceMonitor, SimulationError, StepRefusal, divergence_advice, resolve_timestep,  # noqa: PLC0415
-                           rest_inversions, simulate)
+    from .simulate import (DivergenceMonitor, SimulationError, StepRefusal, divergence_advice, energy_growth,  # noqa: PLC0415
+                           resolve_timestep, rest_inversions, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
 
     row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
@@ -841,7 +743,11 @@ def _run_sample(scene, task: _Task) -> dict:
                              monitor_exempt=exempt, _finer="a larger scale, or a smaller spacing")
             summary = _summary(model, state, solver)
             why = _exempt_blew_up(model, state, bounds, exempt, task.frames / task.fps)
-            why = why if why is not None else _blew_up(model, state, dt, task.frames * substeps)
+            if why is None:
+                steps = task.frames * substeps
+                grew = energy_growth(model, model.particle_x0, model.particle_v0, state.x.numpy(), state.v.numpy(),
+                                     t0=float(state.time) - steps * dt, dt=dt, steps=steps)
+                why = None if grew is None else grew[0]
             if why is not None:
                 # The guard counts alone: the blown-up state's summary (a particle at 1.4e17 m) and
                 # extra columns were numbers in a failed row, which column() hands on as measured.

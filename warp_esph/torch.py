@@ -28,8 +28,9 @@ positions come back on theirs, in their dtype promoted with the model's precisio
 where no float tensor is given); use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
 the model keeping the values it held, instead of returning a tensor of NaN positions; one that
-blows up while staying finite (past ``simulate.DivergenceMonitor``'s bounds, the test ``fit``
-fails its trials on: ``Rollout.bounds_hit``) raises ``warp_esph.rollout.DivergedRollout``, also
+blows up while staying finite (past ``simulate.DivergenceMonitor``'s bounds, or with energy grown
+past ``simulate.energy_growth``'s limit, which fails a ``sweep`` sample: the tests ``fit`` fails
+its trials on, ``Rollout.bounds_hit``) raises ``warp_esph.rollout.DivergedRollout``, also
 a ``FloatingPointError``, instead of positions 1e5 m out taken as a result.
 
 ``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
