@@ -2899,15 +2899,21 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # first gradient 1.4e-9) moved the yield stress from 600 Pa to 546 in 8 evaluations
             # where the same loss times 2^20 reached 294 (truth 300). The absolute eps above
             # only tells a first step swallowed whole (a gradient of round-off) from one not.
-            opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * g0)
+            # Relative per entry, as Adam's steps are per coordinate: relative to the largest
+            # entry, one value's path hung on the others' (a model of two worlds fitted jointly
+            # moved each world's yield stress otherwise than its fit alone); an entry whose
+            # first gradient is 0 (held) takes the largest entry's.
+            first = np.abs(np.where(held, 0.0, g))
+            opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * np.where(first > 0.0, first, g0))
             z_new = project(opt.step(z, g, held))
         z = z_new
         opt.lr *= decay
     return "iterations"
 
 
-#: Adam's eps, relative to the first gradient's largest entry (``_run_adam``): every step after
-#: the first evaluation's test of a swallowed step, which reads the absolute 1e-8.
+#: Adam's eps, relative to each entry of the first gradient (the largest entry's for an entry
+#: whose first gradient is 0; ``_run_adam``): every step after the first evaluation's test of a
+#: swallowed step, which reads the absolute 1e-8.
 ADAM_EPS = 1e-8
 
 #: The share of a probe's rise that its first-order (slope) part may take for the start to
