@@ -50,7 +50,7 @@ def _taped(floor: str, resolution: int, steps: int) -> tuple[float, float]:
     loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
     weights = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def dot(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
         i = wp.tid()
         wp.atomic_add(out, 0, wp.dot(x[i], w[i]))

@@ -146,7 +146,7 @@ def stencil_base(xp: wp.vec3, lo: wp.vec3, inv_dx: float):
     return base, X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
         tau: wp.array(dtype=wp.mat33), J: wp.array(dtype=float), mp: float, vp0: float, eta: float,
         dt: float, dx: float, lo: wp.vec3, gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3)):
@@ -170,7 +170,7 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                 wp.atomic_add(gm, bi + i, bj + j, bk + k, w * mp)
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gravity: wp.vec3, dt: float,
                 damping: float, floor_friction: float, wall: int):
     i, j, k = wp.tid()
@@ -198,7 +198,7 @@ def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gra
     gmv[i, j, k] = vel
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def plate_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), j_plate: int, v_plate: float,
                  force: wp.array(dtype=float), dt: float):
     """A slip plate: nodes at or above j_plate move down at v_plate (x, z free); the y-momentum
@@ -212,7 +212,7 @@ def plate_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), j_
     gmv[i, j, k] = wp.vec3(vel[0], -v_plate, vel[2])
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
         F: wp.array(dtype=wp.mat33), tau: wp.array(dtype=wp.mat33), J: wp.array(dtype=float),
         plastic: wp.array(dtype=float), ratio: wp.array(dtype=float), gmv: wp.array3d(dtype=wp.vec3),

@@ -198,7 +198,7 @@ def memory_report(model, states, solver, taped_state) -> dict:
 def _loss_kernel():
     import warp as wp
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def position_loss(x: wp.array(dtype=wp.vec3f), w: wp.array(dtype=wp.vec3f), loss: wp.array(dtype=wp.float32)):
         i = wp.tid()
         wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))

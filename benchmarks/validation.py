@@ -87,7 +87,7 @@ def _solver(model, **kwargs):
     model's device; ``_row_fields`` reads the counts into a case's result."""
     wp, we = _we()
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def count_full_rows(count: wp.array(dtype=wp.int32), width: int, total: wp.array(dtype=wp.int64)):
         i = wp.tid()
         if count[i] >= width:

@@ -54,13 +54,13 @@ def press_model(heights):
     return model
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def mean_height(x: wp.array(dtype=wp.vec3d), top: wp.array(dtype=wp.int32), mean: wp.array(dtype=wp.float64)):
     k = wp.tid()
     wp.atomic_add(mean, 0, x[top[k]][1] / wp.float64(top.shape[0]))
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def squared_error(mean: wp.array(dtype=wp.float64), target: wp.float64, loss: wp.array(dtype=wp.float64)):
     d = mean[0] - target
     loss[0] = d * d
@@ -145,7 +145,7 @@ def compression_model(E):
     return b.finalize(dtype=wp.float64, requires_grad=True)
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def curve_loss(f: wp.array(dtype=wp.vec3d), k: int, target: wp.float64, loss: wp.array(dtype=wp.float64)):
     d = f[k][1] - target
     wp.atomic_add(loss, 0, d * d)

@@ -6,7 +6,7 @@ import numpy as np
 import warp as wp
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def dot_loss(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
     i = wp.tid()
     wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))

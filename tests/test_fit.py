@@ -272,7 +272,7 @@ def test_chamfer_and_position_losses_over_several_frames():
 
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _twice(x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
     y[i] = wp.float64(2.0) * x[i]

@@ -422,7 +422,7 @@ def test_elastic_kernel_integrates_to_one_and_gradient_matches():
     T = type_set(wp.float64)
     grad_w = smoothing.funcs(wp.float64).grad_w_elastic
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def k(p: wp.array(dtype=T.vec3), h: wp.float64, out: wp.array(dtype=T.vec3)):
         i = wp.tid()
         out[i] = grad_w(p[i], h)

@@ -265,7 +265,7 @@ def test_imaged_ground_reports_the_force_of_its_images_without_the_force_fields(
     np.testing.assert_allclose(reported, expected, rtol=0, atol=1e-9 * mass.sum() * G)
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _reaction_loss(f: wp.array(dtype=wp.vec3d), tq: wp.array(dtype=wp.vec3d), w: wp.vec3d, wt: wp.vec3d,
                    loss: wp.array(dtype=wp.float64)):
     wp.atomic_add(loss, 0, wp.dot(f[0], w) + wp.dot(tq[0], wt))
@@ -534,7 +534,7 @@ def test_floor_image_depth_is_continuous_in_value_and_slope():
     T = type_set(wp.float64)
     fn = deformation.funcs(wp.float64, "poly6")
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def images(x: wp.array(dtype=T.vec3), n: T.vec3, off: wp.float64, m: wp.float64, g: wp.array(dtype=T.vec3),
                J: wp.array(dtype=T.mat33)):
         i = wp.tid()
@@ -725,7 +725,7 @@ def test_add_ground_refuses_bad_images_by_name():
 _plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _plane_exit(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), ramp: wp.float64,
                 x_out: wp.array(dtype=wp.vec3d), v_out: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
@@ -862,7 +862,7 @@ def test_a_particle_left_inside_the_plane_has_a_c1_speed_and_its_adjoint():
 _share64 = we.sim.colliders.funcs(wp.float64).touchdown_share
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _shares(depth: wp.array(dtype=wp.float64), tol: wp.float64, out: wp.array(dtype=wp.float64)):
     # Falling at 1 m/s for 1 ms: the drift's reach is 1 mm.
     i = wp.tid()

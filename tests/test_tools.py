@@ -530,7 +530,7 @@ def _grad_model(friction=0.3, press_v=-0.5, key_y=0.0, E=5e3):
     return m
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _loss_kernel(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), rf: wp.array(dtype=wp.vec3d), k: int,
                  c: wp.float64, loss: wp.array(dtype=wp.float64)):
     i = wp.tid()
@@ -712,7 +712,7 @@ def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_c
         assert abs(fd) > 1e-6, name  # the parameter acts on the loss
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _row_loss_kernel(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), rf: wp.array(dtype=wp.vec3d),
                      tq: wp.array(dtype=wp.vec3d), k: int, wf: wp.vec3d, wt: wp.vec3d, loss: wp.array(dtype=wp.float64)):
     i = wp.tid()
@@ -1225,7 +1225,7 @@ def test_tool_arrays_written_in_place_are_checked_before_the_step(name, bad, mes
 _coulomb64 = we.sim.colliders.funcs(wp.float64).coulomb_response
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _tangential_after_contact(vt: wp.array(dtype=wp.float64), mu_s: wp.float64, mu_k: wp.float64, ramp: wp.float64,
                               out: wp.array(dtype=wp.float64)):
     # A particle resting on a plane (normal +y) whose step added 1 m/s inward: all of it is removed.
@@ -2133,7 +2133,7 @@ def test_the_far_mesh_check_of_a_frame_does_not_rebuild_the_meshs_faces(monkeypa
     assert peak < len(tri) * 9 * 8 / 3, peak
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _pinned_x_plus_y(x: wp.array(dtype=wp.vec3d), i: int, weight: wp.float64, loss: wp.array(dtype=wp.float64)):
     wp.atomic_add(loss, 0, weight * (x[i][0] + x[i][1]))
 

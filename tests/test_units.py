@@ -29,7 +29,7 @@ def _shear_kernel():
     mat33 = wp.types.matrix(shape=(3, 3), dtype=S)
     vec3 = wp.types.vector(length=3, dtype=S)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def simple_shear(
         rate: wp.array(dtype=S),
         mu: S,
@@ -244,7 +244,7 @@ def _held_strain_kernel():
     mat33 = wp.types.matrix(shape=(3, 3), dtype=S)
     vec3 = wp.types.vector(length=3, dtype=S)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def held_strain(
         hardening: wp.array(dtype=S),
         strain: S,

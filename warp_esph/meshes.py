@@ -556,7 +556,7 @@ def lattice_points(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
     return np.stack([a.ravel() for a in g], axis=1)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, module="unique")
 def _inside_kernel(
     mesh: wp.uint64,
     queries: wp.array(dtype=wp.vec3f),

@@ -33,7 +33,7 @@ __all__ = ["particle_surface", "surface_field"]
 _HALF_DIAGONAL = math.sqrt(3.0) / 2.0
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, module="unique")
 def _scatter_weights(
     points: wp.array(dtype=wp.vec3f),
     origin: wp.vec3f,
@@ -67,7 +67,7 @@ def _scatter_weights(
                     wp.atomic_add(xsum, i, j, k, w * p)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, module="unique")
 def _zhu_bridson_field(
     wsum: wp.array3d(dtype=wp.float32),
     xsum: wp.array3d(dtype=wp.vec3f),
