@@ -2,6 +2,7 @@
 conservation, elastic return and plastic set, yield onset, settlement under gravity,
 the kernels, the guards, and a long drop onto the ground."""
 
+import contextlib
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ from warp_esph.sim import curvature, deformation, plasticity, smoothing
 from warp_esph._types import type_set
 from warp_esph.material import PRESSURE_BULK_SHARE
 from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
+from warp_esph.sim.replay import forward_only
 
 
 def _rotation(rng):
@@ -42,6 +44,17 @@ def _run(model, steps, dt, state=None, solver=None):
     return a, solver
 
 
+@contextlib.contextmanager
+def monkeypatch_launch(logged):
+    """``wp.launch`` is ``logged`` in the block."""
+    launch = wp.launch
+    wp.launch = logged
+    try:
+        yield
+    finally:
+        wp.launch = launch
+
+
 def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     """``fit.update_deformation`` from ``x`` to ``y`` of ``Fp`` into ``F_out`` (both fits also
     carry the round-off of the positions and of ``F``, ``State.x_lo``, ``F_lo``: 0 in,
@@ -52,7 +65,7 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     outs = [F_out, wp.zeros_like(Fp), counters]
     # The images' own F (State.F_image): in and out, and their share: unread without an image plane.
     ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp), wp.zeros(model.particle_count, dtype=S)]
-    wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs)
+    wp.launch(forward_only(fit.kernels(S, model.fit_weight).update_deformation), model.particle_count, ins, outs)
 
 
 @pytest.mark.parametrize("fit_weight", ["poly6", "biweight"])
@@ -80,6 +93,34 @@ def test_incremental_gradient_reproduces_affine_motion(dtype, tol, fit, fit_weig
     guard = state.guard.numpy()
     assert (guard == 0).all(), "every particle of a 6^3 lattice has a usable neighbourhood"
     assert np.abs(F_out.numpy() - M @ F_prev).max() < tol
+
+
+@pytest.mark.parametrize("fit", [deformation, curvature])
+def test_the_fit_checked_here_is_the_compiled_kernel_an_untaped_step_runs(fit):
+    """``_launch_fit`` (the affine-motion and bending checks above) launches the deformation
+    update that an untaped step launches, its forward-only twin (``replay.forward_only``),
+    not the kernel compiled with its adjoint: the check is of the code the step runs, and
+    it costs no compile of its own (3-5 s a fit, weight and precision for the full kernel)."""
+    model = _block_model(dtype=wp.float64)
+    fit_name = "curvature_corrected" if fit is curvature else "linear"
+    launch, ran = wp.launch, []
+
+    def logged(kernel, *args, **kwargs):  # what runs: a step's replayed launches end here too
+        ran.append(kernel)
+        return launch(kernel, *args, **kwargs)
+
+    state = model.state()
+    we.Solver(model).search.build(state.x, model.particle_body, state.neighbors, state.neighbor_d2,
+                                  state.neighbor_count, state.guard)
+    T = type_set(model.scalar)
+    Fp = wp.array(np.tile(np.eye(3), (model.particle_count, 1, 1)), dtype=T.mat33)
+    with monkeypatch_launch(logged):
+        _run(model, 1, 1e-4, solver=we.Solver(model, fused=False, fit=fit_name))
+        stepped, ran[:] = list(ran), []
+        _launch_fit(fit, model, state, state.x, state.x, Fp, wp.zeros_like(Fp), wp.zeros(4, dtype=wp.int32))
+    (checked,) = ran
+    assert checked.func.__name__ == "update_deformation"
+    assert any(checked is k for k in stepped), [k.module.name for k in stepped]
 
 
 @pytest.mark.parametrize("dtype", [wp.float64, wp.float32])
@@ -392,7 +433,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         e0, e1 = k * de, (k + 1) * de
         xa = wp.array(x0 * [1 + e0, 1, 1], dtype=T.vec3)
         xb = wp.array(x0 * [1 + e1, 1, 1], dtype=T.vec3)
-        wp.launch(kc, n, [F, F_lo, alpha, model.particle_material, model.material_arrays(), S(dt)],
+        wp.launch(forward_only(kc), n, [F, F_lo, alpha, model.particle_material, model.material_arrays(), S(dt)],
                   [scratch[0], F_lo_flowed, *scratch[1:], counters])
         F_flowed = scratch[0].numpy()
         if onset is None and scratch[1].numpy().max() > 0.0:
@@ -402,7 +443,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         F_new = wp.zeros_like(F)
         F_lo_new = wp.zeros_like(F)
         zero = wp.zeros_like(xa)
-        wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
+        wp.launch(forward_only(kd), n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                           scratch[0], F_lo_flowed, S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION),
                           *model.image_args(), scratch[0]],
                   [F_new, F_lo_new, counters, wp.zeros_like(F_new), wp.zeros(n, dtype=S)])
@@ -631,10 +672,10 @@ def _pressure_energy_and_forces(pressure_force, x, model):
     args = (wp.array(nbr, dtype=wp.int32), wp.array(count, dtype=wp.int32), h)
     rho, rho_p = wp.zeros(len(x), dtype=wp.float64), wp.zeros(len(x), dtype=wp.float64)
     for of_pressure, out in ((0, rho), (1, rho_p)):
-        wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
+        wp.launch(forward_only(k.density), len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
                                       of_pressure, *model.image_args()], [out])
     f = wp.zeros(len(x), dtype=wp.vec3d)
-    wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
+    wp.launch(forward_only(k.pressure_forces), len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
                                            model.material_arrays(), *args, *model.image_args(), 1], [f])
     return energy, f.numpy()
@@ -798,12 +839,12 @@ def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_
     # (of_pressure 0, the volumes) and the pressure density (1: the spiky sum for energy_spiky).
     rho, rho_p = wp.zeros(len(x), dtype=wp.float64), wp.zeros(len(x), dtype=wp.float64)
     for of_pressure, out in ((0, rho), (1, rho_p)):
-        wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
+        wp.launch(forward_only(k.density), len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
                                       of_pressure, *model.image_args()], [out])
     np.testing.assert_allclose(rho.numpy(), density(x, "energy"), rtol=1e-12)
     np.testing.assert_allclose(rho_p.numpy(), density(x), rtol=1e-12)
     f = wp.zeros(len(x), dtype=wp.vec3d)
-    wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
+    wp.launch(forward_only(k.pressure_forces), len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
                                            model.material_arrays(), *args, *model.image_args(), 1], [f])
     f = f.numpy()

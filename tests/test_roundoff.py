@@ -12,6 +12,7 @@ import warp_esph as we
 from warp_esph._types import type_set
 from warp_esph.sim import curvature, deformation
 from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
+from warp_esph.sim.replay import forward_only
 
 
 def _block(center, dtype=wp.float32, velocity=(0.0, 0.0, 0.0)):
@@ -68,7 +69,7 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     F_out, F_lo_out = wp.zeros_like(Fa), wp.zeros_like(Fa)
     lo = wp.zeros_like(state.x)
     counters = wp.zeros(4, dtype=wp.int32)
-    wp.launch(deformation.kernels(model.scalar, model.fit_weight).update_deformation, n,
+    wp.launch(forward_only(deformation.kernels(model.scalar, model.fit_weight).update_deformation), n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
                model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(), Fa],
               [F_out, F_lo_out, counters, wp.zeros_like(Fa),  # (the images' F and share: unread without an image plane)
@@ -105,7 +106,7 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
     counters = wp.zeros(4, dtype=wp.int32)
     for k in range(steps):
         a, b = k % 2, 1 - k % 2
-        wp.launch(fit.kernels(model.scalar, model.fit_weight).update_deformation, n,
+        wp.launch(forward_only(fit.kernels(model.scalar, model.fit_weight).update_deformation), n,
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                    F[a], F_lo[a], model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(),
                    F[a]],  # (the images' F: unread without an image plane)

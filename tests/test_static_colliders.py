@@ -19,6 +19,7 @@ from energy_fd import image_heights
 import warp_esph as we
 from taped_loss import random_weights, taped_gradients, taped_rollout_loss
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP
+from warp_esph.sim.replay import forward_only
 
 G = 9.81
 DT = 2.0e-4
@@ -700,7 +701,7 @@ def test_floor_images_flow_and_harden_with_their_own_hardening(fused):
     assert np.all(share[bottom] == 1.0) and np.all(share[above] < 1e-30)  # (neighbours at h: round-off weights)
     # The images' own flow: the constitutive update of (F_image, alpha_image) as a particle's.
     ref_F, ref_lo, ref_alpha = wp.zeros_like(a.F), wp.zeros_like(a.F), wp.zeros_like(a.alpha)
-    wp.launch(we.sim.plasticity.kernels(wp.float64).constitutive_update, m.particle_count,
+    wp.launch(forward_only(we.sim.plasticity.kernels(wp.float64).constitutive_update), m.particle_count,
               [a.F_image, wp.zeros_like(a.F), a.alpha_image, m.particle_material, m.material_arrays(), wp.float64(1.0e-4)],
               [ref_F, ref_lo, ref_alpha, wp.zeros_like(a.F), wp.zeros_like(a.F), wp.zeros(4, dtype=wp.int32)])
     flowed = c.alpha_image_flowed.numpy()
