@@ -2,9 +2,10 @@
 and those of the benchmarks and examples the tests run included. A module's hash covers every
 kernel registered in it, so a kernel that a test (or a cached factory) defines into a shared
 module makes that module's next launch compile all of its kernels again: the 19 tests of
-``test_shared_formulas.py`` compiled their file's module 19 times, each time larger (53 s of
-CPU with an empty kernel cache against 14 s as one module per kernel), and the module's
-contents, so its cache entry, depended on which tests a worker had run before."""
+``test_shared_formulas.py`` compiled their file's module 19 times, each time larger (53-60 s
+of compiling in an empty kernel cache against 12.4 s as one module per kernel:
+docs/performance.md, "Modules only a test compiles"), and the module's contents, so its
+cache entry, depended on which tests a worker had run before."""
 
 import ast
 import pathlib
