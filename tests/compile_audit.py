@@ -1,6 +1,6 @@
 """A pytest plugin that logs, for each test, the Warp modules it loads and those it compiles,
 with the compile's CPU time: the measurement behind docs/performance.md, "Where a cold run's
-compiling goes". Not loaded by the suite; run as
+compiling goes" and "Modules only a test compiles". Not loaded by the suite; run as
 
     COMPILE_AUDIT=compile.jsonl WARP_CACHE_PATH=$(mktemp -d) python -m pytest -p compile_audit tests/test_fit.py
 

@@ -3,7 +3,7 @@ and those of the benchmarks and examples the tests run included. A module's hash
 kernel registered in it, so a kernel that a test (or a cached factory) defines into a shared
 module makes that module's next launch compile all of its kernels again: the 19 tests of
 ``test_shared_formulas.py`` compiled their file's module 19 times, each time larger (53-60 s
-of compiling in an empty kernel cache against 12.4 s as one module per kernel:
+of compiling in an empty kernel cache against 10.3-12.4 s as one module per kernel:
 docs/performance.md, "Modules only a test compiles"), and the module's contents, so its
 cache entry, depended on which tests a worker had run before."""
 
