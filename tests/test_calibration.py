@@ -1148,9 +1148,10 @@ def _interrupt_evaluation(monkeypatch, n):
     monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted)
 
 
-def _summary_with_range_rises(rises):
+def _summary_with_range_rises(rises, gradient=(0.0, 0.0)):
     """The diagnostics' summary of a made two-parameter fit (log space, well curved at the
-    optimum), given the range check's chi-square changes ``rises`` (per parameter: down, up)."""
+    optimum), given the range check's chi-square changes ``rises`` (per parameter: down, up)
+    and the chi-square's gradient there (per unit of log value)."""
     from types import SimpleNamespace
 
     from warp_esph.diagnostics import _summarise
@@ -1158,7 +1159,7 @@ def _summary_with_range_rises(rises):
     names = ["mu", "yield_stress"]
     prob = SimpleNamespace(labels=names, params=names, k=1, spaces=dict.fromkeys(names, "log"), scales={},
                            from_z=lambda z: {"mu": np.exp(z[:1]), "yield_stress": np.exp(z[1:])})
-    return _summarise(prob, np.log([1e3, 100.0]), np.diag([1e4, 1e4]), np.zeros(2), [0.1], [0.1], 100, 4, 1e-3,
+    return _summarise(prob, np.log([1e3, 100.0]), np.diag([1e4, 1e4]), np.array(gradient), [0.1], [0.1], 100, 4, 1e-3,
                       max_relative_error=0.5, min_sensitivity=1e-3, max_correlation=0.99, rises=np.array(rises))
 
 
@@ -1166,15 +1167,34 @@ def test_a_range_check_that_finds_a_lower_chi_square_says_the_fit_stopped_short(
     """Moving a value alone by the range factor rose the chi-square by less than 1 either
     way: the data cannot tell the values apart. Lowered it by more than 1: the data do tell
     them apart; the fit stopped short of the minimum, which is what the warning must say."""
-    short = _summary_with_range_rises([[50.0, 60.0], [-31.6, 40.0]])
+    # Still sloping down (the chi-square's slope and curvature put a fall of 2.5e3 within reach).
+    short = _summary_with_range_rises([[50.0, 60.0], [-31.6, 40.0]], gradient=(0.0, 1e4))
     assert short.undetermined == []
     assert any(w.startswith("yield_stress is not at the data's best value") and "lowers the chi-square by 31.6" in w
-               for w in short.warnings), short.warnings
+               and "the fit stopped short of the minimum" in w for w in short.warnings), short.warnings
     flat = _summary_with_range_rises([[50.0, 60.0], [-0.2, 0.5]])
     assert flat.undetermined == ["yield_stress"]
     assert any("changes the chi-square by only -0.2" in w for w in flat.warnings), flat.warnings
     assert not any("best value" in w for w in flat.warnings)
     assert _summary_with_range_rises([[50.0, 60.0], [2.0, 3.0]]).warnings == []
+
+
+def test_a_range_check_that_finds_a_lower_chi_square_beyond_a_local_minimum_says_so():
+    """A fit that converged (no slope, curved) where the chi-square is yet lower at a factor
+    1.5 away sits in a local minimum of the loss: an L-BFGS fit of a 1 cm landing's yield
+    stress from 600 Pa converged at 599.4 Pa, the loss's minimum at 300 Pa, 1.5 x down lower
+    by a chi-square of 293, and the warning said it stopped short and asked for more
+    iterations, which only repeat the same point. It must name the local minimum, the side
+    that is lower and a way past it (a start there, or the global stage)."""
+    local = _summary_with_range_rises([[50.0, 60.0], [-293.0, 40.0]], gradient=(0.0, 0.2))
+    said = [w for w in local.warnings if w.startswith("yield_stress is not at the data's best value")]
+    assert len(said) == 1, local.warnings
+    assert "lowers the chi-square by 293" in said[0] and "local minimum" in said[0], said[0]
+    assert "at 66.67 (1/1.5 x)" in said[0] and "samples" in said[0], said[0]
+    assert "more iterations do not leave" in said[0] and "stopped short" not in said[0], said[0]
+    upper = _summary_with_range_rises([[50.0, 60.0], [40.0, -5.0]])
+    said = [w for w in upper.warnings if w.startswith("yield_stress is not at the data's best value")]
+    assert len(said) == 1 and "at 150 (1.5 x)" in said[0] and "local minimum" in said[0], upper.warnings
 
 
 def test_a_target_whose_fps_is_not_one_number_is_refused_by_name(tmp_path):

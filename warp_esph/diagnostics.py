@@ -36,8 +36,9 @@ residuals at ``z`` and the chi-square the range check starts from are read from 
 observations, kept, where each had run ``z`` again for the same bits; after a fit that run is
 the fit's own at its best point where it ran with the same inputs, ``4 P`` then): if the chi-square changes by less than 1 on either side, the data
 cannot tell these values apart and the parameter is reported as not determined, whatever
-the local curvature says (if it falls by 1 or more, the fit stopped short of the minimum
-along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
+the local curvature says (if it falls by 1 or more, the fit did not end at the minimum
+along it, which a warning says: stopped short on a slope, or, where the slope and curvature
+at ``z`` put no fall of 1 nearby, in a local minimum that more iterations do not leave) (a silhouette fit stopped at 1.88 x the true yield stress, where
 the loss is curved but 0.15 % below its value at 1.5 x less).
 
 A value held at one of the fit's bounds, where the chi-square falls beyond the bound by 1 or
@@ -676,10 +677,21 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
             undetermined.append(label)
             warnings.append(f"{label} is not determined by the data: " + "; ".join(reasons))
         if lowest <= -1.0:
-            # Not a flat loss: a lower one along this parameter alone, so the fit stopped short.
-            warnings.append(f"{label} is not at the data's best value: moving it alone by a factor {RANGE_FACTOR:g} "
-                            f"lowers the chi-square by {-lowest:.3g}; the fit stopped short of the minimum "
-                            "(more iterations, or a start nearer it)")
+            side = int(np.nanargmin(rises[k]))
+            lower = values[k] / RANGE_FACTOR if side == 0 else values[k] * RANGE_FACTOR
+            factor = f"1/{RANGE_FACTOR:g}" if side == 0 else f"{RANGE_FACTOR:g}"
+            said = (f"{label} is not at the data's best value: moving it alone by a factor {RANGE_FACTOR:g} "
+                    f"lowers the chi-square by {-lowest:.3g}, at {lower:.4g} ({factor} x)")
+            if _local_minimum(float(gradient[k]), float(fisher[k, k])):
+                # The slope and curvature here leave no fall of 1 within reach: a valley of its own
+                # (a 1 cm landing's yield stress converged at 599.4 Pa, its loss least at 300 Pa),
+                # which more iterations only return to.
+                warnings.append(f"{said}; the fit sits in a local minimum of the loss (its slope and curvature here "
+                                f"put no lower value nearby), which more iterations do not leave: start beyond it, "
+                                f"e.g. at {lower:.4g}, or let a global stage choose the start (samples, --samples)")
+            else:
+                # Still sloping down towards a lower value: the fit stopped short.
+                warnings.append(f"{said}; the fit stopped short of the minimum (more iterations, or a start nearer it)")
     return Diagnostics(
         labels=labels, values=values, spaces=spaces, standard_error=se, relative_error=rel, sensitivity=sens,
         gradient=gradient, fisher=fisher, covariance=cov, correlation=corr, noise=list(sigmas), residual_rms=list(rms),
@@ -687,6 +699,17 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
         undetermined=undetermined, evaluations=evaluations, step=step,
         range_rise=np.full((P, 2), np.nan) if rises is None else rises, at_bound=at_bound,
     )
+
+
+def _local_minimum(gradient: float, curvature: float) -> bool:
+    """Whether one value's chi-square ``chi2 + gradient d + curvature d^2`` (its slope and
+    Fisher curvature at the fit's point) falls by less than 1 (``BOUND_FALL``, the change the
+    range check takes as telling values apart) at its own minimum: the point is a minimum of
+    the loss along that value, so a lower chi-square the range check finds lies in another
+    valley, not down a slope the fit stopped short on."""
+    if not (math.isfinite(gradient) and math.isfinite(curvature) and curvature > 0.0):
+        return False
+    return gradient * gradient / (4.0 * curvature) < BOUND_FALL
 
 
 #: The fall of the chi-square beyond a bound (its slope and curvature there) from which a value
