@@ -284,8 +284,7 @@ class DivergenceMonitor:
         # From the model's parameter arrays, which a fit or Rollout.set_parameters changes
         # without changing model.materials (a trial 3000 x stiffer read the guess's speed).
         p = model.parameter_values()
-        material = model.particle_material_np[self.keep]
-        self.wave = float(model.wave_speeds(p)[np.unique(material)].max())  # of the particles checked
+        self.wave = _wave_speed(model, p, self.keep)  # of the particles checked
         # On the rest model the first step replaces the stored F by the rest fit of the
         # positions: a 4x4x4 block scaled by 1.1 from its rest shape with F = I was stopped as
         # a blow-up (0.21 J against 0.11 J) while it rang with the energy it started with.
@@ -294,7 +293,7 @@ class DivergenceMonitor:
         # The fastest the stored elastic energy can throw the lightest particle checked.
         self.recoil = math.sqrt(2.0 * self.e_elastic / float(self.mass.min())) if self.mass.min() > 0.0 else 0.0
         self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
-        self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
+        self.e_floor = _energy_floor(float(self.mass.sum()), self.wave)
         self.t0 = float(state.time)
         #: (t_on, speed it can give, which particles checked may get it) of each attracting field
         self.field_speeds = []
@@ -468,6 +467,19 @@ class DivergenceMonitor:
 BLOWUP_FACTOR = 10.0
 
 
+def _wave_speed(model: Model, p: dict, keep: np.ndarray) -> float:
+    """The fastest p-wave speed (m/s) among the materials of the particles ``keep``, at the
+    parameters ``p`` the model runs now (``Model.parameter_values``)."""
+    return float(model.wave_speeds(p)[np.unique(model.particle_material_np[keep])].max())
+
+
+def _energy_floor(mass: float, wave: float) -> float:
+    """``0.5 M (0.1 c_P)^2`` (J): the kinetic energy a rest-configuration body of mass ``M``
+    may hold without having blown up (the strain its positions may hold, and round-off),
+    which a scene whose energy scale is 0 J, at rest without gravity, needs."""
+    return 0.5 * mass * (0.1 * wave) ** 2
+
+
 def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v: np.ndarray, *, t0: float = 0.0,
                   dt: float | None = None, steps: int | None = None, particles=None,
                   stored: float = 0.0) -> tuple[str, int] | None:
@@ -485,7 +497,9 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     bound while the guards keep every value finite, and may stay inside the monitor's bounds
     (which allow a floor of ``0.5 M (0.1 c_P)^2``, the strain a rest-configuration body may
     hold). Growth beyond ``BLOWUP_FACTOR`` times the scale ``KE0 + M |g| L + stored`` (``L``
-    the initial bounding-box diagonal plus the spacing) is taken as a blow-up.
+    the initial bounding-box diagonal plus the spacing), plus the monitor's floor ``0.5 M
+    (0.1 c_P)^2``, is taken as a blow-up: without gravity or a start speed the scale is 0 J,
+    and a body at rest, moved by round-off alone, was a blow-up.
 
     A tool or pinned set of known speed (``Velocity``, ``Keyframes``) is left to the monitor,
     which counts its work. A ``Scripted`` one has no speed known beforehand, and the monitor
@@ -516,11 +530,13 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
     scale = (0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
              + 0.5 * float(m.sum()) * scripted ** 2 + max(float(stored), 0.0))
-    if grew > BLOWUP_FACTOR * scale:
+    floor = _energy_floor(float(m.sum()), _wave_speed(model, model.parameter_values(), keep))
+    if grew > BLOWUP_FACTOR * scale + floor:
         does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
                 else "nothing does work on the bodies")
         return (f"the simulation blew up: kinetic + gravitational energy grew by {grew:.4g} J, more than "
-                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J ({does}); "
+                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J plus a floor of {floor:.3g} J "
+                f"(0.5 M (0.1 c_P)^2) ({does}); "
                 f"the time step is likely above the stable limit {model.stable_dt():.3g} s"), \
             int(np.flatnonzero(keep)[int(np.argmax(ke))])
     return None
