@@ -1685,3 +1685,21 @@ def test_run_names_a_dt_too_long_for_the_precision_as_typed(tmp_path, capsys):
     line = one_error_line(refused_run(capsys, "star", tmp_path / "o.usdc", "--frames", "1", "--fps", "1e-30", "--dt", "1e30"))
     assert line.startswith("warp-esph: error: --dt = 1e+30 is not allowed: one step's fall under gravity"), line
     assert "float32 resolves at the spacing" in line and "the stable step" in line, line
+
+
+def test_the_longest_dt_a_fall_refusal_names_is_allowed():
+    """The refusal of a dt whose fall the precision cannot resolve says what dt must be at
+    most; that number, as printed, is allowed. Rounded to nearest it could be above the
+    bound: with |g| = 19.47 m/s^2 at a spacing of 0.1 m in float32 the bound is 207.5 s,
+    printed '208', which was refused in turn."""
+    b = we.SceneBuilder(spacing=0.1, gravity=(0.0, -19.47, 0.0))
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float32)
+    solver = we.Solver(model)
+    with pytest.raises(ValueError, match="must be at most") as refused:
+        solver.check_dt(1e4)
+    most = float(re.search(r"must be at most ([0-9.e+-]+) s", str(refused.value)).group(1))
+    assert most > 0.99 * math.sqrt(model.spacing / (np.finfo(np.float32).eps * 19.47))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # far above the stable step, as meant
+        assert solver.check_dt(most) == most

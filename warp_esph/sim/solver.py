@@ -99,6 +99,10 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
     fall = g * dt * dt
     if eps * fall > model.spacing:
         longest = math.sqrt(model.spacing / (eps * g))
+        # Down to the 3 digits shown: rounded to nearest, the bound printed could lie above it
+        # (207.5 s shown as 208, itself refused).
+        unit = 10.0 ** (math.floor(math.log10(longest)) - 2)
+        longest = math.floor(longest / unit) * unit
         raise ValueError(
             f"{name} = {dt!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
             f"{model.scalar.__name__} resolves at the spacing {model.spacing:.3g} m (spacing / eps = {model.spacing / eps:.3g} m), "
