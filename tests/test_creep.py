@@ -6,7 +6,8 @@ dt = 0.9 Model.stable_dt(). The 1-D static analysis gives h/H0 = S (1 - ln S) = 
 (S = sqrt(3/2) Y / (rho g H0)); a pile at rest has a top that no longer sinks.
 Before the fix of static friction in ``colliders.respond`` (docs/physics.md, "The slump creep") the top still sank
 1.3 % H0/s at 3 s (h/H0 0.417, then 0.409 at 4 s), at a rate proportional to dt; now it stops
-(0.02 % H0/s at 3 s, h/H0 0.539: at 8 dx the pile slumps less than the 1-D theory).
+(0.046 % H0/s from 2.5 to 3 s, h/H0 0.535, measured at a24ecff; 0.02 % and
+0.539 on an older tree: at 8 dx the pile slumps less than the 1-D theory).
 """
 
 import math
