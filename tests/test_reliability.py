@@ -1703,3 +1703,34 @@ def test_the_longest_dt_a_fall_refusal_names_is_allowed():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # far above the stable step, as meant
         assert solver.check_dt(most) == most
+
+
+def test_a_loss_evaluated_before_warp_has_started_starts_it(tmp_path):
+    """A script that builds its targets and positions in numpy and asks a loss for its
+    ``value`` first made no Warp call before it: the loss's tape bookkeeping looked Warp's
+    runtime up, found none, and failed with "module 'warp' has no attribute 'context'".
+    Warp starts there (quietly, at the caller's log level); positions that are no Warp
+    arrays are then refused by name, and the loss called as a function evaluates them."""
+    script = tmp_path / "first_call.py"
+    script.write_text(
+        "import numpy as np, warp as wp\n"
+        "from warp._src import context\n"
+        "from warp_esph.losses import PositionLoss\n"
+        "assert context.runtime is None, 'Warp started before the loss'\n"
+        "level = wp.config.log_level\n"
+        "t = np.zeros((4, 3))\n"
+        "loss = PositionLoss({1: t})\n"
+        "try:\n"
+        "    loss.value({1: t + 0.1})\n"
+        "except ValueError as e:\n"
+        "    print('refused:', e)\n"
+        "assert context.runtime is not None and wp.config.log_level == level\n"
+        "print('value:', repr(loss({1: t + 0.1})))\n"
+    )
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "refused: positions of dtype float64 are not allowed: must be wp.vec3f or wp.vec3d" in proc.stdout, proc.stdout
+    # mean over the 4 particles of |(0.1, 0.1, 0.1)|^2
+    value = float(re.search(r"value: ([0-9.e+-]+)", proc.stdout).group(1))
+    assert value == pytest.approx(3 * 0.1**2, rel=1e-12)

@@ -67,10 +67,22 @@ import warp as wp
 
 
 def _runtime():
-    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
-    if runtime is None:  # pragma: no cover (older layout)
-        runtime = wp.context.runtime
-    return runtime
+    """Warp's runtime, Warp started first where it has not been: a loss's ``value`` (or a
+    tape's bookkeeping) is the first Warp call of a script that built its positions in numpy,
+    and the runtime was still None there ("module 'warp' has no attribute 'context'" came
+    from looking it up in Warp's older layout). Warp starts quietly, as ``init_warp`` starts
+    it, and the caller's log level comes back afterwards."""
+    from warp._src import context  # noqa: PLC0415
+
+    if context.runtime is None:
+        from ..startup import init_warp  # noqa: PLC0415
+
+        level = wp.config.log_level
+        try:
+            init_warp(log_level=max(level, wp.LOG_WARNING))
+        finally:
+            wp.config.log_level = level
+    return context.runtime
 
 
 def recording_tape():
@@ -386,5 +398,4 @@ def _packed_arguments(cmd):
 
 def _no_capture() -> bool:
     """No CPU command capture is recording (``Launch.launch`` records into one)."""
-    runtime = wp._src.context.runtime
-    return getattr(runtime, "_apic_capture", None) is None
+    return getattr(_runtime(), "_apic_capture", None) is None
