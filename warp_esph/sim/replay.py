@@ -64,6 +64,7 @@ import sys
 import weakref
 
 import warp as wp
+from warp._src import context as _context  # the runtime: looked up at every launch, so imported once
 
 
 def _runtime():
@@ -72,9 +73,7 @@ def _runtime():
     and the runtime was still None there ("module 'warp' has no attribute 'context'" came
     from looking it up in Warp's older layout). Warp starts quietly, as ``init_warp`` starts
     it, and the caller's log level comes back afterwards."""
-    from warp._src import context  # noqa: PLC0415
-
-    if context.runtime is None:
+    if _context.runtime is None:
         from ..startup import init_warp  # noqa: PLC0415
 
         level = wp.config.log_level
@@ -82,7 +81,7 @@ def _runtime():
             init_warp(log_level=max(level, wp.LOG_WARNING))
         finally:
             wp.config.log_level = level
-    return context.runtime
+    return _context.runtime
 
 
 def recording_tape():
