@@ -238,3 +238,78 @@ def test_a_scan_of_part_of_the_body_in_a_world_loss_is_warned_of_naming_its_worl
         fit(worlds, loss, ["yield_stress"], steps=40, dt=dt, iterations=0, progress=False, diagnostics=False)
     said = [str(w.message) for w in record if "scan of part of the body" in str(w.message)]
     assert len(said) == 1 and said[0].startswith("target (world 1): the point cloud at step 40"), said
+
+
+def _box_world(size):
+    """A box of ``size`` (m) on the ground at 2 cm spacing."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.5 * size[1] + 0.01, 0.0), size, we.Material(mu=2e3, lam=3e3, density=1000.0))
+    return b
+
+
+def test_one_cloud_loss_shared_by_two_worlds_keeps_each_world_s_records_and_check():
+    """One ``ChamferLoss`` given for every world of a ``WorldLoss``: each world's copy keeps
+    its own ``unmatched`` and its own partial-scan check. Two bodies of 18 particles each, a
+    3 x 2 x 3 block and a 3 x 6 x 1 wall; a cloud of the block shows only the bottom of
+    the wall: the wall's world is warned for, and each world's ``unmatched`` and value are
+    what the loss alone gives on that world's positions (the copies shared one dict, and
+    one set of checked frames: the block's check marked the frame done and the wall was
+    never checked)."""
+    from warp_esph.builder import finalize_worlds
+    from warp_esph.losses import WorldLoss
+
+    model = finalize_worlds([_box_world((0.06, 0.04, 0.06)), _box_world((0.06, 0.12, 0.02))], dtype=wp.float64)
+    x = model.particle_x0.astype(np.float64)
+    starts = model.world_start
+    block, wall = x[starts[0]:starts[1]], x[starts[1]:starts[2]]
+    assert len(block) == len(wall) == 18
+    cloud = block + np.array([0.0, 0.0, 1e-3])  # the block as scanned (no point on a particle)
+    r = 0.05
+
+    def alone(xw):
+        loss = ChamferLoss({1: cloud}, radius=r)
+        value = loss.value({1: wp.array(xw, dtype=wp.vec3d)})
+        return value, loss.unmatched[1]
+
+    shared = ChamferLoss({1: cloud}, radius=r)
+    # Every particle of both bodies is on its surface: 0..17 of each world's positions.
+    shared.watch_coverage(np.arange(18), model.spacing, "target")
+    worlds = WorldLoss(model, shared)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        worlds.value({1: wp.array(x, dtype=wp.vec3d)})
+    partial = [str(w.message) for w in rec if "scan of part of the body" in str(w.message)]
+    assert len(partial) == 1, partial
+    assert "50% of the body's surface particles" in partial[0], partial[0]  # the wall's upper 3 rows
+
+    v_block, u_block = alone(block)
+    v_wall, u_wall = alone(wall)
+    assert u_block[0] == 0 and u_wall[0] > 0, (u_block, u_wall)
+    assert [loss.unmatched[1] for loss in worlds.losses] == [u_block, u_wall]
+    assert worlds.world_values == pytest.approx([v_block, v_wall], rel=1e-12)
+
+
+def test_one_mesh_loss_shared_by_two_worlds_counts_each_world_s_unmatched_particles():
+    """``MeshLoss.unmatched`` of a ``WorldLoss``'s worlds: one loss given for every world,
+    each world's copy counts its own world's particles beyond ``max_dist`` (the copies
+    shared one dict, and every world read the last world's count)."""
+    from warp_esph.builder import finalize_worlds
+    from warp_esph.losses import MeshLoss, WorldLoss
+
+    model = finalize_worlds([_box_world((0.06, 0.04, 0.06)), _box_world((0.06, 0.12, 0.02))], dtype=wp.float64)
+    x = model.particle_x0.astype(np.float64)
+    starts = model.world_start
+    # One large triangle in the plane y = 0.02: the block lies within max_dist of it, the
+    # wall's upper rows beyond.
+    mesh = (np.array([[-1.0, 0.02, -1.0], [1.0, 0.02, -1.0], [0.0, 0.02, 1.0]]), np.array([[0, 1, 2]]))
+
+    def alone(xw):
+        loss = MeshLoss(mesh, frames=[1], max_dist=0.03)
+        loss.value({1: wp.array(xw, dtype=wp.vec3d)})
+        return loss.unmatched[1]
+
+    worlds = WorldLoss(model, MeshLoss(mesh, frames=[1], max_dist=0.03))
+    worlds.value({1: wp.array(x, dtype=wp.vec3d)})
+    expected = [alone(x[starts[w]:starts[w + 1]]) for w in range(2)]
+    assert expected[0] == 0 and expected[1] > 0, expected
+    assert [loss.unmatched[1] for loss in worlds.losses] == expected

@@ -982,7 +982,8 @@ class ChamferLoss(Loss):
     (``|x - y|`` has a cone at 0 whose gradient flips); an unmatched point scores
     ``(radius - s)^2``. Must be below ``radius``.
     """
-    _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs")
+    #: ``unmatched`` and ``_sizes`` too: what one world's evaluation found is no other's.
+    _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs", "unmatched", "_sizes")
     _TAPED = ("_scratch",)  # the nearest points' indices nearest_term's adjoint reads
 
 
@@ -1097,6 +1098,17 @@ class ChamferLoss(Loss):
         a scan need not show them (``scan_coverage``'s ``held``)."""
         self._coverage_watch = (np.asarray(surface, dtype=np.int64), float(spacing), set(), what,
                                 np.asarray(held, dtype=np.int64))
+
+    def copy_for_world(self) -> "ChamferLoss":
+        """As ``Loss.copy_for_world``, with a coverage watch of its own (``watch_coverage``):
+        the same surface, but the frames checked counted per world. Shared, the first world
+        to reach a frame marked it checked, and a world whose body the cloud shows only part
+        of was never checked (one loss given for worlds of different bodies)."""
+        new = super().copy_for_world()
+        watch = vars(self).get("_coverage_watch")
+        if watch is not None:
+            new._coverage_watch = (watch[0], watch[1], set(), *watch[3:])
+        return new
 
     def _warn_partial_scan(self, frame: int, surface: np.ndarray, spacing: float, what: str,
                            held: np.ndarray | None = None) -> None:
@@ -1229,7 +1241,7 @@ class MeshLoss(Loss):
     search distance; particles with no surface within it contribute ``max_dist**2``
     without gradient. ``unmatched[step]`` counts them after an evaluation.
     """
-    _CACHES = ("_wp", "_scratch", "_planes")
+    _CACHES = ("_wp", "_scratch", "_planes", "unmatched", "_sizes")  # unmatched: per world, as ChamferLoss's
     _TAPED = ("_scratch",)  # the closest points and codes mesh_term's adjoint reads
 
 
