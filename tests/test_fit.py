@@ -2617,11 +2617,11 @@ def test_a_finite_blow_up_beside_a_scripted_tool_fails_the_fit_as_the_sweep_fail
         m.set_material(0, m.materials[0].replace(mu=mu))
         return m
 
-    target = Rollout(model(HEALTHY_MU), STEPS, DT, frames=[STEPS]).forward()
-    loss = PositionLoss(target, frames=[STEPS])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the guess's dt past its stable step
         warnings.filterwarnings("ignore", "tools .'far'. follow tools.Scripted motions", UserWarning)
+        target = Rollout(model(HEALTHY_MU), STEPS, DT, frames=[STEPS]).forward()
+        loss = PositionLoss(target, frames=[STEPS])
         with pytest.raises(FloatingPointError, match=r"the rollout at the initial guess diverged: the simulation blew up: "
                                                      r"kinetic \+ gravitational energy grew by "):
             fit(model(BLOWN_MU), loss, ["mu"], steps=STEPS, dt=DT, iterations=1, progress=False, diagnostics=False)

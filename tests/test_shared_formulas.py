@@ -515,7 +515,7 @@ def _pair_terms_kernel(scalar, weight):
     cf = curvature.funcs(scalar, weight)
     fw = smoothing.fit_weight_funcs(scalar, weight)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def run(xb: wp.array(dtype=T.vec3), yb: wp.array(dtype=T.vec3), h: scalar, lin: wp.array2d(dtype=T.mat33),
             cor: wp.array2d(dtype=T.mat33), scal: wp.array2d(dtype=scalar)):
         i = wp.tid()
@@ -593,7 +593,7 @@ def _python_constant_kernel():
     cf = curvature.funcs(wp.float64, "poly6")
     nk = neighbors.kernels(wp.float64, "poly6")
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def run(r2: wp.array(dtype=wp.float64), hh: wp.float64, A: T.mat33, F: T.mat33, det: wp.float64,
             count: wp.array2d(dtype=wp.float64), mats: wp.array(dtype=T.mat33)):
         i = wp.tid()
