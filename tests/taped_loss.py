@@ -35,3 +35,18 @@ def taped_gradients(model, states, loss, tape, names) -> dict:
     name: ``"v0"`` the first state's velocities, any other name the model's array of it."""
     tape.backward(loss)
     return {n: (states[0].v if n == "v0" else getattr(model, n)).grad.numpy().copy() for n in names}
+
+
+def rollout_central_difference(rollout, loss, name: str, rel_step: float = 1e-5) -> tuple[float, float]:
+    """``(tape, central difference)`` of ``loss`` through ``rollout`` in the first value of the
+    parameter ``name``, the difference at a step of ``rel_step`` of that value; the rollout is
+    left at the perturbed values' last run."""
+    _, grads = rollout.value_and_grad(loss)
+    base = rollout.get_parameters()
+    h = rel_step * base[name][0]
+    vals = []
+    for d in (h, -h):
+        rollout.set_parameters({name: base[name] + d})
+        rollout.forward()
+        vals.append(loss.value(dict(zip(rollout.frames, rollout.frame_positions))))
+    return float(grads[name][0]), (vals[0] - vals[1]) / (2 * h)
