@@ -17,10 +17,12 @@ def _far(t):
     return (3.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0)
 
 
-def scripted_box_builder() -> we.SceneBuilder:
-    """27 putty particles on the ground, 3 m from a scripted sphere at rest."""
+def scripted_box_builder(mu: float | None = None) -> we.SceneBuilder:
+    """27 putty particles on the ground, 3 m from a scripted sphere at rest (``mu``: the
+    putty's shear modulus, None: the preset's)."""
     b = we.SceneBuilder(spacing=0.1)
-    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), we.Material.preset("putty"), name="paste")
+    putty = we.Material.preset("putty") if mu is None else we.Material.preset("putty", mu=mu)
+    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), putty, name="paste")
     b.add_ground()
     b.add_tool("sphere", radius=0.05, motion=tools.Scripted(_far), name="far")
     return b

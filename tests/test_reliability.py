@@ -1734,3 +1734,66 @@ def test_a_loss_evaluated_before_warp_has_started_starts_it(tmp_path):
     # mean over the 4 particles of |(0.1, 0.1, 0.1)|^2
     value = float(re.search(r"value: ([0-9.e+-]+)", proc.stdout).group(1))
     assert value == pytest.approx(3 * 0.1**2, rel=1e-12)
+
+
+class _Frames:
+    """A writer that keeps the frames it is given (copies: the run reuses its states)."""
+
+    def __init__(self):
+        self.frames, self.closed = {}, False
+
+    def write_frame(self, frame, state):
+        self.frames[frame] = state.x.numpy().copy()
+
+    def close(self):
+        self.closed = True
+
+
+@pytest.mark.filterwarnings("ignore:tools .'far'. follow tools.Scripted motions:UserWarning")
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # dt past the stable step, on purpose
+def test_simulate_stops_a_finite_blow_up_beside_a_scripted_tool_as_a_sweep_fails_it():
+    """``blowup_cases``' run: a scripted tool turns the monitor's bounds off, and ``simulate``
+    returned particles 20 m out, finite, as a success (a sweep, a fit and the torch bridge
+    fail the same run, ``energy_growth``). Now the run stops at the first frame whose energy
+    grew past that limit, naming what grew, the step, the frame and the stable step; the
+    frames before it are written and the writer closed. At the stable stiffness it runs on."""
+    from blowup_cases import BLOWN_MU, DT, HEALTHY_MU, scripted_box_builder  # noqa: PLC0415
+
+    fps = 1.0 / (10 * DT)  # 10 steps a frame
+    healthy = _Frames()
+    we.simulate(scripted_box_builder(HEALTHY_MU).finalize(), 3, fps=fps, dt=DT, writer=healthy, progress=False)
+    assert sorted(healthy.frames) == [0, 1, 2, 3]
+    model = scripted_box_builder(BLOWN_MU).finalize()
+    blown = _Frames()
+    with pytest.raises(we.SimulationError, match=r"^the simulation diverged after step (\d+) \(frame (\d+), .*\): kinetic "
+                       r"\+ gravitational energy grew by .* J, more than 10 x the scene's energy scale .*, at particle "
+                       r"\d+ of body 'paste'; try a smaller dt= \(stable limit ") as e:
+        we.simulate(model, 3, fps=fps, dt=DT, writer=blown, progress=False)
+    frame = e.value.frame
+    assert e.value.step == 10 * frame and e.value.body == "paste"
+    assert f"{model.stable_dt():.3g} s" in e.value.advice
+    assert sorted(blown.frames) == list(range(frame)) and blown.closed
+    assert all(np.isfinite(x).all() for x in blown.frames.values())
+
+
+def test_run_exits_3_on_a_finite_blow_up_beside_a_scripted_tool_keeping_the_frames_before(tmp_path, capsys, monkeypatch):
+    """The same run as a (Python) scene of ``warp-esph run``: it exited 0 with the blown-up
+    frames in its file. Now exit 3, one line naming what grew and the command's ``--dt``, the
+    file holding every frame before the divergence, all finite."""
+    from blowup_cases import BLOWN_MU, DT, scripted_box_builder  # noqa: PLC0415
+    from warp_esph.scenes import Scene  # noqa: PLC0415
+
+    monkeypatch.setitem(SCENES, "far_blowup", lambda scale=1.0: Scene(
+        "far_blowup", "a blow-up beside a scripted tool", scripted_box_builder(BLOWN_MU), frames=3, fps=1.0 / (10 * DT)))
+    out = tmp_path / "far.usdc"
+    status = main(["run", "far_blowup", "-o", str(out), "--dt", repr(DT), "--no-progress"])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == 3, line
+    assert "kinetic + gravitational energy grew by" in line and "'paste'; try a smaller --dt (stable limit " in line, line
+    kept = int(line.split("keeps the ")[1].split()[0]) if "keeps the " in line else 0
+    assert 1 <= kept < 4, line
+    times = frames_in(out, "/World/paste")
+    assert times == [float(k) for k in range(kept)]
+    stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(out)))
+    for t in times:
+        assert np.isfinite(np.array(stage.GetPrimAtPath("/World/paste").GetAttribute("points").Get(t))).all()

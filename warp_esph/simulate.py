@@ -482,11 +482,12 @@ def _energy_floor(mass: float, wave: float) -> float:
 
 def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v: np.ndarray, *, t0: float = 0.0,
                   dt: float | None = None, steps: int | None = None, particles=None,
-                  stored: float = 0.0) -> tuple[str, int] | None:
+                  stored: float = 0.0, scripted_seen: dict | None = None) -> tuple[str, int] | None:
     """``(why, particle)`` where a run from positions and velocities ``x0, v0`` (at time
     ``t0``) to ``x, v`` has blown up without a non-finite value, else ``None``: the one test of
-    energy growth that ``sweep``'s samples, ``fit``'s evaluations and the torch bridge share
-    (``Rollout.bounds_hit`` runs it after ``DivergenceMonitor``'s bounds); ``particle`` is the
+    energy growth that ``simulate`` (at every frame), ``sweep``'s samples, ``fit``'s evaluations
+    and the torch bridge share (``Rollout.bounds_hit`` runs it after ``DivergenceMonitor``'s
+    bounds); ``particle`` is the
     one holding the most kinetic energy.
 
     Without force fields and moving tools nothing does work on the bodies but gravity (colliders
@@ -505,9 +506,24 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     which counts its work. A ``Scripted`` one has no speed known beforehand, and the monitor
     runs only its non-finite check: here its fastest point over the poses of the run's
     ``steps`` steps of ``dt`` from ``t0`` joins the scale as ``0.5 M v^2``, and the height it
-    lifts the bodies by is its work, not growth. ``particles``: a boolean mask of the particles
-    read (one world of a model of worlds, the bodies not exempt), None: all.
+    lifts the bodies by is its work, not growth. ``scripted_seen``: the scripted motions as the
+    run's own steps evaluated them (``{k: (linear speed, angular speed, lowest, highest
+    position)}``, the fastest over the steps, ``simulate``'s record of
+    ``ToolSet.scripted_step_motion``), read in place of calling the poses again (``dt`` and
+    ``steps`` are then not needed). ``particles``: a boolean mask of the particles read (one
+    world of a model of worlds, the bodies not exempt), None: all.
     """
+    hit = _grown(model, x0, v0, x, v, t0=t0, dt=dt, steps=steps, particles=particles, stored=stored,
+                 scripted_seen=scripted_seen)
+    if hit is None:
+        return None
+    return (f"the simulation blew up: {hit[0]}; the time step is likely above the stable limit {model.stable_dt():.3g} s",
+            hit[1])
+
+
+def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scripted_seen) -> tuple[str, int] | None:
+    """``energy_growth``'s test: ``(what grew, particle)`` without its words around it, which
+    ``simulate`` puts in its own divergence message (step, frame, time, advice)."""
     if getattr(model, "force_fields", None):
         return None
     keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
@@ -516,7 +532,7 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     x0, v0 = np.asarray(x0, dtype=np.float64)[keep], np.asarray(v0, dtype=np.float64)[keep]
     x1, v1 = np.asarray(x, dtype=np.float64)[keep], np.asarray(v, dtype=np.float64)[keep]
     moving = _tools_move(model)
-    scripted = _scripted_speed(model, x0, x1, t0, dt, steps) if moving else 0.0
+    scripted = _scripted_speed(model, x0, x1, t0, dt, steps, scripted_seen) if moving else 0.0
     if scripted is None:
         return None  # the monitor's energy bound counts the tools' work
     m = model.particle_mass.numpy().astype(np.float64)[keep]
@@ -534,31 +550,32 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     if grew > BLOWUP_FACTOR * scale + floor:
         does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
                 else "nothing does work on the bodies")
-        return (f"the simulation blew up: kinetic + gravitational energy grew by {grew:.4g} J, more than "
+        return (f"kinetic + gravitational energy grew by {grew:.4g} J, more than "
                 f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J plus a floor of {floor:.3g} J "
-                f"(0.5 M (0.1 c_P)^2) ({does}); "
-                f"the time step is likely above the stable limit {model.stable_dt():.3g} s"), \
-            int(np.flatnonzero(keep)[int(np.argmax(ke))])
+                f"(0.5 M (0.1 c_P)^2) ({does})"), int(np.flatnonzero(keep)[int(np.argmax(ke))])
     return None
 
 
-def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, steps) -> float | None:
+def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, steps, seen=None) -> float | None:
     """The fastest point (m/s) of the moving tools and pinned sets of ``model`` over a run of
     ``steps`` steps of ``dt`` from ``t0`` (particles from ``x0`` to ``x``) where one is
-    ``Scripted`` (its poses read at each step's time, as the run read them), else None: every
+    ``Scripted`` (its poses read at each step's time, as the run read them; ``seen``: as the
+    run's steps evaluated them, ``energy_growth``'s ``scripted_seen``), else None: every
     motion's speed is known and the monitor bounds the energy with it."""
     motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
     if not any(isinstance(mo, tools.Scripted) for mo in motions):
         return None
-    if dt is None or steps is None:
+    if seen is None and (dt is None or steps is None):
         raise ValueError(f"dt = {dt!r}, steps = {steps!r} is not allowed: a scene with a Scripted tool or pinned set "
                          "needs the run's step (s) and step count to be checked for a blow-up")
-    times = float(t0) + dt * np.arange(steps + 1)
     xs = np.concatenate([x0, x])
     lo, hi = xs.min(axis=0), xs.max(axis=0)
     speeds = []
-    for mo in motions:
-        if isinstance(mo, tools.Scripted):
+    for k, mo in enumerate(motions):
+        if isinstance(mo, tools.Scripted) and seen is not None:
+            lin, ang, *at = seen.get(k, (0.0, 0.0))
+        elif isinstance(mo, tools.Scripted):
+            times = float(t0) + dt * np.arange(steps + 1)
             poses = [mo.pose(t) for t in times]
             at = np.array([p for p, _ in poses], dtype=np.float64)
             q = np.array([q for _, q in poses], dtype=np.float64)
@@ -1173,6 +1190,37 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
 
+def _growth_origin(model: Model, current: State, monitor, origin: State | None, exempt, solver: Solver):
+    """``(x0, v0, t0, stored elastic energy)`` of the state ``simulate`` judges its energy growth
+    from (``energy_growth``), copied (the run's states are reused), or None where the monitor
+    is off. A resumed run's is the run's own initial state (``origin``), as the monitor's, so
+    each frame is judged as the uninterrupted run judged it; beside a ``Scripted`` tool it is
+    the state this call starts from: the tool's poses before it were not seen here, and the
+    work it did then, uncounted, would read as growth."""
+    if monitor is None or not monitor.keep.any():
+        return None
+    motions = [] if model.tools is None else [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
+    if origin is None or any(isinstance(mo, tools.Scripted) for mo in motions):
+        start = current
+        stored = getattr(monitor, "e_elastic", 0.0) if origin is None else \
+            DivergenceMonitor(model, current, exempt, solver=solver).e_elastic
+    else:
+        start, stored = origin, getattr(monitor, "e_elastic", 0.0)
+    return (start.x.numpy().astype(np.float64), start.v.numpy().astype(np.float64), float(start.time), stored)
+
+
+def _record_scripted(seen: dict, step: dict) -> None:
+    """Fold one step's ``ToolSet.scripted_step_motion`` into ``seen``: each Scripted motion's
+    fastest linear and angular speed and the box of its positions (``energy_growth``'s
+    ``scripted_seen``)."""
+    for k, (lin, ang, p0, p1) in step.items():
+        old = seen.get(k)
+        lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
+        if old is not None:
+            lin, ang, lo, hi = max(lin, old[0]), max(ang, old[1]), np.minimum(lo, old[2]), np.maximum(hi, old[3])
+        seen[k] = (lin, ang, lo, hi)
+
+
 def _takes_keyword(record, solver, **keyword) -> bool:
     """Whether a writer's ``record_solver`` takes ``(solver, frame=...)`` (or ``state=``), not
     the solver alone. Bound (and passed) by keyword: bound positionally, a
@@ -1232,7 +1280,9 @@ def simulate(
     - ``start_frame``: index of the initial frame (resuming a run); frames are numbered
       ``start_frame .. start_frame + frames``.
 
-    - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``);
+    - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``'s bounds,
+      then ``energy_growth`` from the monitor's state, at every frame; beside a ``Scripted``
+      tool from this call's start, its speed read from the poses the steps evaluated);
       ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
       bodies its bounds leave out (``Scene.diverges``: a body a scene shows blowing up); a
       non-finite position or velocity in them still stops the run, as ``fit`` fails the trial.
@@ -1241,7 +1291,8 @@ def simulate(
       as the uninterrupted run judged it; default: the state this call starts from).
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
-    when a position or velocity becomes non-finite, the monitor finds a blow-up, or a step
+    when a position or velocity becomes non-finite, the monitor finds a blow-up (its bounds, or
+    kinetic + gravitational energy grown past ``energy_growth``'s limit), or a step
     moved a ``tools.Scripted`` tool more than a spacing (checked from the poses each step
     evaluates, with a fixed ``dt`` and with ``dt="auto"`` alike: the function may read what
     ``callback`` sets, so it is never called ahead of the run), or the neighbour search
@@ -1328,6 +1379,11 @@ def simulate(
         monitor = DivergenceMonitor(model, current if monitor_origin is None else monitor_origin,
                                     monitor_exempt, solver=solver) if monitor else None
         t_origin = 0 if monitor_origin is None else start_frame  # frames from the monitor's state to this call's
+        # energy_growth, the test a sweep, a fit and the torch bridge fail a run on, at each frame
+        # beside the bounds: beside a Scripted tool the bounds are off, and a box 4.6 x past its
+        # stable step ran to its end and returned particles 20 m out as a success.
+        growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver)
+        seen = {}  # the Scripted motions as this run's steps evaluated them
 
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
@@ -1366,6 +1422,8 @@ def simulate(
                                               start_frame + k, float(current.time) + dt, dt) from e
                     current, spare = spare, current
                     if scripted:
+                        if growth is not None:
+                            _record_scripted(seen, model.tools.scripted_step_motion(dt))
                         try:
                             model.tools.check_scripted_step(dt)
                         except ValueError as e:  # its poses are known only as the steps evaluate them
@@ -1379,6 +1437,10 @@ def simulate(
                 steps += n_sub
                 frame = start_frame + k
                 bad = _first_bad(model, current, monitor, (t_origin + k) / fps)  # simulated time since the monitor's state
+                if bad is None and growth is not None:
+                    x0, v0, t_start, stored = growth
+                    bad = _grown(model, x0, v0, current.x.numpy(), current.v.numpy(), t0=t_start, dt=None, steps=None,
+                                 particles=monitor.keep, stored=stored, scripted_seen=seen)
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name

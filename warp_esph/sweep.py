@@ -786,6 +786,10 @@ def _run_sample(scene, task: _Task) -> dict:
         elif e.advice and rest_inversions(solver) and e.advice == f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
             # Its fact without the caller's options ('a smaller dt=', 'fit=').
             why += f"; the rest-configuration model's fit inverted in {rest_inversions(solver)} particle-steps"
+        # What the guards did up to the stop, as a run that blew up by its end keeps it: since
+        # simulate stops a run at the frame its energy grows past energy_growth's limit, the
+        # rows the end-of-run check failed with their counts came here without them.
+        row.update({f"guard_{k}": int(n) for k, n in solver.guard_counts().items()})
         row.update(status="failed", reason=_one_line(why))
     except StepRefusal as e:
         # The reason without a run's advice ('give dt= or substeps=', 'fewer frames=, or a larger

@@ -1599,6 +1599,20 @@ class ToolSet:
             if not speed <= self.model.spacing / dt:
                 raise self._too_fast(k, speed, t0, dt)
 
+    def scripted_step_motion(self, dt: float) -> dict:
+        """``{k: (linear speed, angular speed, start position, end position)}`` of each
+        ``Scripted`` motion over the last step of ``dt``, from the poses that step evaluated
+        (the callable is not called again, as in ``check_scripted_step``); empty before a step."""
+        last = self._scripted_last
+        if last is None:
+            return {}
+        _, sp, sq = last
+        seen = {}
+        for k in self._scripted:
+            turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(sq[2 * k], sq[2 * k + 1])))))
+            seen[k] = (float(np.linalg.norm(sp[2 * k + 1] - sp[2 * k])) / dt, turn / dt, sp[2 * k], sp[2 * k + 1])
+        return seen
+
     def _scripted_reach(self, k: int) -> float:
         # Computed once: a plane's reads its pose at t = 0, which would call the function again.
         if k not in self._reach_of:
