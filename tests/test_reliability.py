@@ -1797,3 +1797,41 @@ def test_run_exits_3_on_a_finite_blow_up_beside_a_scripted_tool_keeping_the_fram
     stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(out)))
     for t in times:
         assert np.isfinite(np.array(stage.GetPrimAtPath("/World/paste").GetAttribute("points").Get(t))).all()
+
+
+def _push(t):
+    """A sphere swept through the box at 2 m/s from 0.3 m beside it."""
+    return (-0.3 + 2.0 * t, 0.15, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.filterwarnings("ignore:tools .'paddle'. follow tools.Scripted motions:UserWarning")
+@pytest.mark.parametrize("case", ["zero_gravity_at_rest", "thrown_upward", "scripted_push", "resting_pile"])
+def test_healthy_runs_pass_the_energy_check_simulate_applies_at_every_frame(case):
+    """``simulate``'s per-frame ``energy_growth`` flags no healthy run: a body at rest without
+    gravity (a scale of 0 J, its round-off under the floor), one thrown upward (kinetic energy
+    traded for height), a scripted sphere pushing a body at 2 m/s (work done on it, counted from
+    the poses the run's steps evaluated: with the tool's speed unread, 0 m/s, it is a blow-up),
+    a pile resting on the ground (the energy floor)."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    # The push without gravity, whose M |g| L would dwarf the tool's work in the energy scale.
+    weightless = case in ("zero_gravity_at_rest", "scripted_push")
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0) if weightless else (0.0, -9.81, 0.0))
+    putty = we.Material.preset("putty")
+    if case == "resting_pile":
+        b.add_box((0.0, 0.075, 0.0), (0.15, 0.15, 0.15), putty, name="low")
+        b.add_box((0.0, 0.225, 0.0), (0.15, 0.15, 0.15), putty, name="high")
+    else:
+        b.add_box((0.0, 0.15, 0.0), (0.15, 0.15, 0.15), putty, name="box",
+                  velocity=(0.0, 3.0, 0.0) if case == "thrown_upward" else (0.0, 0.0, 0.0))
+    if not weightless:
+        b.add_ground()
+    if case == "scripted_push":
+        b.add_tool("sphere", radius=0.06, motion=tools.Scripted(_push), name="paddle")
+    model = b.finalize()
+    frames = []
+    end = we.simulate(model, 12, fps=30.0, progress=False,
+                      callback=lambda k, s: frames.append(k))
+    assert frames == list(range(13))
+    if case == "scripted_push":  # the tool did work on the box: the case checked
+        assert np.sqrt((end.v.numpy() ** 2).sum(axis=1)).max() > 0.5
