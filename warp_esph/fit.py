@@ -2348,7 +2348,8 @@ def fit(
             if optimizer == "adam":
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol,
                                  bounds=prob.z_bounds(),
-                                 told_apart=None if use_worlds else (lambda: track.moved or track.start_obs is None))
+                                 told_apart=None if use_worlds else (lambda: track.moved or track.start_obs is None),
+                                 roundoff=_gradient_roundoff(runs))
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
@@ -2830,13 +2831,15 @@ class _Stop(Exception):
 
 
 def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None,
-              told_apart=None) -> str:
+              told_apart=None, roundoff=0.0) -> str:
     """Adam in optimiser space, each step projected onto the box. Box bounds (``bounds``:
     ``(lo, hi)`` in optimiser space, or None) as L-BFGS holds them: a value on a bound whose
     gradient points outward (``_held``) is held for the step, its moment dropped, and left out
     of ``clip``'s norm and of ``gtol``'s test (with every value held, converged).
     ``told_apart()``: whether any evaluation's observations differed from the start's beyond
-    round-off (``_tells_apart``), or None where the caller cannot tell."""
+    round-off (``_tells_apart``), or None where the caller cannot tell. ``roundoff``: the share
+    of the first gradient's largest entry at or below which an entry is round-off
+    (``_adam_eps``)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -2901,10 +2904,10 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # only tells a first step swallowed whole (a gradient of round-off) from one not.
             # Relative per entry, as Adam's steps are per coordinate: relative to the largest
             # entry, one value's path hung on the others' (a model of two worlds fitted jointly
-            # moved each world's yield stress otherwise than its fit alone); an entry whose
-            # first gradient is 0 (held) takes the largest entry's.
-            first = np.abs(np.where(held, 0.0, g))
-            opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=ADAM_EPS * np.where(first > 0.0, first, g0))
+            # moved each world's yield stress otherwise than its fit alone); an entry of
+            # round-off takes the largest entry's (_adam_eps).
+            eps = _adam_eps(np.abs(np.where(held, 0.0, g)), g0, roundoff)
+            opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=eps)
             z_new = project(opt.step(z, g, held))
         z = z_new
         opt.lr *= decay
@@ -2912,9 +2915,24 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
 
 
 #: Adam's eps, relative to each entry of the first gradient (the largest entry's for an entry
-#: whose first gradient is 0; ``_run_adam``): every step after the first evaluation's test of a
+#: of round-off, ``_adam_eps``; ``_run_adam``): every step after the first evaluation's test of a
 #: swallowed step, which reads the absolute 1e-8.
 ADAM_EPS = 1e-8
+
+
+def _adam_eps(first: np.ndarray, g0: float, roundoff: float) -> np.ndarray:
+    """Adam's eps per value from the first gradient's magnitudes ``first`` (a held value's 0)
+    and their largest ``g0``: ``ADAM_EPS`` times the entry's own, so that neither the loss's
+    units nor another value's gradient change a value's steps; but an entry at or below
+    ``roundoff`` times ``g0`` (0 included) takes ``ADAM_EPS`` times ``g0``, or ``roundoff``
+    times it where larger. Per entry alone, Adam's steps are the gradient's sign whatever its
+    size: a free-falling body's shear modulus, a step of which moved the loss by a twentieth of
+    a unit of its round-off (gradient 2e-28, 2e-18 of the largest entry), went from 1000 Pa to
+    2087 in 8 evaluations, 10 % each, where the other body's yield stress was being fitted
+    (tests/test_fit_informative.py). The optimiser's space sizes every value's step alike,
+    so the entries compare."""
+    floor = first <= roundoff * g0
+    return ADAM_EPS * np.where(floor, max(1.0, roundoff / ADAM_EPS) * g0, first)
 
 #: The share of a probe's rise that its first-order (slope) part may take for the start to
 #: count as a minimum (``_minimum_by_curvature``): at a minimum the rise is curvature's alone.
@@ -2953,6 +2971,14 @@ ROUNDOFF_UNITS = 1000.0
 #: 2000 Pa at the origin and was called uninformative 10 m from it (its 10 % move of mu, 2.3e-5 m,
 #: is 19.5 units of 10 m; tests/test_fit_informative.py).
 PLACE_UNITS = 8.0
+
+
+def _gradient_roundoff(runs) -> float:
+    """The share of a gradient's largest entry that is round-off (Adam's eps, ``_adam_eps``):
+    ``ROUNDOFF_UNITS`` units of the coarsest precision among the experiments (2.2e-13 in
+    float64, 1.2e-4 in float32)."""
+    coarse = any(r.model.scalar is wp.float32 for r in runs)
+    return ROUNDOFF_UNITS * float(np.finfo(np.float32 if coarse else np.float64).eps)
 
 
 def _observed(runs) -> list[list[tuple[bool, np.ndarray]]]:
