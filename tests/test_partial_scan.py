@@ -184,6 +184,49 @@ def test_the_command_fits_a_scan_of_part_of_the_body_with_cloud_coverage_partial
            "targets are positions" in capsys.readouterr().err
 
 
+def test_the_command_takes_a_cloud_coverage_per_target(tmp_path, capsys, dough_scene):
+    """Two clouds of the scene's own last frame, its top half and the whole of it: given
+    ``--cloud-coverage partial --cloud-coverage full`` (one per ``--target``, in order) the fit
+    scores both 0, where the option was global and the last one given, full, scored the top
+    half's unseen bottom; so does an ``--experiments`` entry's ``cloud_coverage`` list. A count
+    that is neither one nor one per target, and partial for a target that is no cloud, are
+    refused naming the option."""
+    import json
+
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    scene = tmp_path / "dough.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2).replace(
+        "center = [0.0, 0.045, 0.0]\nsize = [0.08, 0.08, 0.08]", "center = [0.0, 0.095, 0.0]\nsize = [0.06, 0.18, 0.06]"))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    last = load_target(run, frames="last").data[0]
+    np.savetxt(tmp_path / "top.xyz", _top_half(last))
+    np.savetxt(tmp_path / "all.xyz", last)
+    fit = ["fit", str(scene), "--params", "yield_stress", "--iterations", "0", "--no-usd", "--no-progress",
+           "--no-diagnostics", "--target", str(tmp_path / "top.xyz"), "--target", str(tmp_path / "all.xyz")]
+    losses = {}
+    for name, extra in (("each", ["--cloud-coverage", "partial", "--cloud-coverage", "full"]),
+                        ("full", ["--cloud-coverage", "full"])):
+        assert main([*fit, *extra, "--output-dir", str(tmp_path / name)]) == 0, capsys.readouterr().err
+        losses[name] = json.loads((tmp_path / name / "fit.json").read_text())["loss"]
+    assert losses["each"] < 1e-20 < 1e-6 < losses["full"], losses
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(scene), "target": ["top.xyz", "all.xyz"],
+                                                    "cloud_coverage": ["partial", "full"]}]))
+    assert main([*fit, "--cloud-coverage", "partial", "--cloud-coverage", "full", "--experiments",
+                 str(tmp_path / "exp.json"), "--output-dir", str(tmp_path / "exp")]) == 0, capsys.readouterr().err
+    losses["experiments"] = json.loads((tmp_path / "exp" / "fit.json").read_text())["loss"]
+    assert losses["experiments"] < 1e-20, losses
+    capsys.readouterr()
+    assert main([*fit, *["--cloud-coverage", "partial"] * 3]) == 2
+    assert "--cloud-coverage is given 3 times for 2 --target files: give it once per --target" in capsys.readouterr().err
+    assert main([*fit[:-4], "--target", str(run), "--target", str(tmp_path / "top.xyz"), "--cloud-coverage", "partial",
+                 "--cloud-coverage", "partial"]) == 2
+    assert f"--cloud-coverage #1 = 'partial' is not allowed: the target {run} is positions, not a point cloud" in \
+        capsys.readouterr().err
+
+
 def _block_on_floor(yield_stress, worlds=1):
     """A 3 x 5 x 3 column (2 cm spacing) on a plastic particle floor of its own material
     (two pinned layers, two spacings beyond its footprint), float64."""

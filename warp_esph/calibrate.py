@@ -239,7 +239,8 @@ def run_fit(args, out=None, err=None) -> int:
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
                  "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
                  "frames": args.frames, "fps": args.fps, "dt": args.dt, "material": args.material, "weight": 1.0,
-                 "noise": _arg(args, "noise"), "force_noise": _arg(args, "force_noise")}
+                 "noise": _arg(args, "noise"), "force_noise": _arg(args, "force_noise"),
+                 "cloud_coverage": _arg(args, "cloud_coverage")}
     specs = [("", main_spec)]
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
@@ -547,7 +548,7 @@ def _remove_earlier_run(folder, json_path=None) -> None:
 
 #: Keys of an entry of the ``--experiments`` file.
 EXPERIMENT_KEYS = ("scene", "target", "target_frames", "target_body", "target_tool", "cameras", "scale", "frames", "fps", "dt", "material",
-                   "weight", "noise", "force_noise")
+                   "weight", "noise", "force_noise", "cloud_coverage")
 
 
 def _read_experiments(path) -> list[tuple[str, dict]]:
@@ -622,6 +623,31 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
     return out
 
 
+def _coverages(spec, args, where, count, key) -> tuple[list[str], str]:
+    """The experiment's ``--cloud-coverage`` (``cloud_coverage`` of an ``--experiments`` entry):
+    one for all its targets or one per target, in order ([] where none is given), and the name
+    a refusal gives it. An entry without its own takes the command's where that is given once
+    (for all, as it reached every experiment before it could be given per target); given per
+    ``--target``, it is the command's targets' alone."""
+    from .losses import ChamferLoss  # noqa: PLC0415
+
+    given, name = spec.get("cloud_coverage"), key("cloud_coverage")
+    if where and given is None:
+        command = _arg(args, "cloud_coverage")
+        given, name = (command, "--cloud-coverage") if command and len(command) == 1 else (None, name)
+    if given is None:
+        return [], name
+    values = list(given) if isinstance(given, (list, tuple)) else [given]
+    for v in values:
+        if not isinstance(v, str) or v not in ChamferLoss.COVERAGES:
+            raise ValueError(f"{where}{name} = {checks.shorten(given)!r} is not allowed: give one of "
+                             f"{', '.join(ChamferLoss.COVERAGES)}, or a list of them, one per {key('target')}")
+    if len(values) != 1 and len(values) != count:
+        raise ValueError(f"{where}{name} is given {len(values)} times for {count} {key('target')} files: give it once "
+                         f"per {key('target')}, in the same order, or once for all")
+    return values, name
+
+
 def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep):
     """One experiment of the command: scene, model (jittered), targets, loss, time step."""
     import types  # noqa: PLC0415
@@ -640,6 +666,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if len(tframes) > 1 and len(tframes) != len(targets):
         raise ValueError(f"{where}{key('target_frames')} is given {len(tframes)} times for {len(targets)} "
                          f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
+    coverages, coverage_name = _coverages(spec, args, where, len(targets), key)
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
@@ -850,7 +877,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         _arg(args, "force_noise") if where else None)
     loss = None
     zero_readings: list[str] = []
-    for kind, path, t in loaded:
+    for k, (kind, path, t) in enumerate(loaded):
         if kind == "silhouette":
             from .silhouette import silhouette_target  # noqa: PLC0415
 
@@ -867,7 +894,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if offset == "surface":
                 offset = 0.5 * model.spacing
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
-                          coverage=_arg(args, "cloud_coverage") or "full", surface_offset=offset,
+                          coverage=(coverages[k] if len(coverages) > 1 else coverages[0] if coverages else "full"),
+                          surface_offset=offset,
                           force_noise=force_noise, force_components=_arg(args, "force_components") or "xyz")
             if t.kind == "forces":
                 zeros = _zero_force_columns(path, term, _arg(args, "force_components") is not None)
@@ -903,9 +931,15 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if _arg(args, "mesh_mode") is not None and "mesh" not in file_kinds:
         raise ValueError(f"{where}--mesh-mode = {args.mesh_mode!r} is not allowed: it is how mesh targets are compared, "
                          f"and the targets are {kinds}")
-    if _arg(args, "cloud_coverage") is not None and "points" not in file_kinds:
-        raise ValueError(f"{where}--cloud-coverage = {args.cloud_coverage!r} is not allowed: it is how much of the body "
+    if coverages and "points" not in file_kinds:
+        said = coverages[0] if len(coverages) == 1 else coverages
+        raise ValueError(f"{where}{coverage_name} = {said!r} is not allowed: it is how much of the body "
                          f"point-cloud targets show, and the targets are {kinds}")
+    for k, (kind, path, t) in enumerate(loaded if len(coverages) > 1 else []):
+        if coverages[k] == "partial" and (kind != "file" or t.kind != "points"):
+            # Only a cloud's loss reads it: a partial given for another target would fit it in full.
+            raise ValueError(f"{where}{coverage_name} #{k + 1} = 'partial' is not allowed: the target {path} is "
+                             f"{'silhouettes' if kind == 'silhouette' else t.kind}, not a point cloud; give full for it")
     if _arg(args, "cloud_offset") is not None and "points" not in file_kinds:
         raise ValueError(f"{where}--cloud-offset = {args.cloud_offset!r} is not allowed: it is how far outside the "
                          f"particles' centres point-cloud targets lie, and the targets are {kinds}")

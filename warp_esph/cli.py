@@ -1124,10 +1124,10 @@ def add_fit_arguments(parser):
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
     parser.add_argument("--mesh-mode", choices=MeshLoss.MODES,
                         help="mesh targets: surface (default) or outside")
-    parser.add_argument("--cloud-coverage", choices=ChamferLoss.COVERAGES,
+    parser.add_argument("--cloud-coverage", choices=ChamferLoss.COVERAGES, action="append",
                         help="point-cloud targets: full (default: the cloud shows the whole body, compared both ways) "
                              "or partial (a scan of part of it: each scanned point to its nearest particle only, the "
-                             "unseen side free)")
+                             "unseen side free); once per --target (in order; partial only for a cloud) or once for all")
     parser.add_argument("--cloud-offset", type=_cloud_offset, metavar="M|surface",
                         help="point-cloud targets: how far outside the particles' centres the scanned points lie, in "
                              "m (default 0: the cloud is of centres, as a run's own output is); 'surface' for a scan "
