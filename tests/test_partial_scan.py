@@ -223,8 +223,35 @@ def test_the_command_takes_a_cloud_coverage_per_target(tmp_path, capsys, dough_s
     assert "--cloud-coverage is given 3 times for 2 --target files: give it once per --target" in capsys.readouterr().err
     assert main([*fit[:-4], "--target", str(run), "--target", str(tmp_path / "top.xyz"), "--cloud-coverage", "partial",
                  "--cloud-coverage", "partial"]) == 2
-    assert f"--cloud-coverage #1 = 'partial' is not allowed: the target {run} is positions, not a point cloud" in \
-        capsys.readouterr().err
+    assert f"--cloud-coverage #1 = 'partial' is not allowed: the target {run} is particle positions, compared one to " \
+           "one, not a point cloud; give full for it" in capsys.readouterr().err
+
+
+def test_a_target_that_is_no_point_cloud_refuses_partial_coverage_a_mesh_saying_why(tmp_path):
+    """``Target.loss(coverage="partial")`` of a mesh target built its ``MeshLoss`` and dropped
+    the coverage without a word: a mesh target is closed (``load_mesh`` refuses an open one),
+    so it shows the whole body, and the refusal says to fit a scan of part of the body as a
+    cloud. Particle positions refuse it too; the mesh's own vertices as a cloud take it."""
+    from warp_esph.fit import load_target
+    from warp_esph.meshes import write_mesh
+
+    model = _cylinder(300.0)
+    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float) * 0.03
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    write_mesh(tmp_path / "box.obj", corners + [0.0, 0.04, 0.0], [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    mesh = load_target(tmp_path / "box.obj")
+    assert mesh.kind == "mesh"
+    with pytest.raises(ValueError, match=r"coverage \(--cloud-coverage\) = 'partial' is not allowed: the target .*box\.obj "
+                                         r"is a mesh, not a point cloud; a mesh target is closed .* fit a scan of part of "
+                                         r"the body as a point cloud of its points; give full for it"):
+        mesh.loss(model, {1: 10}, coverage="partial")
+    assert type(mesh.loss(model, {1: 10})).__name__ == "MeshLoss"
+    np.save(tmp_path / "x.npy", model.particle_x0)
+    with pytest.raises(ValueError, match="is particle positions, compared one to one, not a point cloud"):
+        load_target(tmp_path / "x.npy").loss(model, {1: 10}, coverage="partial")
+    np.savetxt(tmp_path / "corners.xyz", corners + [0.0, 0.04, 0.0])
+    cloud = load_target(tmp_path / "corners.xyz").loss(model, {1: 10}, coverage="partial")
+    assert isinstance(cloud, ChamferLoss) and cloud.coverage == "partial"
 
 
 def _block_on_floor(yield_stress, worlds=1):

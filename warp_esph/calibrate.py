@@ -878,6 +878,14 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     loss = None
     zero_readings: list[str] = []
     for k, (kind, path, t) in enumerate(loaded):
+        coverage = coverages[k] if len(coverages) > 1 else coverages[0] if coverages else "full"
+        if coverage != "full" and not (kind == "file" and (t.kind == "points" or t._read_as_cloud(model))):
+            if len(coverages) > 1:
+                from .fit import _partial_refused  # noqa: PLC0415
+
+                raise ValueError(f"{where}{coverage_name} #{k + 1} = {coverage!r} is not allowed: "
+                                 f"{_partial_refused(path, 'silhouettes' if kind == 'silhouette' else t.kind)}")
+            coverage = "full"  # given once for all targets: the point clouds' alone
         if kind == "silhouette":
             from .silhouette import silhouette_target  # noqa: PLC0415
 
@@ -894,8 +902,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if offset == "surface":
                 offset = 0.5 * model.spacing
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
-                          coverage=(coverages[k] if len(coverages) > 1 else coverages[0] if coverages else "full"),
-                          surface_offset=offset,
+                          coverage=coverage, surface_offset=offset,
                           force_noise=force_noise, force_components=_arg(args, "force_components") or "xyz")
             if t.kind == "forces":
                 zeros = _zero_force_columns(path, term, _arg(args, "force_components") is not None)
@@ -935,11 +942,6 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         said = coverages[0] if len(coverages) == 1 else coverages
         raise ValueError(f"{where}{coverage_name} = {said!r} is not allowed: it is how much of the body "
                          f"point-cloud targets show, and the targets are {kinds}")
-    for k, (kind, path, t) in enumerate(loaded if len(coverages) > 1 else []):
-        if coverages[k] == "partial" and (kind != "file" or t.kind != "points"):
-            # Only a cloud's loss reads it: a partial given for another target would fit it in full.
-            raise ValueError(f"{where}{coverage_name} #{k + 1} = 'partial' is not allowed: the target {path} is "
-                             f"{'silhouettes' if kind == 'silhouette' else t.kind}, not a point cloud; give full for it")
     if _arg(args, "cloud_offset") is not None and "points" not in file_kinds:
         raise ValueError(f"{where}--cloud-offset = {args.cloud_offset!r} is not allowed: it is how far outside the "
                          f"particles' centres point-cloud targets lie, and the targets are {kinds}")

@@ -3541,7 +3541,11 @@ class Target:
         ``ChamferLoss``'s; a scan of the material's surface: half a spacing);
         ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``);
         ``force_components``: the force log's columns fitted (``ReactionForceLoss``'s
-        ``components``)."""
+        ``components``). ``coverage = "partial"`` is refused for a target that is no point
+        cloud (``_partial_refused``): a mesh's loss had taken it without a word."""
+        if coverage != "full" and not (self.kind == "points" or self._read_as_cloud(model)):
+            raise ValueError(f"coverage (--cloud-coverage) = {coverage!r} is not allowed: "
+                             f"{_partial_refused(self.path, self.kind)}")
         steps = [frame_steps[f] for f in sorted(frame_steps)]
         if self.kind == "forces":
             from .losses import ReactionForceLoss  # noqa: PLC0415
@@ -3608,6 +3612,19 @@ class Target:
 
 
 _CLOUD_TEXT = (".xyz", ".txt", ".csv", ".pts")
+
+
+def _partial_refused(path, kind: str) -> str:
+    """Why a target of ``kind`` (``Target.kind``, or ``"silhouettes"``) other than a point
+    cloud takes no partial coverage, naming ``path``. A mesh target is closed (``load_mesh``
+    refuses an open one), so it shows the whole body, and its loss already compares each
+    particle with the surface alone: a scan of part of the body is fitted as the cloud of its
+    points."""
+    said = {"positions": "particle positions, compared one to one", "mesh": "a mesh",
+            "forces": "a force curve", "silhouettes": "silhouettes"}.get(kind, kind)
+    why = ("; a mesh target is closed (an open one is refused), the whole body's surface: fit a scan of part of "
+           "the body as a point cloud of its points" if kind == "mesh" else "")
+    return f"the target {path} is {said}, not a point cloud{why}; give full for it"
 
 
 def save_target(path, positions, frames: Sequence[int], fps: float | None = None):
