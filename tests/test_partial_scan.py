@@ -245,6 +245,8 @@ def test_a_target_that_is_no_point_cloud_refuses_partial_coverage_a_mesh_saying_
                                          r"is a mesh, not a point cloud; a mesh target is closed .* fit a scan of part of "
                                          r"the body as a point cloud of its points; give full for it"):
         mesh.loss(model, {1: 10}, coverage="partial")
+    with pytest.raises(ValueError, match="coverage = 'half' is not allowed: must be one of 'full', 'partial'"):
+        mesh.loss(model, {1: 10}, coverage="half")
     assert type(mesh.loss(model, {1: 10})).__name__ == "MeshLoss"
     np.save(tmp_path / "x.npy", model.particle_x0)
     with pytest.raises(ValueError, match="is particle positions, compared one to one, not a point cloud"):

@@ -2934,6 +2934,7 @@ def _adam_eps(first: np.ndarray, g0: float, roundoff: float) -> np.ndarray:
     floor = first <= roundoff * g0
     return ADAM_EPS * np.where(floor, max(1.0, roundoff / ADAM_EPS) * g0, first)
 
+
 #: The share of a probe's rise that its first-order (slope) part may take for the start to
 #: count as a minimum (``_minimum_by_curvature``): at a minimum the rise is curvature's alone.
 SLOPE_SHARE = 0.01
@@ -3543,6 +3544,7 @@ class Target:
         ``force_components``: the force log's columns fitted (``ReactionForceLoss``'s
         ``components``). ``coverage = "partial"`` is refused for a target that is no point
         cloud (``_partial_refused``): a mesh's loss had taken it without a word."""
+        coverage = checks.choice("coverage", coverage, ChamferLoss.COVERAGES)
         if coverage != "full" and not (self.kind == "points" or self._read_as_cloud(model)):
             raise ValueError(f"coverage (--cloud-coverage) = {coverage!r} is not allowed: "
                              f"{_partial_refused(self.path, self.kind)}")
