@@ -54,7 +54,9 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: combinations the audit of docs/method.md, "Which test checks each kernel's adjoint", found no
 #: float64 central difference passing through; a plastic block on an elastic particle floor and
 #: on a capsule tool standing on its axis, which one test each passed through; a compression
-#: field beside the floor images and on the default elastic solver (two tests passed through a field).
+#: field beside the floor images and on the default elastic solver (two tests passed through a field);
+#: the yield test with the SPH pressure's stress (``Solver(yield_with_pressure=True)``), whose own
+#: tests are in ``test_yield_with_pressure.py``.
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -83,6 +85,7 @@ CASES = {
     "capsule_tool": ({}, {}, {}, "capsule"),
     "field_images": ({}, {}, {}, "images_field"),
     "field_default_elastic": (ELASTIC, {}, {}, "ground_field"),
+    "yield_with_pressure": ({}, {"yield_with_pressure": True}, {}, "ground"),
 }
 
 
@@ -193,6 +196,7 @@ _TABLE_SCENES = [
     ("corotated_corrected", None, None, True),
     ("mesh_tool", None, None, True),
     ("corotated", {"deformation": "additive", **ELASTIC}, {}, False),
+    ("yield_with_pressure", None, None, True),
 ]
 
 

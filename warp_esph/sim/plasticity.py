@@ -116,6 +116,74 @@ def funcs(scalar) -> types.SimpleNamespace:
         return flowed, gamma
 
     @wp.func
+    def left_stretch(F: mat33) -> mat33:
+        """``U diag(sigma) U^T`` of ``F = U diag(sigma) V^T``: the principal values the flow rule
+        reads, in space (the frame of a Cauchy stress), so a stress given in space can be added
+        to the elastic one (``pressure_yield_norm2``)."""
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return U * wp.diag(s) * wp.transpose(U)
+
+    @wp.func_grad(left_stretch)
+    def adj_left_stretch(F: mat33, adj_ret: mat33):
+        # d(V_L^2) = dF F^T + F dF^T in U's frame gives (U^T dV_L U)_ij (s_i + s_j) = R_ij s_j +
+        # s_i R_ji with R = U^T dF V: finite where singular values repeat (F = I), where
+        # wp.svd3's own adjoint is not (isotropic.py).
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        G = wp.transpose(U) * adj_ret * U
+        A = mat33()
+        for i in range(3):
+            for j in range(3):
+                d = s[i] + s[j]
+                if d > scalar(0.0):
+                    A[i, j] = s[j] * (G[i, j] + G[j, i]) / d
+        wp.adjoint[F] += U * A * wp.transpose(V)
+
+    @wp.func
+    def deviatoric_tensor(S: mat33) -> mat33:
+        """``S`` less its mean normal stress: the part a yield surface on the deviator reads."""
+        m = (S[0, 0] + S[1, 1] + S[2, 2]) / scalar(3.0)
+        return S - m * wp.identity(n=3, dtype=scalar)
+
+    @wp.func
+    def pressure_yield_norm2(mu: scalar, dev_norm2: scalar, VL: mat33, D: mat33) -> scalar:
+        """``|2 mu dev(V_L) + D|^2``: the yield test's deviatoric stress with the SPH pressure's
+        deviator ``D`` (traceless, in space) added to the elastic one (``V_L = left_stretch(F)``,
+        ``|dev(V_L)|^2 = dev_norm2``); ``D = 0`` gives ``deviatoric_stress_norm2``."""
+        return (deviatoric_stress_norm2(mu, dev_norm2) + scalar(4.0) * mu * wp.trace(VL * D)
+                + wp.ddot(D, D))
+
+    @wp.func
+    def flow_step_at(
+        s: vec3,
+        s_norm2: scalar,
+        yield_stress: scalar,
+        flow_rate: scalar,
+        hardening: scalar,
+        alpha: scalar,
+        dt: scalar,
+        non_newtonian: int,
+    ):
+        """``flow_step`` with the tested deviatoric stress ``|s|^2`` given: the flow relaxes
+        the elastic singular values ``s`` at the rate that stress's excess over the yield
+        surface sets."""
+        flowed, gamma = flow_fraction(s_norm2, yield_stress, hardening, alpha, flow_rate, dt, non_newtonian)
+        g = s
+        c = scalar(1.0)
+        p = scalar(1.0)
+        alpha_new = alpha
+        if flowed != 0:
+            g, c, p = flowed_values(s, gamma)
+            ld = deviatoric(vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2])))
+            alpha_new = alpha + gamma * wp.sqrt(wp.dot(ld, ld))
+        return flowed, g, c, p, alpha_new
+
+    @wp.func
     def flow_step(
         s: vec3,
         mu: scalar,
@@ -129,17 +197,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         """The flow of the singular values ``s``; returns (flowed, new singular values
         g = c s^p, c, p, new alpha)."""
         dev = deviatoric(s)
-        flowed, gamma = flow_fraction(
-            deviatoric_stress_norm2(mu, wp.dot(dev, dev)), yield_stress, hardening, alpha, flow_rate, dt, non_newtonian
-        )
-        g = s
-        c = scalar(1.0)
-        p = scalar(1.0)
-        alpha_new = alpha
-        if flowed != 0:
-            g, c, p = flowed_values(s, gamma)
-            ld = deviatoric(vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2])))
-            alpha_new = alpha + gamma * wp.sqrt(wp.dot(ld, ld))
+        flowed, g, c, p, alpha_new = flow_step_at(s, deviatoric_stress_norm2(mu, wp.dot(dev, dev)), yield_stress,
+                                                  flow_rate, hardening, alpha, dt, non_newtonian)
         return flowed, g, c, p, alpha_new
 
     @wp.func
@@ -203,8 +262,50 @@ def funcs(scalar) -> types.SimpleNamespace:
                 a_new = a_flow
         return Fe, Fe_lo, a_new
 
+    @wp.func
+    def flow_with_pressure(
+        F: mat33,
+        F_lo: mat33,
+        a: scalar,
+        mu: scalar,
+        yield_stress: scalar,
+        flow_rate: scalar,
+        hardening: scalar,
+        kind: int,
+        dt: scalar,
+        D: mat33,
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """``flow`` with the SPH pressure's deviatoric stress ``D`` (in space) added to the
+        elastic one in the yield test (``pressure_yield_norm2``; ``Solver(yield_with_pressure=
+        True)``): the flow still relaxes the elastic part only, so it stops where the sum sits
+        on the yield surface."""
+        Fe = F
+        Fe_lo = F_lo
+        a_new = a
+        if flow_rate > scalar(0.0):
+            s = iso.singular_values(F)
+            if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
+                dev = deviatoric(s)
+                n2 = pressure_yield_norm2(mu, wp.dot(dev, dev), left_stretch(F), D)
+                flowed, g, c, p, a_flow = flow_step_at(s, n2, yield_stress, flow_rate, hardening, a, dt,
+                                                       wp.where(kind == 1, 1, 0))
+                if flowed != 0:
+                    d1 = vec3(
+                        power_difference(s[0], s[1], p, c),
+                        power_difference(s[0], s[2], p, c),
+                        power_difference(s[1], s[2], p, c),
+                    )
+                    Fe, Fe_lo = compensated_sum(F, F_lo + iso.isotropic_change(F, g, d1))
+                    a_new = a_flow
+            else:
+                wp.atomic_add(counters, COUNT_PLASTICITY_SKIPPED, 1)
+        return Fe, Fe_lo, a_new
+
     return types.SimpleNamespace(
-        flow=flow, flow_step=flow_step, guarded_flow_step=guarded_flow_step, flow_fraction=flow_fraction,
+        flow=flow, flow_with_pressure=flow_with_pressure, left_stretch=left_stretch,
+        deviatoric_tensor=deviatoric_tensor, pressure_yield_norm2=pressure_yield_norm2, flow_step_at=flow_step_at,
+        flow_step=flow_step, guarded_flow_step=guarded_flow_step, flow_fraction=flow_fraction,
         power_difference=power_difference, deviatoric=deviatoric, deviatoric_stress_norm2=deviatoric_stress_norm2,
         yield_surface=yield_surface, flow_rate_fraction=flow_rate_fraction, flowed_values=flowed_values,
     )
@@ -241,6 +342,40 @@ def kernels(scalar) -> types.SimpleNamespace:
         mu = mat.mu[m]
         Fe, Fe_lo, a_new = flow(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m],
                                 kind, dt, counters)
+        F_out[i] = Fe
+        F_lo_out[i] = Fe_lo
+        alpha_out[i] = a_new
+        stress_out[i] = stress(Fe, mu, mat.lam[m], stress_model(mat, m))
+        F_inv_out[i] = wp.inverse(Fe)
+
+    flow_with_pressure = funcs(scalar).flow_with_pressure
+    deviatoric_tensor = funcs(scalar).deviatoric_tensor
+
+    @wp.kernel(module="unique")
+    def constitutive_update_with_pressure(
+        F_in: wp.array(dtype=mat33),
+        F_lo_in: wp.array(dtype=mat33),
+        alpha_in: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        dt: scalar,
+        pressure_stress: wp.array(dtype=mat33),
+        F_out: wp.array(dtype=mat33),
+        F_lo_out: wp.array(dtype=mat33),
+        alpha_out: wp.array(dtype=scalar),
+        stress_out: wp.array(dtype=mat33),
+        F_inv_out: wp.array(dtype=mat33),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """``constitutive_update`` whose yield test adds each particle's SPH pressure stress
+        (``pressure.launch_pressure_stress``) to the elastic one (``flow_with_pressure``)."""
+        i = wp.tid()
+        m = material[i]
+        kind = mat.model[m]
+        mu = mat.mu[m]
+        Fe, Fe_lo, a_new = flow_with_pressure(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m],
+                                              mat.flow_rate[m], mat.hardening[m], kind, dt,
+                                              deviatoric_tensor(pressure_stress[i]), counters)
         F_out[i] = Fe
         F_lo_out[i] = Fe_lo
         alpha_out[i] = a_new
@@ -479,17 +614,28 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_hardening, m, a_K)
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, image_constitutive_update=image_constitutive_update,
+                                 constitutive_update_with_pressure=constitutive_update_with_pressure,
                                  image_hardening_update=image_hardening_update,
                                  flow=flow,
                                  constitutive_update_adjoint=constitutive_update_adjoint)
 
 
-def launch_constitutive_update(model, state_in, state_out, dt, counters):
-    """Plastic flow of ``state_in.F`` (paper §3), stress and ``F^-1`` into ``state_out``."""
+def launch_constitutive_update(model, state_in, state_out, dt, counters, pressure_stress=None):
+    """Plastic flow of ``state_in.F`` (paper §3), stress and ``F^-1`` into ``state_out``.
+    ``pressure_stress``: each particle's SPH pressure stress (``pressure.launch_pressure_stress``),
+    added to the elastic stress in the yield test (``constitutive_update_with_pressure``);
+    None: the paper's test on ``F`` alone."""
+    k = kernels(model.scalar)
+    inputs = [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
+              model.scalar(dt)]
+    kernel = k.constitutive_update
+    if pressure_stress is not None:
+        kernel = k.constitutive_update_with_pressure
+        inputs.append(pressure_stress)
     model.launches(
-        kernels(model.scalar).constitutive_update,
+        kernel,
         model.particle_count,
-        [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(), model.scalar(dt)],
+        inputs,
         [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, counters],
         device=model.device,
     )

@@ -152,6 +152,14 @@ def funcs(scalar) -> types.SimpleNamespace:
         return f
 
     @wp.func
+    def pair_virial_share(f: vec3, rij: vec3) -> T.mat33:
+        """One end's share of a pair force's virial, ``-f (x) rij / 2`` (``f`` the force on ``i``,
+        ``rij = x_i - x_j``): summed over a particle's pairs and divided by its volume, the
+        Cauchy stress the pair forces carry through it (tension positive; a push between the
+        two is compressive along their line)."""
+        return scalar(-0.5) * wp.outer(f, rij)
+
+    @wp.func
     def pair_viscosity(eta_i: scalar, eta_j: scalar) -> scalar:
         """The viscous force's ``eta_ij`` of a pair (docs/method.md §6): the mean of the two
         particles' viscosities, so that a pair of materials acts on each as one coefficient and
@@ -252,6 +260,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
         density_weight_gradient=density_weight_gradient,
         sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity, energy_pair_weight=energy_pair_weight,
+        pair_virial_share=pair_virial_share,
     )
 
 
@@ -350,6 +359,44 @@ def kernels(scalar) -> types.SimpleNamespace:
             fi += fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], vi, mass, rho, rho_p, rest_density,
                                            material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
+
+    @wp.kernel(module="unique")
+    def pressure_stress(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        sigma: wp.array(dtype=T.mat33),
+    ):
+        """Each particle's share of its pressure pairs' virial over its volume ``m / rho``
+        (``pair_virial_share``; the pair forces of ``pressure_forces`` without the viscous
+        part): the Cauchy stress the SPH pressure carries through it, accumulated into
+        ``sigma`` (zeroed by the caller). Each directed pair of ``pressure_forces`` applies half
+        its force to both ends, and its virial goes half to each end likewise."""
+        i = wp.tid()
+        mi = material[i]
+        xi = x[i]
+        Vi, Vpi, pi = fn.particle_terms(i, mass, rho, rho_p, rest_density, material, mat)
+        form = mat.pressure_force[mi]
+        c6 = sm.poly6_coef(h)
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
+        zero = scalar(0.0)
+        for k in range(count[i]):
+            j = nbr[i, k]
+            pj, VV, VVp, eta = fn.partner_terms(j, Vi, Vpi, zero, mass, rho, rho_p, rest_density, material, mat)
+            rij = xi - x[j]
+            half = scalar(0.5) * fn.sph_pair_force(VV, VVp, pi, pj, rho_p[i], rho_p[j], form, zero, rij, vec3(), h, c6,
+                                                   c_spiky, c_visc)
+            w = fn.pair_virial_share(half, rij)
+            wp.atomic_add(sigma, i, w / Vi)
+            wp.atomic_add(sigma, j, w * (rho[j] / mass[j]))
 
     @wp.func
     def density_pair_adjoint(a: scalar, a_p: scalar, mj: scalar, d: vec3, r2: scalar, h: scalar, c6: scalar,
@@ -661,7 +708,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         pressure_particle_adjoint(i, mi, rp_i, k_i, pi, rest_density, mat, adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gv_i, adj_v,
                                   adj_rho, adj_rho_p, adj_k, adj_visc)
 
-    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
+    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces, pressure_stress=pressure_stress,
                                  pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint,
                                  pressure_pair_adjoint=pressure_pair_adjoint, pressure_particle_terms=pressure_particle_terms,
                                  pressure_particle_adjoint=pressure_particle_adjoint,
@@ -757,6 +804,21 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
     model.launches(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_pressure_forces_adjoint(model, state_in, state_out), list(grads))
+
+
+def launch_pressure_stress(model, state_in, state_out, sigma):
+    """Each particle's SPH pressure stress (``pressure_stress``: its pressure pairs' virial over
+    its volume, Cauchy, tension positive) at ``state_in.x`` with the densities in ``state_out``,
+    into ``sigma`` (zeroed here). The floor images' pressure (``Model.image_plane``) is not in
+    it. Recorded on a tape as any launch (Warp's generated adjoint)."""
+    sigma.zero_()
+    model.launches(
+        kernels(model.scalar).pressure_stress, model.particle_count,
+        [state_in.x, model.particle_mass, state_out.density, pressure_density(model, state_out),
+         model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
+         state_out.neighbor_count, model.scalar(model.support_radius)],
+        [sigma], device=model.device,
+    )
 
 
 def launch_pressure_forces_adjoint(model, state_in, state_out):

@@ -126,6 +126,8 @@ class StepScratch:
         # Each particle's displacement over the step (fused.displacements), read by the fit.
         self.displacement = wp.zeros(n, dtype=model.types.vec3, device=dev)
         self._pressure_volume = None
+        # Solver(yield_with_pressure=True)'s pressure stress of untaped steps (_pressure_stress).
+        self.pressure_stress = None
         # The neighbour selection's squared distances: read only within the search.
         self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
         self.min_neighbors = min_neighbors
@@ -270,6 +272,17 @@ class Solver:
     docs/physics.md, "Hourglass modes"): for elastic solids (a held sphere indenter keeps its
     force with ``c = 0.1``); it measures the motion against the rest positions, so it would
     pull a plastically flowed body back towards its rest shape.
+
+    ``yield_with_pressure`` (default False: the paper's yield test on the stored ``F`` alone)
+    adds each particle's SPH pressure stress, the virial of its pressure pair forces over its
+    volume (``pressure.launch_pressure_stress``), to the elastic stress in the yield test
+    (``plasticity.flow_with_pressure``: ``|2 mu dev(V_L) + dev(sigma_p)|`` against ``Y + K
+    alpha``); the flow still relaxes the elastic part, so a flowing particle stops where the
+    sum sits on the yield surface. The discrete pressure is not isotropic at a free surface
+    and carries load there that a test on ``F`` does not see (docs/physics.md, "Still open",
+    the SPH pressure). It runs the non-fused kernels (Warp's generated adjoints for the two
+    launches), on the incremental deformation model only (refused with a comparison model);
+    the floor images' pressure and their own flow (``add_ground(images=True)``) are not in it.
     """
 
     def __init__(
@@ -282,6 +295,7 @@ class Solver:
         fused: bool = True,
         fit: str | None = None,
         hourglass: float | None = None,
+        yield_with_pressure: bool = False,
     ):
         if not isinstance(model, Model):
             raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model "
@@ -307,6 +321,12 @@ class Solver:
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+        if not isinstance(yield_with_pressure, bool):
+            raise ValueError(f"yield_with_pressure = {yield_with_pressure!r} is not allowed: must be True or False")
+        if yield_with_pressure and model.uses_comparison_models:
+            raise ValueError("yield_with_pressure = True is not allowed with a comparison deformation model "
+                             "(Material.deformation 'rest' or 'additive'): its constitutive update has no such test; "
+                             "only with the default 'incremental'")
         asked = model.fit if fit is None else fit
         if asked == "curvature_corrected" and model.uses_comparison_models and any(
                 mt.deformation != "rest" for mt in model.materials):
@@ -357,6 +377,10 @@ class Solver:
         #: The ghost floor's stencil search (``sim/ghost_floor.py``); None without one.
         self.ghost_search = ghost_floor.StencilSearch(model) if model.ghost_floor is not None else None
         self.fused = bool(fused)
+        #: Whether the yield test adds each particle's SPH pressure stress to the elastic one
+        #: (``pressure.launch_pressure_stress``, ``plasticity.flow_with_pressure``); it runs the
+        #: non-fused kernels.
+        self.yield_with_pressure = yield_with_pressure
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
@@ -627,6 +651,25 @@ class Solver:
         return (self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
                 and self.ghost_search is None)
 
+    def _pressure_stress(self, state_in: State, state_out: State, sph: bool, tape) -> wp.array | None:
+        """With ``yield_with_pressure``, each particle's SPH pressure stress this step (zero
+        where no SPH term runs), for the yield test; else None. Under a tape a fresh array each
+        step: the backward pass reads each step's own."""
+        if not self.yield_with_pressure:
+            return None
+        m = self.model
+        sigma = self.scratch.pressure_stress
+        if tape is not None or sigma is None:
+            sigma = wp.zeros(m.particle_count, dtype=m.types.mat33, device=m.device,
+                             requires_grad=tape is not None and m.requires_grad)
+            if tape is None:
+                self.scratch.pressure_stress = sigma
+        if sph:
+            pressure.launch_pressure_stress(m, state_in, state_out, sigma)
+        else:
+            sigma.zero_()
+        return sigma
+
     def _hand(self) -> bool:
         """Whether the taped step records the hand-written adjoints: ``hand_adjoints`` (with
         floor images, ``add_ground(images=True)``, their image terms too; docs/physics.md,
@@ -870,7 +913,7 @@ class Solver:
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
         mats = m.material_arrays(rest=True) if rest_model else None
-        fast = (self.fused and not cmp and not self._curved and ghosts is None
+        fast = (self.fused and not cmp and not self._curved and ghosts is None and not self.yield_with_pressure
                 and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
         curved_rest = cmp and self._curved
@@ -935,7 +978,8 @@ class Solver:
                 if cmp:
                     comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters, mats, Fp_in)
                 else:
-                    plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
+                    plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters,
+                                                          self._pressure_stress(state_in, state_out, sph, tape))
                 if images:
                     plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
