@@ -34,7 +34,7 @@ OFFSET = (0.375, 0.0, -0.125)
 OPTIONS = ("plain", "floor_images", "ghost_floor", "ghost_floor_slip", "particle_floor", "particle_floor_elastic",
            "mesh_tool", "keyframed_tools", "pins", "hourglass", "curvature_corrected", "rest_model_auto", "biweight",
            "pressure_energy", "pressure_spiky", "deformation_rest", "deformation_additive", "hyperelastic", "stvk",
-           "non_newtonian", "viscosity", "colliders", "compression_field", "worlds")
+           "non_newtonian", "viscosity", "colliders", "compression_field", "worlds", "yield_with_pressure")
 
 
 def _scene(option, dtype, offset=(0.0, 0.0, 0.0), requires_grad=False):
@@ -62,6 +62,8 @@ def _scene(option, dtype, offset=(0.0, 0.0, 0.0), requires_grad=False):
         material = we.Material(**plastic, model=option)
     elif option == "viscosity":
         material = we.Material(**plastic, viscosity=1.0)
+    elif option == "yield_with_pressure":
+        solver = dict(yield_with_pressure=True)
     b = we.SceneBuilder(spacing=DX, **({"fit_weight": "biweight"} if option == "biweight" else {}))
     b.add_box(center=at(0, 0.13, 0), size=(0.25, 0.25, 0.25), material=material, name="block",
               velocity=(0.1, -0.3, 0.05), angular_velocity=(2.0, -3.0, 1.0))
