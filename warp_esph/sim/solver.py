@@ -283,6 +283,9 @@ class Solver:
     the SPH pressure). It runs the non-fused kernels (Warp's generated adjoints for the two
     launches), on the incremental deformation model only (refused with a comparison model);
     the floor images' pressure and their own flow (``add_ground(images=True)``) are not in it.
+    Off by default because, measured, it lifts the 4-across near-yield column from 0.45 to
+    0.77 x its 1-D plastic shortening but spreads the S = 0.2 pile to -20.5 % of its 1-D
+    height (from -6.1 %), still flowing at 8 s (docs/physics.md, the same bullet).
     """
 
     def __init__(
