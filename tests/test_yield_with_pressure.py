@@ -109,10 +109,16 @@ def test_without_sph_pressure_the_option_changes_nothing():
     np.testing.assert_array_equal(out[True][1], out[False][1])
 
 
-def test_yield_with_pressure_refuses_a_non_bool():
+def test_yield_with_pressure_refuses_a_non_bool_and_a_comparison_model():
+    """A value other than True or False, and the option beside a comparison deformation model
+    (whose constitutive update has no such test), are refused by name."""
     model = _block(wp.float32)
     with pytest.raises(ValueError, match="yield_with_pressure = 1 is not allowed: must be True or False"):
         we.Solver(model, yield_with_pressure=1)
+    model = _block(wp.float32, deformation="rest")
+    with pytest.raises(ValueError, match="yield_with_pressure = True is not allowed with a comparison deformation"):
+        we.Solver(model, yield_with_pressure=True)
+    we.Solver(model)
 
 
 GRAD_DT = 2.0e-4
