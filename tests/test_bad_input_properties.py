@@ -120,6 +120,24 @@ def test_a_collider_the_precision_cannot_hold_is_refused_at_finalize(call, kwarg
         b.finalize()
 
 
+@pytest.mark.parametrize("normal, offset", [((1e-320, 0.0, 0.0), -0.5), ((0.0, 1e-200, 0.0), 1e200)])
+def test_a_plane_whose_distance_overflows_is_refused_naming_its_normal_and_offset(tmp_path, normal, offset):
+    """A normal of subnormal length divides a finite offset into an infinite distance: it was
+    taken, then refused at finalize as 'offset = -inf ... use a smaller value', a value the
+    caller (or the scene file) never gave."""
+    b = we.SceneBuilder(spacing=0.05)
+    with pytest.raises(ValueError, match=rf"offset = {re.escape(repr(offset))} is not allowed with normal = .*offset / \|normal\|"):
+        b.add_plane(normal, offset)
+    assert b.planes == []
+    path = tmp_path / "p.toml"
+    path.write_text("[scene]\nspacing = 0.05\n[[bodies]]\nshape = 'box'\ncenter = [0, 0.2, 0]\nsize = [0.2, 0.2, 0.2]\n"
+                    f"material = 'dough'\n[[colliders]]\ntype = 'plane'\nnormal = {list(normal)!r}\noffset = {offset!r}\n")
+    with pytest.raises(ValueError, match=r"p\.toml: \[\[colliders\]\] #1 \(type 'plane'\): offset = .* is not allowed with normal"):
+        load_scene_file(path)
+    b.add_plane((1e-300, 0.0, 0.0), -1e-301)  # tiny both: a finite distance of -0.1, taken
+    assert b.planes[0].normal == (1.0, 0.0, 0.0) and b.planes[0].offset == pytest.approx(-0.1)
+
+
 def test_a_body_centre_float64_cannot_resolve_is_named():
     """A centre at 1e300 collapsed the lattice onto one point and was reported as a body
     smaller than the spacing."""

@@ -561,11 +561,18 @@ class SceneBuilder:
     def add_plane(self, normal, offset: float, friction: float = 0.5):
         """The half-space dot(normal, x) < offset is solid. ``normal`` need not be of unit
         length: both sides are divided by its length, so the plane stands ``offset / |normal|``
-        from the origin (stored as a unit normal and that distance)."""
+        from the origin (stored as a unit normal and that distance; a distance that overflows, a
+        normal of subnormal length, is refused naming both)."""
         n = checks.unit_vector("normal", normal)
         raw = np.array(checks.vector("normal", normal))
         big = float(np.abs(raw).max())  # scaled first, as unit_vector does: no overflow in the norm
         distance = checks.number("offset", offset) / big / float(np.linalg.norm(raw / big))
+        if not math.isfinite(distance):
+            # A normal of subnormal length made a finite offset an infinite distance, refused at
+            # finalize as 'offset = -inf ... use a smaller value', a value the caller never gave.
+            raise ValueError(f"offset = {checks.shorten(offset)!r} is not allowed with normal = {checks.shorten(normal)!r}: "
+                             f"the plane's distance from the origin, offset / |normal|, is {distance}, so it must be a "
+                             "finite number; give a normal of about unit length")
         self._add_collider(self.planes, Plane(n, distance, checks.non_negative("friction", friction)), "plane")
 
     def add_sphere_collider(self, center, radius: float, friction: float = 0.5):
