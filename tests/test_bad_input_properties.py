@@ -138,6 +138,18 @@ def test_a_plane_whose_distance_overflows_is_refused_naming_its_normal_and_offse
     assert b.planes[0].normal == (1.0, 0.0, 0.0) and b.planes[0].offset == pytest.approx(-0.1)
 
 
+@pytest.mark.parametrize("velocity", [10**400, [10**400, 0, 0], [[0, 0, -(10**400)]] * 8])
+def test_a_velocity_beyond_the_floats_is_refused_by_name(velocity):
+    """An integer velocity past the float range raised OverflowError from numpy, a traceback
+    naming no parameter."""
+    b = we.SceneBuilder(spacing=0.05)
+    with pytest.raises(ValueError, match=r"^velocity = .* is not allowed: must be 3 finite numbers or one row of 3 per particle"):
+        b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH, velocity=velocity)
+    assert b.particle_count == 0
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH, velocity=[[0, 0, -(10**3)]] * 8)  # ints in range: taken
+    assert b.particle_count == 8
+
+
 def test_a_body_centre_float64_cannot_resolve_is_named():
     """A centre at 1e300 collapsed the lattice onto one point and was reported as a body
     smaller than the spacing."""
