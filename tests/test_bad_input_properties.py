@@ -894,6 +894,19 @@ def test_a_monitor_exemption_of_a_0d_array_is_refused_by_name():
     we.simulate(model, 1, monitor_exempt=np.array(["blk"]), progress=False)
 
 
+@pytest.mark.parametrize("value", [np.array([]), np.array(["rest", "additive"]), np.array("rest")])
+@pytest.mark.parametrize("make", ["Material", "preset", "replace"])
+def test_a_deformation_given_as_a_numpy_array_is_refused_by_name(make, value):
+    """Every Material maker read the deformation (for its default elastic force) before it
+    checked it: an array raised numpy's 'truth value of an array is ambiguous', naming no field."""
+    call = {"Material": lambda: we.Material(mu=1.0e4, lam=1.0e4, deformation=value),
+            "preset": lambda: we.Material.preset("dough", deformation=value),
+            "replace": lambda: DOUGH.replace(deformation=value)}[make]
+    with pytest.raises(ValueError, match=r"^Material\.deformation = .* is not allowed: must be one of 'incremental'"):
+        call()
+    assert we.Material.preset("dough", deformation="rest").elastic_force == "paper"  # a name: taken, its default force
+
+
 @pytest.mark.parametrize("value", [2.0, np.float64(0.0), np.array(0.0)], ids=["float", "np_float", "0d"])
 def test_a_fits_materials_or_frames_that_are_no_list_are_refused_by_name(value):
     """``fit(materials=2.0)`` and ``fit(frames=2.0)`` iterated the number: Python's "'float'

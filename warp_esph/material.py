@@ -186,6 +186,9 @@ class Material:
         # preset() read it so that a new deformation gets its model's default force (a defaulted
         # 'variational' kept through replace(deformation='additive') was refused, never asked for).
         set_("_elastic_force_defaulted", self.elastic_force is None)
+        # Checked before the default force reads it: a numpy array compared to a name raised
+        # numpy's 'truth value of an array is ambiguous', naming no field.
+        checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         if self.elastic_force is None:
             # The variational force is defined only for the incremental fit (its energy's
             # gradient); the comparison models keep the force they were published with.
