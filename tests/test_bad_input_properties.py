@@ -491,6 +491,25 @@ def test_damaged_mesh_or_target_is_refused_by_name(good_files, tmp_path_factory,
         assert time.perf_counter() - start < 10.0
 
 
+@pytest.mark.parametrize("start_frame", [2**53, 2**64, 10**400])
+def test_a_start_frame_past_what_a_usd_time_code_counts_is_refused(tmp_path, start_frame):
+    """Frames are written at the time code float(frame): past 2**53 a frame and the next got
+    one time code, the later written over the earlier without a word (10**400 raised
+    OverflowError from the USD writer)."""
+    from warp_esph.simulate import simulate
+    from warp_esph.usd import UsdWriter
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    model = b.finalize()
+    with UsdWriter(str(tmp_path / "a.usdc"), model, 1000.0) as writer:
+        with pytest.raises(ValueError, match=r"^start_frame = .* is not allowed with frames = 1: .* at most 2\*\*53"):
+            simulate(model, 1, fps=1000.0, progress=False, writer=writer, start_frame=start_frame)
+    with UsdWriter(str(tmp_path / "b.usdc"), model, 1000.0) as writer:
+        simulate(model, 1, fps=1000.0, progress=False, writer=writer, start_frame=2**53 - 1)  # the last it counts
+    assert (writer.first_frame, writer.last_frame) == (2**53 - 1, 2**53)
+
+
 # ----------------------------------------------------------------- absurd numbers of steps
 @settings(max_examples=40, deadline=None)
 @given(dt=st.one_of(st.floats(1e-320, 1e-8), st.just(1e-300)), fps=st.floats(1.0, 240.0))

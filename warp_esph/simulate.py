@@ -37,6 +37,9 @@ MAX_FPS = 1.0e6
 MAX_STEPS_PER_FRAME = 10**6
 #: Most steps one run may take (1e10 steps of the smallest scene take about a month here).
 MAX_STEPS = 10**10
+#: The largest frame index ``simulate`` numbers (``start_frame + frames``): a USD time code is a
+#: double, which holds every integer only up to 2**53.
+MAX_FRAME_INDEX = 2**53
 
 #: ``dt = AUTO`` (``"auto"``) asks ``simulate`` for an adaptive (CFL) time step.
 AUTO = "auto"
@@ -1278,7 +1281,8 @@ def simulate(
     - ``callback(frame_index, state)``: called after each frame is written.
     - ``progress``: a tqdm bar on stderr (frames, particles, steps per second).
     - ``start_frame``: index of the initial frame (resuming a run); frames are numbered
-      ``start_frame .. start_frame + frames``.
+      ``start_frame .. start_frame + frames``, at most ``MAX_FRAME_INDEX`` (2**53: a frame's
+      USD time code is a double).
 
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``'s bounds,
       then ``energy_growth`` from the monitor's state, at every frame; beside a ``Scripted``
@@ -1306,6 +1310,12 @@ def simulate(
         if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)) or start_frame < 0:
             raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
+        if start_frame + frames > MAX_FRAME_INDEX:
+            # A frame's USD time code is a double: past 2**53 two frames got one time code, the
+            # later written over the earlier without a word (10**400 raised OverflowError).
+            raise ValueError(f"start_frame = {checks.shorten(start_frame)!r} is not allowed with frames = {frames}: the "
+                             f"last frame's index, start_frame + frames, must be at most 2**53 = {MAX_FRAME_INDEX} (a "
+                             "frame's USD time code is a double, which holds every integer only up to it)")
         monitor = checks.boolean("monitor", monitor)
         progress = checks.boolean("progress", progress)  # 'no' drew the bar
         fps = checks.positive("fps", fps)
