@@ -1159,6 +1159,9 @@ def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_th
 @pytest.mark.parametrize("argv,needles", [
     (["run", "dough_drop", "-o", "x" * 250 + ".usdc"], ["--output = ", "bytes long, more than the"]),
     (["run", "dough_drop", "-o", "a\0b.usdc"], ["--output = ", "no NUL character"]),
+    # Taken, it split the run's one-line reports ('wrote .../a', 'b.usdc: 3 frames').
+    (["run", "dough_drop", "-o", "a\nb.usdc"], ["--output = 'a\\nb.usdc' is not allowed", "one line of text"]),
+    (["export", "IN", "-o", "frames\x1b[31m"], ["--output = 'frames\\x1b[31m' is not allowed", "no control characters"]),
     (["export", "IN", "-o", "y" * 300], ["--output = ", "bytes long"]),
 ])
 def test_output_names_a_file_system_cannot_hold_are_refused_by_name(tmp_path, monkeypatch, capsys, argv, needles):

@@ -710,12 +710,19 @@ def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the
     other kind is in the way, its folder (a folder output's parent) does not exist, or it
-    cannot take a new file. Creates nothing."""
+    cannot take a new file, or where ``path`` is not one line of text (``breaks_line``).
+    Creates nothing."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
         raise ValueError(f"{what} = {path!r} is not allowed: must be a path")
     p = os.fspath(path)
     if not p or "\0" in p:
         raise ValueError(f"{what} = {p!r} is not allowed: must be a path (not empty, no NUL character)")
+    if breaks_line(p):
+        # As a scene's name, which names its default output: a newline split the commands'
+        # one-line reports ('wrote a<newline>b.usdc: ...', the reaction log's), a tab or an
+        # escape acted on the terminal.
+        raise ValueError(f"{what} = {p!r} is not allowed: the commands name their outputs in one-line messages, so it "
+                         "must be one line of text (no control characters, no line breaks)")
     try:
         name = os.fsencode(os.path.basename(os.path.normpath(p)))
     except UnicodeError:
