@@ -510,6 +510,18 @@ def test_a_start_frame_past_what_a_usd_time_code_counts_is_refused(tmp_path, sta
     assert (writer.first_frame, writer.last_frame) == (2**53 - 1, 2**53)
 
 
+@pytest.mark.parametrize("indices", [list(range(100000)) + [-1], np.arange(200).reshape(-1, 2), [0.5] * 10000])
+def test_a_pins_bad_indices_are_named_in_one_short_line(indices):
+    """The refusal wrote the whole index list: 0.7 MB of message for 1e5 indices with one
+    out of range, and a 2-D array's rows on lines of their own."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), DOUGH)
+    with pytest.raises(ValueError, match=r"^indices = .* is not allowed: must be integers in \[0, 63\]$") as info:
+        b.pin(indices=indices)
+    assert len(str(info.value)) < 200 and "\n" not in str(info.value)
+    assert b.pins == []
+
+
 # ----------------------------------------------------------------- absurd numbers of steps
 @settings(max_examples=40, deadline=None)
 @given(dt=st.one_of(st.floats(1e-320, 1e-8), st.just(1e-300)), fps=st.floats(1.0, 240.0))

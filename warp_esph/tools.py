@@ -1728,7 +1728,9 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
             sel = idx
         else:
             if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or (idx.size and (idx.min() < 0 or idx.max() >= n)):
-                raise ValueError(f"indices = {indices!r} is not allowed: must be integers in [0, {n - 1}]")
+                # Shortened: a list of 1e5 indices with one out of range was a message of 0.7 MB,
+                # a 2-D array's repr one of several lines.
+                raise ValueError(f"indices = {checks.shorten(indices)!r} is not allowed: must be integers in [0, {n - 1}]")
             sel = np.zeros(n, dtype=bool)
             sel[idx] = True
         mask &= sel
