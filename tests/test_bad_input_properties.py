@@ -522,6 +522,37 @@ def test_a_pins_bad_indices_are_named_in_one_short_line(indices):
     assert b.pins == []
 
 
+def _one_box():
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), DOUGH, name="bx")
+    return b
+
+
+NAMED_WHOLE = {
+    "material": lambda v: _one_box().add_box((1.0, 1.0, 1.0), (0.1, 0.1, 0.1), v),
+    "name": lambda v: _one_box().add_box((1.0, 1.0, 1.0), (0.1, 0.1, 0.1), DOUGH, name=v),
+    "motion": lambda v: _one_box().add_tool("sphere", radius=0.1, position=(2.0, 2.0, 2.0), motion=v),
+    "body": lambda v: _one_box().pin(body=v),
+    "device": lambda v: _one_box().finalize(device=v),
+    "dtype": lambda v: _one_box().finalize(dtype=v),
+    "worlds": lambda v: _one_box().finalize(worlds=v),
+}
+
+
+@pytest.mark.parametrize("value", [list(range(100000)), np.arange(300.0).reshape(-1, 3), "x" * 100000],
+                         ids=["long_list", "2d_array", "long_text"])
+@pytest.mark.parametrize("parameter", sorted(NAMED_WHOLE))
+def test_a_huge_wrong_value_is_named_in_one_short_line(parameter, value):
+    """These refusals wrote the value whole: 0.7 MB of message for a list of 1e5 numbers given
+    as a body's material or name, a tool's motion, a pin's body or finalize's device, dtype or
+    worlds, and a 2-D array's rows on lines of their own."""
+    if parameter == "name" and isinstance(value, str):
+        value = ["x" * 100000]  # a long text is a name like any other
+    with pytest.raises(ValueError, match=rf"^{parameter} = .* is not allowed") as info:
+        NAMED_WHOLE[parameter](value)
+    assert len(str(info.value)) < 1000 and "\n" not in str(info.value), str(info.value)[:300]
+
+
 # ----------------------------------------------------------------- absurd numbers of steps
 @settings(max_examples=40, deadline=None)
 @given(dt=st.one_of(st.floats(1e-320, 1e-8), st.just(1e-300)), fps=st.floats(1.0, 240.0))

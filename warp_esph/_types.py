@@ -12,6 +12,8 @@ import types
 import numpy as np
 import warp as wp
 
+from .checks import shorten
+
 #: What ``scalar_type`` takes, for its message.
 DTYPE_ALLOWED = "use wp.float32 or wp.float64 (or 'float32'/'float64', numpy's float32/float64 or 'f4'/'f8')"
 
@@ -40,7 +42,7 @@ def scalar_type(dtype) -> type:
         np_dtype = None
     if np_dtype is not None and np_dtype.kind == "f" and np_dtype.itemsize in (4, 8):
         return wp.float32 if np_dtype.itemsize == 4 else wp.float64
-    raise ValueError(f"dtype = {dtype!r} is not allowed: {DTYPE_ALLOWED}")
+    raise ValueError(f"dtype = {shorten(dtype)!r} is not allowed: {DTYPE_ALLOWED}")
 
 
 def type_set(scalar) -> types.SimpleNamespace:

@@ -232,7 +232,7 @@ class SceneBuilder:
 
     def _material_index(self, material: Material) -> int:
         if not isinstance(material, Material):
-            raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
+            raise ValueError(f"material = {checks.shorten(material)!r} is not allowed: must be a warp_esph.Material")
         for k, m in enumerate(self._materials):
             if m is material:
                 return k
@@ -273,7 +273,7 @@ class SceneBuilder:
                 k += 1
             name = f"{kind}{k}"
         if not isinstance(name, str) or not name:
-            raise ValueError(f"name = {name!r} is not allowed: must be a non-empty string")
+            raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: must be a non-empty string")
         checks.one_line("name", name, "it names the body in messages, in the USD file and in a sweep's --param")
         if name in (b.name for b in self._bodies):
             raise ValueError(f"name = {name!r} is not allowed: a body of that name exists already")
@@ -443,10 +443,10 @@ class SceneBuilder:
         k = self._body_index(body)
         bd = self._bodies[k]
         if k != len(self._bodies) - 1:
-            raise ValueError(f"body = {body!r} is not allowed: a particle floor grows its body, so it must be the body "
+            raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: a particle floor grows its body, so it must be the body "
                              f"added last ({names[-1]!r}); add the floor right after the body")
         if bd.name in self._floors:
-            raise ValueError(f"body = {body!r} is not allowed: it has a particle floor already")
+            raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: it has a particle floor already")
         dx = self.spacing
         if margin is None:  # a required keyword: its absence was a TypeError
             raise ValueError("margin is required: the floor's reach beyond the body's columns (m, horizontally), "
@@ -599,7 +599,7 @@ class SceneBuilder:
         import re  # noqa: PLC0415
 
         if not isinstance(name, str) or not name:
-            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+            raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: must be a new non-empty string")
         for what, items in (("tool", self.tools), ("pinned set", self.pins)):
             if name in [t.name for t in items]:
                 # Said only 'must be a new non-empty string': a scene file's tool named like a
@@ -687,7 +687,7 @@ class SceneBuilder:
                                         motion.position if motion.position is not None else pos,
                                         motion.orientation if motion.orientation is not None else ori)
         elif not isinstance(motion, tools.MOTIONS):
-            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+            raise ValueError(f"motion = {checks.shorten(motion)!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
         points = triangles = None
         if kind == "mesh":
             if mesh is None:
@@ -762,7 +762,7 @@ class SceneBuilder:
         name = f"pin{len(self.pins)}" if name is None else name
         self._check_tool_name(name)
         if motion is not None and not isinstance(motion, tools.MOTIONS):
-            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+            raise ValueError(f"motion = {checks.shorten(motion)!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
         idx = tools.select_particles(self, indices=indices, body=body, region=region, where=where, name=name)
         for p in self.pins:
             if np.intersect1d(p.indices, idx).size:
@@ -786,15 +786,15 @@ class SceneBuilder:
         names = [b.name for b in self._bodies]
         if not names:
             # Refused as "index (0..-1)" or "one of []".
-            raise ValueError(f"body = {body!r} is not allowed: the builder has no body yet; add one (add_box, "
+            raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: the builder has no body yet; add one (add_box, "
                              f"add_particles, ...) first")
         if isinstance(body, str):
             if body not in names:
-                raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
+                raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: must be one of {names!r}")
             return names.index(body)
         if isinstance(body, (int, np.integer)) and not isinstance(body, bool) and 0 <= body < len(names):
             return int(body)
-        raise ValueError(f"body = {body!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
+        raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
 
     # --------------------------------------------------------------- finalize
     @property
@@ -1026,7 +1026,7 @@ class SceneBuilder:
         seeing another (they may overlap in space), all sharing the colliders and tools
         (each world reports its own tool reactions, ``tools.ToolSet``)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
-            raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+            raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be an integer >= 1")
         if worlds > MAX_WORLDS:  # 1e12 ended in a MemoryError building the list of copies
             raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be at most {MAX_WORLDS}")
         try:
@@ -1037,7 +1037,7 @@ class SceneBuilder:
             try:
                 _check_memory(self.particle_count * int(worlds), self.max_neighbors, dev)
             except ValueError as e:
-                raise ValueError(f"worlds = {worlds!r} is not allowed: {e}") from None
+                raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: {e}") from None
         return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
 
 
@@ -1354,7 +1354,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     try:
         dev = wp.get_device(device)
     except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
-        raise ValueError(f"device = {device!r} is not allowed: {e}") from None
+        raise ValueError(f"device = {checks.shorten(device)!r} is not allowed: {checks.shorten_text(e)}") from None
     several = len(builders) > 1
     points, velocities, mat_ids, body_ids, world_ids = [], [], [], [], []
     materials: list[Material] = []
@@ -1437,7 +1437,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
     if not isinstance(model, Model):
         raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
     if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
-        raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+        raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be an integer >= 1")
     if worlds > MAX_WORLDS:
         # As finalize(worlds=): 1e9 spent minutes building the list of bodies before any memory was asked for.
         raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be at most {MAX_WORLDS}")

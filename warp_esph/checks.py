@@ -54,6 +54,13 @@ def shorten(value):
     return _Shown(text)
 
 
+def shorten_text(text, limit: int = 300) -> str:
+    """``text`` (another library's message, which may quote a huge value) on one line, cut to
+    ``limit`` characters."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 #: Default upper bound of ``positive_int``: Warp indexes arrays with int32.
 MAX_INT = 2**31 - 1
 

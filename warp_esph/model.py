@@ -789,7 +789,7 @@ class Model:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
             raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
         if not isinstance(material, Material):
-            raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
+            raise ValueError(f"material = {checks.shorten(material)!r} is not allowed: must be a warp_esph.Material")
         old = self.materials[index]
         if material.deformation != old.deformation:
             # The deformation model decides the solver's stages (a Solver made before ran the
