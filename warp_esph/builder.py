@@ -293,8 +293,8 @@ class SceneBuilder:
         try:
             vel = np.asarray(velocity, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):  # a dict, a generator, text, an int beyond a float (10**400)
-            raise ValueError(f"velocity = {checks.shorten(velocity)!r} is not allowed: must be 3 finite numbers or one "
-                             f"row of 3 per particle") from None
+            raise ValueError(f"velocity = {checks.shorten(velocity)!r} is not allowed: must be 3 numbers or one row "
+                             f"of 3 per particle") from None
         if vel.shape == (3,):
             vel = np.broadcast_to(checks.vector("velocity", velocity), pts.shape)
         elif vel.shape != pts.shape or not np.isfinite(vel).all():
