@@ -36,7 +36,7 @@ from .replay import outside_recording_tape, recording_tape
 @functools.cache
 def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
-    vec3 = T.vec3
+    vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
 
     @wp.func
@@ -251,6 +251,50 @@ def funcs(scalar) -> types.SimpleNamespace:
                                      c_visc)
         return fi
 
+    @wp.func
+    def isotropic_weight(r2: scalar, h: scalar) -> scalar:
+        """The weight ``(1 - |r|/h)^2 h / |r|`` of the isotropic pressure's moments and pairs
+        (``isotropic_pressure_forces``): the spiky kernel's gradient over ``|r|`` without its
+        constant, which cancels in ``w A^-1``; ``w r`` stays finite as two particles meet, so
+        the push between them does not vanish there (a poly6 weight's ``w r`` does)."""
+        w = scalar(0.0)
+        if r2 < h * h and r2 > scalar(1.0e-24) * h * h:
+            rl = wp.sqrt(r2)
+            e = scalar(1.0) - rl / h
+            w = e * e * h / rl
+        return w
+
+    @wp.func
+    def isotropic_moments(i: int, x: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int,
+                          h: scalar) -> mat33:
+        """``A_i = sum_j w_ij x_ij x_ij^T`` over every neighbour (any body: the pressure acts
+        between bodies), ``x_ij = x_j - x_i``, ``w = isotropic_weight``; in a function of its own
+        so that its inverse does not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
+        xi = x[i]
+        A = mat33()
+        for k in range(n):
+            d = x[nbr[i, k]] - xi
+            A += isotropic_weight(wp.dot(d, d), h) * wp.outer(d, d)
+        return A
+
+    @wp.func
+    def isotropic_pressure_map(p: scalar, V: scalar, A: mat33) -> mat33:
+        """``M = -p V A^-1``: the variational force's map ``V P F^T A^-1`` (``forces.py``) of the
+        stress ``-p I`` on the current volume ``V``, so that ``sum_j x_ij (x) (-w M x_ij) = p V I``
+        exactly. 0 where ``A`` is near singular (neighbours on a plane or a line: the particle
+        then applies no pressure of its own)."""
+        M = mat33()
+        tr = A[0, 0] + A[1, 1] + A[2, 2]
+        if p != scalar(0.0) and wp.determinant(A) > scalar(1.0e-6) * tr * tr * tr / scalar(27.0):
+            M = (-p * V) * wp.inverse(A)
+        return M
+
+    @wp.func
+    def isotropic_pair_force(M: mat33, d: vec3, h: scalar) -> vec3:
+        """``g = w M d`` of particle ``i``'s pressure on the pair at ``d = x_j - x_i``: taken
+        from ``j``, added to ``i`` (equal and opposite)."""
+        return isotropic_weight(wp.dot(d, d), h) * (M * d)
+
     return types.SimpleNamespace(
         image_density=image_density, image_pressure_forces=image_pressure_forces, floor_image=floor_image,
         particle_terms=particle_terms, partner_terms=partner_terms,
@@ -261,6 +305,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         density_weight_gradient=density_weight_gradient,
         sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity, energy_pair_weight=energy_pair_weight,
         pair_virial_share=pair_virial_share,
+        isotropic_weight=isotropic_weight, isotropic_moments=isotropic_moments,
+        isotropic_pressure_map=isotropic_pressure_map, isotropic_pair_force=isotropic_pair_force,
     )
 
 
@@ -860,3 +906,79 @@ def launch_pressure_image_forces_adjoint(model, state_in, state_out):
                   adj_inputs=[None if a is model.particle_mass or a is model.particle_rest_density else adjoint(a)
                               for a in inputs], adj_outputs=[state_out.force.grad],
                   adjoint=True, device=model.device, record_tape=False)
+
+
+@functools.cache
+def isotropic_kernels(scalar) -> types.SimpleNamespace:
+    """The isotropic pressure force (``launch_isotropic_pressure_forces``), forward only."""
+    T = type_set(scalar)
+    vec3 = T.vec3
+    fn = funcs(scalar)
+    Materials = materials.struct(scalar)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def isotropic_pressure_forces(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        """Particle ``i``'s pressure ``p_i`` (of its pressure density, as the pair forces read
+        it) applied as the stress ``-p_i I`` on its volume ``V_i = m_i / rho_i``: ``g_ij = w_ij
+        M_i x_ij`` with ``M_i = isotropic_pressure_map``, taken from each neighbour ``j`` and
+        added to ``i``."""
+        i = wp.tid()
+        mi = material[i]
+        n = count[i]
+        p = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
+        M = fn.isotropic_pressure_map(p, mass[i] / rho[i], fn.isotropic_moments(i, x, nbr, n, h))
+        xi = x[i]
+        fi = vec3()
+        for k in range(n):
+            j = nbr[i, k]
+            g = fn.isotropic_pair_force(M, x[j] - xi, h)
+            wp.atomic_sub(f, j, g)
+            fi += g
+        wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(isotropic_pressure_forces=isotropic_pressure_forces)
+
+
+def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
+    """``launch_pressure_forces`` with each particle's pressure applied as the isotropic
+    stress ``-p_i I`` through its neighbourhood's moment matrix (``isotropic_pressure_map``)
+    instead of the pair forces: the virial of a particle's own pressure forces is ``p_i V_i I``
+    also at a free surface, where the pair forms' is not (its neighbours lie to one side), and
+    the pairs stay equal and opposite, with zero torque per particle (``A M^T = -p V I`` is
+    symmetric). The viscous force is the pair kernels' with every pressure stiffness at 0.
+    ``Solver(..., fused=False)`` with ``solver._isotropic_pressure = True`` selects it: an
+    experiment (docs/physics.md, "Still open", the SPH pressure bullet), forward only, without
+    floor images."""
+    if recording_tape() is not None:
+        raise RuntimeError("the isotropic pressure force is forward only: step is not allowed under a wp.Tape with "
+                           "Solver._isotropic_pressure set")
+    if model.image_plane is not None:
+        raise ValueError("the isotropic pressure force is not allowed with floor images (add_ground(images=True)): "
+                         "their pressure is not built for it; use a particle or ghost floor or a collider")
+    k = kernels(model.scalar)
+    rho_p = pressure_density(model, state_out)
+    mats = model.material_arrays()
+    zero_k = materials.make(model.scalar, model.device, **{
+        name: getattr(mats, name) for name in materials.SCALAR_FIELDS + materials.INT_FIELDS
+        if name != "pressure_stiffness"})
+    h = model.scalar(model.support_radius)
+    model.launches(k.pressure_forces, model.particle_count,
+                   [state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
+                    model.particle_material, zero_k, state_out.neighbors, state_out.neighbor_count, h,
+                    *model.image_args(), 1], [state_out.force], device=model.device)
+    model.launches(isotropic_kernels(model.scalar).isotropic_pressure_forces, model.particle_count,
+                   [state_in.x, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
+                    model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h],
+                   [state_out.force], device=model.device)

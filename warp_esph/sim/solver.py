@@ -384,6 +384,9 @@ class Solver:
         #: (``pressure.launch_pressure_stress``, ``plasticity.flow_with_pressure``); it runs the
         #: non-fused kernels.
         self.yield_with_pressure = yield_with_pressure
+        #: Experimental: the SPH pressure applied as an isotropic stress per particle
+        #: (``pressure.launch_isotropic_pressure_forces``; forward only, unfused path alone).
+        self._isotropic_pressure = False
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
@@ -916,6 +919,9 @@ class Solver:
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
         mats = m.material_arrays(rest=True) if rest_model else None
+        if self._isotropic_pressure and self.fused:
+            raise ValueError("Solver._isotropic_pressure = True is not allowed with fused = True: the isotropic pressure "
+                             "force runs on the unfused path alone; make the solver with fused=False")
         fast = (self.fused and not cmp and not self._curved and ghosts is None and not self.yield_with_pressure
                 and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
@@ -1001,7 +1007,10 @@ class Solver:
                     ghost_floor.launch_hand_over(m, state_out)
             if sph:
                 with phase("pressure"):
-                    pressure.launch_pressure_forces(m, state_in, state_out, hand)
+                    if self._isotropic_pressure:
+                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand)
+                    else:
+                        pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
         # Opt-in control of the fit's zero-energy modes (hourglass.py), on either path.
         if self.hourglass > 0.0:

@@ -1,0 +1,121 @@
+"""The experimental isotropic pressure force (``pressure.launch_isotropic_pressure_forces``,
+``Solver._isotropic_pressure``; docs/physics.md, "Still open", the SPH pressure bullet): each
+particle's pressure applied as the stress ``-p_i I`` through its neighbourhood's moment
+matrix, so that its own forces' virial is ``p_i V_i I`` at a free surface too."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.sim import pressure
+
+
+def _compressed_block(dtype=wp.float64, viscosity=0.0):
+    """A 4-across block compressed by 5 % and jittered, stepped once so that its neighbour rows
+    and densities are those of the compressed positions (``start``: the positions)."""
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", viscosity=viscosity)
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), mat)
+    model = b.finalize(dtype=dtype)
+    rng = np.random.default_rng(1)
+    x0 = model.particle_x0
+    c = x0.mean(0)
+    start, out = model.state(), model.state()
+    start.x.assign(c + 0.95 * (x0 - c) + 0.05 * model.spacing * rng.normal(size=x0.shape))
+    start.v.assign(0.05 * rng.normal(size=x0.shape))
+    solver = we.Solver(model, fused=False)
+    solver._isotropic_pressure = True
+    solver.step(start, out, 1.0e-6)
+    return model, start, out
+
+
+def _own_pressure_forces(model, start, out, i, launch):
+    """The pressure forces of particle ``i``'s own pressure alone (every other particle's rest
+    density raised past its density, so its clamped pressure is 0), by ``launch``."""
+    rest = model.particle_rest_density.numpy()
+    keep = rest.copy()
+    rest[np.arange(len(rest)) != i] = 1.0e30
+    model.particle_rest_density.assign(rest)
+    try:
+        out.force.zero_()
+        launch(model, start, out)
+    finally:
+        model.particle_rest_density.assign(keep)
+    return out.force.numpy().copy()
+
+
+def test_a_surface_particles_isotropic_pressure_has_an_isotropic_virial_and_exact_momenta():
+    """A corner particle's own pressure forces have the virial ``p V I`` to round-off (float64),
+    where the default pair force's (``energy_spiky``) pushes along its neighbours' directions;
+    their sum and torque vanish, and so do those of every particle's together."""
+    model, start, out = _compressed_block()
+    x = start.x.numpy()
+    i = int(np.argmin(x.sum(1)))  # a corner: every neighbour to one side
+    rho = out.density.numpy()
+    rho_p = pressure.pressure_density(model, out).numpy()
+    k = model.pressure_stiffness.numpy()[0]
+    p = k * (rho_p[i] - model.particle_rest_density.numpy()[i])
+    assert p > 0.0
+    pV = p * model.particle_mass.numpy()[i] / rho[i]
+
+    f = _own_pressure_forces(model, start, out, i, pressure.launch_isotropic_pressure_forces)
+    virial = (x - x[i]).T @ f
+    assert np.abs(virial - pV * np.eye(3)).max() < 1e-9 * pV
+    scale = np.abs(f).max()
+    assert scale > 0.0
+    assert np.abs(f.sum(0)).max() < 1e-12 * scale
+    assert np.abs(np.cross(x - x.mean(0), f).sum(0)).max() < 1e-12 * scale * model.spacing
+
+    plain = _own_pressure_forces(model, start, out, i, pressure.launch_pressure_forces)
+    v_plain = (x - x[i]).T @ plain
+    # The pair force's virial at the corner is not isotropic: its deviator reaches 0.19 of its
+    # mean normal part here (and the mean is 0.27 p V).
+    mean = np.trace(v_plain) / 3.0
+    assert mean > 0.0
+    assert np.abs(v_plain - mean * np.eye(3)).max() > 0.1 * mean
+
+    out.force.zero_()
+    pressure.launch_isotropic_pressure_forces(model, start, out)
+    f = out.force.numpy().copy()
+    assert np.abs(f.sum(0)).max() < 1e-12 * np.abs(f).max()
+    assert np.abs(np.cross(x - x.mean(0), f).sum(0)).max() < 1e-12 * np.abs(f).max() * model.spacing
+
+
+def test_the_isotropic_pressure_keeps_the_viscous_force_and_replaces_the_pair_pressure():
+    """With viscosity and the pressure both on, the step's SPH force is the viscous force of the
+    pair kernel with the pressure stiffness at 0 plus the isotropic pressure force: the pair
+    pressure is gone (its force would differ), the viscosity stays."""
+    model, start, out = _compressed_block(viscosity=5.0)
+    out.force.zero_()
+    pressure.launch_isotropic_pressure_forces(model, start, out)
+    both = out.force.numpy().copy()
+    k = model.pressure_stiffness.numpy()
+    model.pressure_stiffness.zero_()
+    try:
+        out.force.zero_()
+        pressure.launch_pressure_forces(model, start, out)
+        visc = out.force.numpy().copy()
+        out.force.zero_()
+        pressure.launch_isotropic_pressure_forces(model, start, out)
+        assert np.abs(out.force.numpy().copy() - visc).max() <= 1e-12 * np.abs(visc).max()
+    finally:
+        model.pressure_stiffness.assign(k)
+    out.force.zero_()
+    pressure.launch_pressure_forces(model, start, out)
+    pairs = out.force.numpy().copy()
+    iso = both - visc
+    assert np.abs(visc).max() > 0.0 and np.abs(iso).max() > 0.0
+    assert np.abs((pairs - visc) - iso).max() > 0.1 * np.abs(iso).max()
+
+
+def test_the_isotropic_pressure_is_refused_where_it_is_not_built():
+    """Forward only, unfused path: a fused solver with the flag is refused with a ValueError."""
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational")
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), mat)
+    model = b.finalize(dtype=wp.float32)
+    solver = we.Solver(model, fused=True, fit="linear")
+    solver._isotropic_pressure = True
+    with pytest.raises(ValueError, match="fused"):
+        solver.step(model.state(), model.state(), 1.0e-6)
