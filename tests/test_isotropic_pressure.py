@@ -119,3 +119,28 @@ def test_the_isotropic_pressure_is_refused_where_it_is_not_built():
     solver._isotropic_pressure = True
     with pytest.raises(ValueError, match="fused"):
         solver.step(model.state(), model.state(), 1.0e-6)
+
+
+def test_the_solver_flag_swaps_the_pair_pressure_for_the_isotropic_one():
+    """A step with ``Solver._isotropic_pressure`` differs from one without it by the isotropic
+    pressure force less the pair force's, and by nothing else (the elastic force, the viscosity
+    and the densities are the same)."""
+    model, start, flagged = _compressed_block(viscosity=5.0)
+    plain = model.state()
+    we.Solver(model, fused=False).step(start, plain, 1.0e-6)
+    assert np.array_equal(plain.density.numpy(), flagged.density.numpy())
+    difference = flagged.force.numpy().astype(np.float64) - plain.force.numpy()
+    probe = model.state()
+    probe.density.assign(plain.density)
+    probe.neighbors.assign(plain.neighbors)
+    probe.neighbor_count.assign(plain.neighbor_count)
+    if plain.pressure_density is not None:
+        pressure.pressure_density(model, probe).assign(plain.pressure_density)
+    probe.force.zero_()
+    pressure.launch_isotropic_pressure_forces(model, start, probe)
+    iso = probe.force.numpy().copy()
+    probe.force.zero_()
+    pressure.launch_pressure_forces(model, start, probe)
+    pairs = probe.force.numpy().copy()
+    assert np.abs(iso - pairs).max() > 0.0
+    assert np.abs(difference - (iso - pairs)).max() < 1e-9 * np.abs(iso - pairs).max()
