@@ -509,7 +509,8 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     which counts its work. A ``Scripted`` one has no speed known beforehand, and the monitor
     runs only its non-finite check: here its fastest point over the poses of the run's
     ``steps`` steps of ``dt`` from ``t0`` joins the scale as ``0.5 M v^2``, and the height it
-    lifts the bodies by is its work, not growth. ``scripted_seen``: the scripted motions as the
+    lifts the bodies by is its work, not growth (``simulate``, reading every frame, counts
+    the most height at any frame, which a body let fall holds as speed). ``scripted_seen``: the scripted motions as the
     run's own steps evaluated them (``{k: (linear speed, angular speed, lowest, highest
     position)}``, the fastest over the steps, ``simulate``'s record of
     ``ToolSet.scripted_step_motion``), read in place of calling the poses again (``dt`` and
@@ -524,9 +525,14 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
             hit[1])
 
 
-def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scripted_seen) -> tuple[str, int] | None:
+def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scripted_seen,
+           raised: list | None = None) -> tuple[str, int] | None:
     """``energy_growth``'s test: ``(what grew, particle)`` without its words around it, which
-    ``simulate`` puts in its own divergence message (step, frame, time, advice)."""
+    ``simulate`` puts in its own divergence message (step, frame, time, advice). ``raised``:
+    ``[J]``, the most gravitational energy a moving tool had given the bodies at the frames
+    read before (``simulate`` keeps it across its frames; updated here): that height is the
+    tools' work whether the bodies still hold it or have fallen back and hold it as speed
+    (read at the end alone, only the height they still hold is known)."""
     if getattr(model, "force_fields", None):
         return None
     keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
@@ -545,7 +551,15 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         ke = 0.5 * m * (v1 * v1).sum(axis=1)
         kinetic = float(ke.sum() - 0.5 * (m * (v0 * v0).sum(axis=1)).sum())
         lifted = float(-(m * ((x1 - x0) @ g)).sum())
-    grew = kinetic + (min(lifted, 0.0) if moving else lifted)
+    if moving:
+        # A body a scripted platform lifted 4 m and let fall was stopped in its fall when only
+        # the height it still held counted as the tool's work.
+        given = max(lifted, 0.0 if raised is None else raised[0])
+        if raised is not None:
+            raised[0] = given
+        grew = kinetic + lifted - given
+    else:
+        grew = kinetic + lifted
     size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
     scale = (0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
              + 0.5 * float(m.sum()) * scripted ** 2 + max(float(stored), 0.0))
@@ -1394,6 +1408,7 @@ def simulate(
         # stable step ran to its end and returned particles 20 m out as a success.
         growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver)
         seen = {}  # the Scripted motions as this run's steps evaluated them
+        raised = [0.0]  # the most height (J) the tools had given the bodies at a frame
 
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
@@ -1450,7 +1465,7 @@ def simulate(
                 if bad is None and growth is not None:
                     x0, v0, t_start, stored = growth
                     bad = _grown(model, x0, v0, current.x.numpy(), current.v.numpy(), t0=t_start, dt=None, steps=None,
-                                 particles=monitor.keep, stored=stored, scripted_seen=seen)
+                                 particles=monitor.keep, stored=stored, scripted_seen=seen, raised=raised)
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
