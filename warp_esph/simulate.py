@@ -526,43 +526,53 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
 
 
 def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scripted_seen,
-           raised: list | None = None) -> tuple[str, int] | None:
+           memo: dict | None = None) -> tuple[str, int] | None:
     """``energy_growth``'s test: ``(what grew, particle)`` without its words around it, which
-    ``simulate`` puts in its own divergence message (step, frame, time, advice). ``raised``:
-    ``[J]``, the most gravitational energy a moving tool had given the bodies at the frames
-    read before (``simulate`` keeps it across its frames; updated here): that height is the
-    tools' work whether the bodies still hold it or have fallen back and hold it as speed
-    (read at the end alone, only the height they still hold is known)."""
+    ``simulate`` puts in its own divergence message (step, frame, time, advice). ``memo``:
+    ``simulate``'s record across its frames (a dict, empty at the start; ``x0, v0, particles``
+    and ``stored`` the same at every frame): what the start gives (its particles' masses, its
+    kinetic energy, its size) is read from the device and summed once, and ``"raised"``, the
+    most gravitational energy a moving tool had given the bodies at the frames read before,
+    is that height's work whether the bodies still hold it or have fallen back and hold it as
+    speed (read at the end alone, only the height they still hold is known)."""
     if getattr(model, "force_fields", None):
         return None
-    keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
+    memo = {} if memo is None else memo
+    if "keep" not in memo:
+        keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
+        all_kept = bool(keep.all())
+        x0k, v0k = np.asarray(x0, dtype=np.float64)[keep], np.asarray(v0, dtype=np.float64)[keep]
+        m = model.particle_mass.numpy().astype(np.float64)[keep]
+        memo.update(keep=keep, all=all_kept, x0=x0k, m=m, ke0=0.5 * float((m * (v0k * v0k).sum(axis=1)).sum()),
+                    size=(float(np.linalg.norm(x0k.max(axis=0) - x0k.min(axis=0))) + model.spacing) if len(m) else 0.0,
+                    raised=0.0)
+    keep = memo["keep"]
     if not keep.any():
         return None
-    x0, v0 = np.asarray(x0, dtype=np.float64)[keep], np.asarray(v0, dtype=np.float64)[keep]
-    x1, v1 = np.asarray(x, dtype=np.float64)[keep], np.asarray(v, dtype=np.float64)[keep]
+    x0, m = memo["x0"], memo["m"]
+    x1 = np.asarray(x, dtype=np.float64) if memo["all"] else np.asarray(x, dtype=np.float64)[keep]
+    v1 = np.asarray(v, dtype=np.float64) if memo["all"] else np.asarray(v, dtype=np.float64)[keep]
     moving = _tools_move(model)
     scripted = _scripted_speed(model, x0, x1, t0, dt, steps, scripted_seen) if moving else 0.0
     if scripted is None:
         return None  # the monitor's energy bound counts the tools' work
-    m = model.particle_mass.numpy().astype(np.float64)[keep]
     g = np.asarray(model.gravity, dtype=np.float64)
     # A blown-up speed past 1e154 m/s squares to inf, which is past the limit as it should be.
     with np.errstate(over="ignore", invalid="ignore"):
         ke = 0.5 * m * (v1 * v1).sum(axis=1)
-        kinetic = float(ke.sum() - 0.5 * (m * (v0 * v0).sum(axis=1)).sum())
+        kinetic = float(ke.sum()) - memo["ke0"]
         lifted = float(-(m * ((x1 - x0) @ g)).sum())
     if moving:
         # A body a scripted platform lifted 4 m and let fall was stopped in its fall when only
         # the height it still held counted as the tool's work.
-        given = max(lifted, 0.0 if raised is None else raised[0])
-        if raised is not None:
-            raised[0] = given
-        grew = kinetic + lifted - given
+        memo["raised"] = max(lifted, memo["raised"])
+        grew = kinetic + lifted - memo["raised"]
     else:
         grew = kinetic + lifted
-    size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
-    scale = (0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
+    scale = (memo["ke0"] + float(m.sum()) * float(np.linalg.norm(g)) * memo["size"]
              + 0.5 * float(m.sum()) * scripted ** 2 + max(float(stored), 0.0))
+    if not grew > BLOWUP_FACTOR * scale:
+        return None  # inside the limit without the floor (>= 0), whose wave speeds cost a frame as much again
     floor = _energy_floor(float(m.sum()), _wave_speed(model, model.parameter_values(), keep))
     if grew > BLOWUP_FACTOR * scale + floor:
         does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
@@ -1408,7 +1418,7 @@ def simulate(
         # stable step ran to its end and returned particles 20 m out as a success.
         growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver)
         seen = {}  # the Scripted motions as this run's steps evaluated them
-        raised = [0.0]  # the most height (J) the tools had given the bodies at a frame
+        memo = {}  # the start's part of the energy check, summed once, and the most height the tools gave
 
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
@@ -1465,7 +1475,7 @@ def simulate(
                 if bad is None and growth is not None:
                     x0, v0, t_start, stored = growth
                     bad = _grown(model, x0, v0, current.x.numpy(), current.v.numpy(), t0=t_start, dt=None, steps=None,
-                                 particles=monitor.keep, stored=stored, scripted_seen=seen, raised=raised)
+                                 particles=monitor.keep, stored=stored, scripted_seen=seen, memo=memo)
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
