@@ -1885,3 +1885,31 @@ def test_the_per_frame_energy_check_reads_the_start_once_not_each_frame(monkeypa
         we.simulate(model, frames, fps=30.0, progress=False)
         counts.append(len(reads))
     assert counts[0] == counts[1], counts
+
+
+@pytest.mark.filterwarnings("ignore:tools .'lift'. follow tools.Scripted motions:UserWarning")
+def test_the_end_of_run_energy_check_passes_a_body_a_scripted_tool_lifted_and_let_fall():
+    """``energy_growth`` read at a run's end alone (a ``sweep`` sample's, a ``fit`` evaluation's,
+    the torch bridge's) knows the height the bodies still hold, not the most a scripted tool gave
+    them: the platform's block of the test above, read in its fall at frame 48, was a blow-up
+    (28.1 J against 22.5 J). The tool can have lifted them at most to its highest pose's reach
+    (and their size above it), read from the same poses; a blow-up beside it is still one."""
+    from blowup_cases import BLOWN_MU, DT, STEPS, scripted_box_builder  # noqa: PLC0415
+    from warp_esph import tools  # noqa: PLC0415
+    from warp_esph.simulate import energy_growth, resolve_timestep  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("putty"), name="load")
+    b.add_tool("box", half_extents=(0.15, 0.025, 0.15), motion=tools.Scripted(_lift_then_slide), name="lift")
+    model = b.finalize()
+    n, dt = resolve_timestep(model, 10.0)
+    end = we.simulate(model, 48, fps=10.0, dt=dt, progress=False)
+    assert np.abs(end.v.numpy()[:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)  # falling, 2 m and more below its top
+    assert energy_growth(model, model.particle_x0, model.particle_v0, end.x.numpy(), end.v.numpy(), dt=dt,
+                         steps=48 * n) is None
+    blown = scripted_box_builder(BLOWN_MU).finalize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        state = we.simulate(blown, 1, fps=1.0 / (STEPS * DT), dt=DT, progress=False, monitor=False)
+    assert energy_growth(blown, blown.particle_x0, blown.particle_v0, state.x.numpy(), state.v.numpy(), dt=DT,
+                         steps=STEPS) is not None

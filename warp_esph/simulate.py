@@ -509,8 +509,10 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     which counts its work. A ``Scripted`` one has no speed known beforehand, and the monitor
     runs only its non-finite check: here its fastest point over the poses of the run's
     ``steps`` steps of ``dt`` from ``t0`` joins the scale as ``0.5 M v^2``, and the height it
-    lifts the bodies by is its work, not growth (``simulate``, reading every frame, counts
-    the most height at any frame, which a body let fall holds as speed). ``scripted_seen``: the scripted motions as the
+    lifts the bodies by is its work, not growth: read here at the end alone, up to each
+    particle lifted to its highest position plus its reach and the bodies' size (``simulate``,
+    reading every frame, counts the most height at any frame, which a body let fall holds as
+    speed). ``scripted_seen``: the scripted motions as the
     run's own steps evaluated them (``{k: (linear speed, angular speed, lowest, highest
     position)}``, the fastest over the steps, ``simulate``'s record of
     ``ToolSet.scripted_step_motion``), read in place of calling the poses again (``dt`` and
@@ -537,6 +539,7 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
     speed (read at the end alone, only the height they still hold is known)."""
     if getattr(model, "force_fields", None):
         return None
+    per_frame = memo is not None
     memo = {} if memo is None else memo
     if "keep" not in memo:
         keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
@@ -553,9 +556,10 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
     x1 = np.asarray(x, dtype=np.float64) if memo["all"] else np.asarray(x, dtype=np.float64)[keep]
     v1 = np.asarray(v, dtype=np.float64) if memo["all"] else np.asarray(v, dtype=np.float64)[keep]
     moving = _tools_move(model)
-    scripted = _scripted_speed(model, x0, x1, t0, dt, steps, scripted_seen) if moving else 0.0
-    if scripted is None:
+    reached = _scripted_speed(model, x0, x1, t0, dt, steps, scripted_seen) if moving else (0.0, None)
+    if reached is None:
         return None  # the monitor's energy bound counts the tools' work
+    scripted, top = reached
     g = np.asarray(model.gravity, dtype=np.float64)
     # A blown-up speed past 1e154 m/s squares to inf, which is past the limit as it should be.
     with np.errstate(over="ignore", invalid="ignore"):
@@ -566,6 +570,12 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         # A body a scripted platform lifted 4 m and let fall was stopped in its fall when only
         # the height it still held counted as the tool's work.
         memo["raised"] = max(lifted, memo["raised"])
+        if not per_frame and top is not None and np.linalg.norm(g) > 0.0:
+            # Read at the end alone, the most it can have given: each particle lifted to the
+            # tools' highest reach plus the bodies' size above it.
+            up = -g / np.linalg.norm(g)
+            memo["raised"] = max(memo["raised"], float(np.linalg.norm(g) * (
+                m * np.maximum(top + memo["size"] - x0 @ up, 0.0)).sum()))
         grew = kinetic + lifted - memo["raised"]
     else:
         grew = kinetic + lifted
@@ -583,12 +593,14 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
     return None
 
 
-def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, steps, seen=None) -> float | None:
-    """The fastest point (m/s) of the moving tools and pinned sets of ``model`` over a run of
-    ``steps`` steps of ``dt`` from ``t0`` (particles from ``x0`` to ``x``) where one is
-    ``Scripted`` (its poses read at each step's time, as the run read them; ``seen``: as the
-    run's steps evaluated them, ``energy_growth``'s ``scripted_seen``), else None: every
-    motion's speed is known and the monitor bounds the energy with it."""
+def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, steps, seen=None) -> tuple | None:
+    """``(speed, top)``: the fastest point (m/s) of the moving tools and pinned sets of
+    ``model`` over a run of ``steps`` steps of ``dt`` from ``t0`` (particles from ``x0`` to
+    ``x``) where one is ``Scripted`` (its poses read at each step's time, as the run read them;
+    ``seen``: as the run's steps evaluated them, ``energy_growth``'s ``scripted_seen``), and the
+    highest a Scripted one reached (m along ``-gravity``: its highest position plus its reach;
+    None without gravity), else None: every motion's speed is known and the monitor bounds the
+    energy with it."""
     motions = [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
     if not any(isinstance(mo, tools.Scripted) for mo in motions):
         return None
@@ -598,6 +610,9 @@ def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, 
     xs = np.concatenate([x0, x])
     lo, hi = xs.min(axis=0), xs.max(axis=0)
     speeds = []
+    g = np.asarray(model.gravity, dtype=np.float64)
+    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0.0 else None
+    top = None
     for k, mo in enumerate(motions):
         if isinstance(mo, tools.Scripted) and seen is not None:
             lin, ang, *at = seen.get(k, (0.0, 0.0))
@@ -613,11 +628,15 @@ def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, 
             lin, ang, at = _driven_motion(mo)
         if len(at):
             lo, hi = np.minimum(lo, np.min(at, axis=0)), np.maximum(hi, np.max(at, axis=0))
+            if isinstance(mo, tools.Scripted) and up is not None:
+                # The highest corner of the box of its positions (seen's two corners, or the poses).
+                high = float(np.maximum(np.min(at, axis=0) * up, np.max(at, axis=0) * up).sum())
+                top = max(top if top is not None else -np.inf, high + model.tools._scripted_reach(k))
         speeds.append((lin, ang))
     # A turning tool's fastest point that can touch a particle: its angular speed times the
     # farthest a particle or a pose lies from another.
     reach = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
-    return max(lin + ang * reach for lin, ang in speeds)
+    return max(lin + ang * reach for lin, ang in speeds), top
 
 
 def _tools_move(model: Model) -> bool:
