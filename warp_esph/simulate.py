@@ -218,7 +218,8 @@ class DivergenceMonitor:
     point, ``|v| + |omega| (D + |v| t)`` over their motions (``D`` the diagonal of the box
     of the particles, colliders and the tools' poses), joins the speed bound and the kinetic
     energy of every particle moving that fast joins the energy bound; the potential energy
-    the bodies gain (lifted by a tool) is the tools' work and takes nothing off it.
+    the bodies gain (lifted by a tool) is the tools' work and takes nothing off it, and the
+    most they can have given (``lift_given``), held as height or fallen back as speed, joins it.
 
     A repelling field (``strength < 0``) can add energy without bound, and a scripted motion
     (``tools.Scripted``) has no speed known beforehand: then only the non-finite check runs.
@@ -283,6 +284,12 @@ class DivergenceMonitor:
         self.diagonal = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
         self.v_tools = max((d[0] for d in driven if d is not None), default=0.0)
         self.w_tools = max((d[1] for d in driven if d is not None), default=0.0)
+        #: (tool, the highest of the positions its motion names along up, its reach) of each moving
+        #: tool: what it can lift the bodies to (``lift_given``)
+        self.lifters = [(k, max((float(np.dot(p, self.up)) for p in d[2]), default=-np.inf), model.tools.reach(k))
+                        for k, d in enumerate(driven) if d is not None and (d[0] > 0.0 or d[1] > 0.0)]
+        self.tools = model.tools
+        self.extent = float(self.h0.max() - self.h0.min()) + 2.0 * model.support_radius
         self.v0 = float(np.sqrt((v0 * v0).sum(axis=1).max()))
         # From the model's parameter arrays, which a fit or Rollout.set_parameters changes
         # without changing model.materials (a trial 3000 x stiffer read the guess's speed).
@@ -351,6 +358,18 @@ class DivergenceMonitor:
             else:
                 given = 0.5 * f.strength * (r_on.max() + self.diagonal + travel) ** 2 * float(m_on.sum())
             self.fields.append((f, on, given))
+
+    def lift_given(self, t: float) -> float:
+        """The most potential energy (J) the moving tools can have given the particles checked
+        by ``t`` seconds since the monitor's state: each lifted to the highest a tool's reach got
+        (its named positions, its pose then and now), plus the bodies' height above it."""
+        if not self.lifters or self.g == 0.0:
+            return 0.0
+        top = -np.inf
+        for k, named, reach in self.lifters:
+            now = max(float(np.dot(self.tools.pose_at(k, s)[0], self.up)) for s in (self.t0, self.t0 + t))
+            top = max(top, max(named, now) + reach)
+        return self.g * float((self.mass * np.maximum(top + self.extent - self.h0, 0.0)).sum())
 
     def driven_speed(self, t: float) -> float:
         """The fastest point of a moving tool or pinned set by time ``t`` (0 without them)."""
@@ -430,8 +449,9 @@ class DivergenceMonitor:
         if driven > 0.0:
             # The potential energy a moving tool lifts the bodies by is its work, not a debit: a
             # blob a rising floor carried up had its budget fall to 0 J, and was a blow-up at
-            # the tool's own speed.
-            released = max(released, 0.0)
+            # the tool's own speed. Held or fallen back (as speed): a block a keyframed platform
+            # lifted 4 m and let fall was stopped in its fall when only the height held counted.
+            released = max(released, 0.0) + self.lift_given(t)
         potential, given = self.field_energy(x, t)
         budget = max(self.ke0 + self.e_elastic + released + given + driven, 0.0)
         limit = self.ENERGY_FACTOR * budget + self.e_floor
