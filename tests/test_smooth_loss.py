@@ -66,17 +66,30 @@ def taped_base():
     """``taped_base(key, model, loss)``: the taped run of ``model`` (a function making it at
     ``PARAMS``) through ``loss`` and its one backward pass, made once per ``key`` for the
     five parameters' tests of a scene: each test reads its parameter's gradient and asserts
-    the same of the run (the neighbour cuts, the flow, the final positions)."""
+    the same of the run (the neighbour cuts, the flow, the final positions). The landing's
+    run is also the centre value of its scans and the lift-off test's trajectory (a scan's
+    centre is ``PARAMS`` to the bit, and the backward pass does not change the forward one),
+    so those read it here rather than run it again; what it holds is read-only."""
     runs = {}
 
     def get(key, model, loss):
         if key not in runs:
-            _, grads, solver, states = loss(model(), grad_of=SCANNED)
-            runs[key] = {"grads": grads, "neighbors_cut": solver.guard_counts()["neighbors_cut"],
-                         "alpha_max": states[-1].alpha.numpy().max(), "x": states[-1].x.numpy()}
+            value, grads, solver, states = loss(model(), grad_of=SCANNED)
+            run = {"loss": value, "grads": grads, "neighbors_cut": solver.guard_counts()["neighbors_cut"],
+                   "alpha_max": states[-1].alpha.numpy().max(), "x": states[-1].x.numpy(),
+                   "xs": np.array([s.x.numpy() for s in states]), "vs": np.array([s.v.numpy() for s in states])}
+            for a in run.values():
+                if isinstance(a, np.ndarray):
+                    a.flags.writeable = False
+            runs[key] = run
         return runs[key]
 
     return get
+
+
+def _landing_run(taped_base, images=False):
+    """The landing's taped run at ``PARAMS`` (on the imaged ground with ``images``)."""
+    return taped_base("imaged landing" if images else "landing", lambda: _landing_model(images=images), _landing_loss)
 
 
 @pytest.mark.parametrize("h_over_dx", [2.0, 2.5])
@@ -349,7 +362,7 @@ def test_loss_is_smooth_through_ground_contact(name, taped_base):
     (``colliders.slip_speed``) and the plastic flow's volume factor is continuous in J.
     Measured before these changes: over +-1 % of viscosity, loss increments of -20 to 4
     times the tape's slope (see the next test)."""
-    run = taped_base("landing", _landing_model, _landing_loss)
+    run = _landing_run(taped_base)
     grad = run["grads"][name]
     assert run["neighbors_cut"] == 0
     assert run["alpha_max"] > 0.2, "the block flows"
@@ -379,7 +392,7 @@ def test_loss_is_smooth_through_the_imaged_ground(name, taped_base):
       its particles' pair (``deformation.floor_image_moment``). Before: a jump of 0.39 times
       the slope times the step in the loss at -0.55e-4 of the viscosity, tape / difference
       0.981 at 1e-4."""
-    run = taped_base("imaged landing", lambda: _landing_model(images=True), _landing_loss)
+    run = _landing_run(taped_base, images=True)
     grad = run["grads"][name]
     assert run["neighbors_cut"] == 0
     assert run["alpha_max"] > 0.2, "the block flows"
@@ -393,7 +406,7 @@ def test_loss_is_smooth_through_the_imaged_ground(name, taped_base):
 
 
 @pytest.mark.parametrize("name", ["mu", "viscosity"])
-def test_no_jump_in_the_loss_through_ground_contact(name):
+def test_no_jump_in_the_loss_through_ground_contact(name, taped_base):
     """The loss and the tape's gradient at 11 values over +-1 % of the parameter: the loss's
     increment over each interval is the mean of the tape's gradients at its ends (the
     trapezoid rule, exact to the loss's curvature) within 2 %; neighbouring gradients differ
@@ -410,7 +423,7 @@ def test_no_jump_in_the_loss_through_ground_contact(name):
     contact law, which removed all inward velocity of a particle once it crossed the surface:
     increments of -20 to 4 times the slope; with the flow's volume factor jumping where J left
     [0.8, 1.25]: 0.71 and 1.25."""
-    _assert_smooth(*_scan_against_trapezoid(name))
+    _assert_smooth(*_scan_against_trapezoid(name, taped_base))
 
 
 def _assert_smooth(ratios, grads):
@@ -419,13 +432,21 @@ def _assert_smooth(ratios, grads):
     assert np.abs(grads - 1.0).max() < 0.25, np.round(grads, 3)
 
 
-def _scan_against_trapezoid(name, images=False):
+def _scan_against_trapezoid(name, taped_base, images=False):
     """The landing loss at 11 values over +-1 % of ``name``: each interval's increment over
-    the mean of the tape's gradients at its ends, and the gradients over the centre's."""
+    the mean of the tape's gradients at its ends, and the gradients over the centre's. The
+    centre, ``PARAMS`` itself, is the landing's shared taped run."""
     base = PARAMS[name]
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))
-    losses, grads = np.array([_landing_loss(_landing_model({name: v}, images=images), grad_of=name)[:2]
-                              for v in values]).T
+    assert values[5] == base
+
+    def at(v):
+        if v == base:
+            run = _landing_run(taped_base, images)
+            return run["loss"], run["grads"][name]
+        return _landing_loss(_landing_model({name: v}, images=images), grad_of=name)[:2]
+
+    losses, grads = np.array([at(v) for v in values]).T
     secants = np.diff(losses) / np.diff(values)
     return secants / (0.5 * (grads[1:] + grads[:-1])), grads / grads[5]
 
@@ -437,7 +458,7 @@ def _scan_against_trapezoid(name, images=False):
                    "band d0 / dt of 1e-3 to 2e-2 m/s; a wider band spreads them over more of the layer and does not "
                    "pass; a soft contact on the imaged plane passes but leaves a block settled on it 1.7e-5 m inside "
                    "(docs/physics.md, \"The imaged landing's bends\")")
-def test_no_jump_in_the_loss_through_the_imaged_ground():
+def test_no_jump_in_the_loss_through_the_imaged_ground(taped_base):
     """The same scan on the ground with mirror images (``ground_images``), whose bottom-layer
     particles lie on the plane: measured with the touchdown share, increments within 0.35 %
     of the trapezoid and gradients 0.88-1.00 of the centre's, neighbours at most 3.5 % apart.
@@ -450,10 +471,10 @@ def test_no_jump_in_the_loss_through_the_imaged_ground():
     is added by bottom-layer particles lifting off from inside the plane (measured: -2.83 of
     -2.94 at the centre, one particle -1.82 of it; docs/physics.md, "The imaged landing's
     bends")."""
-    _assert_smooth(*_scan_against_trapezoid("viscosity", images=True))
+    _assert_smooth(*_scan_against_trapezoid("viscosity", taped_base, images=True))
 
 
-def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside():
+def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside(taped_base):
     """What bends the imaged scan above (docs/physics.md, "The imaged landing's bends"): the
     images push the landed bottom layer back up, so particles the touchdown share left inside
     the plane leave it in the next step, some slower than their band ``d0 / dt``
@@ -462,9 +483,8 @@ def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside():
     layer stays down: none of its particles that start a step inside leaves with an outward
     speed (of 168 such particle-steps)."""
     for images in (False, True):
-        _, _, _, states = _landing_loss(_landing_model(images=images))
-        y = np.array([s.x.numpy()[:, 1] for s in states])
-        vy = np.array([s.v.numpy()[:, 1] for s in states])
+        run = _landing_run(taped_base, images)
+        y, vy = run["xs"][:, :, 1], run["vs"][:, :, 1]
         inside = y[:-1] < 0.0
         leaving = inside & (vy[1:] > 0.0)
         assert inside.sum() > 100, "the block lands"
