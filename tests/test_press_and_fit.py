@@ -33,8 +33,11 @@ def test_press_optimisation_reaches_the_target_top_height():
     """``optimise_press`` (the notebook's part 1): measured depth 14.31 mm, mean top 20.99 mm
     for the 21 mm target in 6 evaluations (docs/tools.md; 13.86 mm in 7 before the tool
     contact's tangential displacement was taken from the particle's start)."""
-    depth = pf.optimise_press(TARGET)
-    _, top = pf.press_loss(np.array([depth, 0.03]), TARGET)
+    history = []
+    depth = pf.optimise_press(TARGET, history=history)
+    # The search returns the depth it evaluated last: its top is read there, not run again.
+    last, _, top, _ = history[-1]
+    assert last == depth
     assert top == pytest.approx(TARGET, abs=1e-4)
     assert depth < TARGET  # the dough springs back: the press must go below the target
 
