@@ -33,7 +33,7 @@ OFFSET = (0.375, 0.0, -0.125)
 #: Each option of the step: the material and solver settings a scene takes and what it adds.
 OPTIONS = ("plain", "floor_images", "ghost_floor", "ghost_floor_slip", "particle_floor", "particle_floor_elastic",
            "mesh_tool", "keyframed_tools", "pins", "hourglass", "curvature_corrected", "rest_model_auto", "biweight",
-           "pressure_energy", "pressure_spiky", "deformation_rest", "deformation_additive", "hyperelastic", "stvk",
+           "pressure_energy", "pressure_spiky", "pressure_isotropic", "deformation_rest", "deformation_additive", "hyperelastic", "stvk",
            "non_newtonian", "viscosity", "colliders", "compression_field", "worlds", "yield_with_pressure")
 
 
@@ -315,7 +315,8 @@ def test_a_float64_rollout_torch_and_checkpoint_stay_float64_and_resume_bit_for_
 # the first would show).
 PAIRS = [(("plain", wp.float64), ("biweight", wp.float32)), (("biweight", wp.float64), ("plain", wp.float64)),
          (("curvature_corrected", wp.float64), ("plain", wp.float32)), (("floor_images", wp.float32), ("ghost_floor", wp.float64)),
-         (("deformation_rest", wp.float32), ("hourglass", wp.float64)), (("pressure_spiky", wp.float64), ("pressure_energy", wp.float64))]
+         (("deformation_rest", wp.float32), ("hourglass", wp.float64)), (("pressure_spiky", wp.float64), ("pressure_energy", wp.float64)),
+         (("pressure_isotropic", wp.float64), ("plain", wp.float32))]
 
 
 @pytest.mark.parametrize("first, second", PAIRS, ids=[f"{a[0]}_{a[1].__name__}-{b[0]}_{b[1].__name__}" for a, b in PAIRS])

@@ -56,7 +56,8 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: on a capsule tool standing on its axis, which one test each passed through; a compression
 #: field beside the floor images and on the default elastic solver (two tests passed through a field);
 #: the yield test with the SPH pressure's stress (``Solver(yield_with_pressure=True)``), whose own
-#: tests are in ``test_yield_with_pressure.py``.
+#: tests are in ``test_yield_with_pressure.py``; the ``isotropic`` pressure force (the default
+#: solver, which runs it on the unfused schedule).
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -86,6 +87,7 @@ CASES = {
     "field_images": ({}, {}, {}, "images_field"),
     "field_default_elastic": (ELASTIC, {}, {}, "ground_field"),
     "yield_with_pressure": ({}, {"yield_with_pressure": True}, {}, "ground"),
+    "isotropic_pressure": ({"pressure_force": "isotropic"}, {}, {}, "ground"),
 }
 
 
@@ -182,6 +184,25 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         assert grads["v0"][i, 0] == pytest.approx(fd, rel=1e-4, abs=1e-9), eps
 
 
+@pytest.mark.parametrize("scene", ["rest", "thrown"])
+def test_the_isotropic_pressures_stiffness_gradient_matches_central_differences(scene):
+    """``pressure_force = "isotropic"``: the pair kernel carries no pressure of it, so ``k_p``
+    reaches the loss through ``pressure.isotropic_pressure_forces`` alone, and its taped gradient
+    (Warp's generated adjoint of that kernel) is its float64 central difference at relative steps
+    1e-3 and 1e-5 within 1e-4, at rest (F = I, pressed by its weight) and thrown into the ground."""
+    case = "isotropic_pressure"
+    model = _model(case, scene, {"pressure_stiffness": 10.0})
+    w = random_weights(model.particle_count, 2)
+    grads = _loss(case, model, w, ("pressure_stiffness",))[0]
+    base = 10.0
+    for rel in (1e-3, 1e-5):
+        eps = rel * base
+        fd = (_loss(case, _model(case, scene, {"pressure_stiffness": base + eps}), w)
+              - _loss(case, _model(case, scene, {"pressure_stiffness": base - eps}), w)) / (2 * eps)
+        assert abs(fd) > 1e-12, "the loss does not reach k_p"
+        assert grads["pressure_stiffness"].sum() == pytest.approx(fd, rel=1e-4), rel
+
+
 #: Taped steps (each scene with a compression field) whose launches together are every kernel of
 #: docs/method.md's coverage table but the rest model's hand-over and hand-back (a step that
 #: switches models): (case of ``CASES``, material options, ``Solver`` options or None for the
@@ -197,6 +218,7 @@ _TABLE_SCENES = [
     ("mesh_tool", None, None, True),
     ("corotated", {"deformation": "additive", **ELASTIC}, {}, False),
     ("yield_with_pressure", None, None, True),
+    ("isotropic_pressure", None, None, True),
 ]
 
 

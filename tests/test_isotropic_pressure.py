@@ -3,12 +3,18 @@
 particle's pressure applied as the stress ``-p_i I`` through its neighbourhood's moment
 matrix, so that its own forces' virial is ``p_i V_i I`` at a free surface too."""
 
+import functools
+
 import numpy as np
 import pytest
 import warp as wp
 
 import warp_esph as we
 from warp_esph.sim import pressure
+
+
+#: The experimental flag's launch: every material's pressure applied isotropically.
+_every = functools.partial(pressure.launch_isotropic_pressure_forces, every=True)
 
 
 def _compressed_block(dtype=wp.float64, viscosity=0.0):
@@ -59,7 +65,7 @@ def test_a_surface_particles_isotropic_pressure_has_an_isotropic_virial_and_exac
     assert p > 0.0
     pV = p * model.particle_mass.numpy()[i] / rho[i]
 
-    f = _own_pressure_forces(model, start, out, i, pressure.launch_isotropic_pressure_forces)
+    f = _own_pressure_forces(model, start, out, i, _every)
     virial = (x - x[i]).T @ f
     assert np.abs(virial - pV * np.eye(3)).max() < 1e-9 * pV
     scale = np.abs(f).max()
@@ -76,7 +82,7 @@ def test_a_surface_particles_isotropic_pressure_has_an_isotropic_virial_and_exac
     assert np.abs(v_plain - mean * np.eye(3)).max() > 0.1 * mean
 
     out.force.zero_()
-    pressure.launch_isotropic_pressure_forces(model, start, out)
+    _every(model, start, out)
     f = out.force.numpy().copy()
     assert np.abs(f.sum(0)).max() < 1e-12 * np.abs(f).max()
     assert np.abs(np.cross(x - x.mean(0), f).sum(0)).max() < 1e-12 * np.abs(f).max() * model.spacing
@@ -88,7 +94,7 @@ def test_the_isotropic_pressure_keeps_the_viscous_force_and_replaces_the_pair_pr
     pressure is gone (its force would differ), the viscosity stays."""
     model, start, out = _compressed_block(viscosity=5.0)
     out.force.zero_()
-    pressure.launch_isotropic_pressure_forces(model, start, out)
+    _every(model, start, out)
     both = out.force.numpy().copy()
     k = model.pressure_stiffness.numpy()
     model.pressure_stiffness.zero_()
@@ -97,7 +103,7 @@ def test_the_isotropic_pressure_keeps_the_viscous_force_and_replaces_the_pair_pr
         pressure.launch_pressure_forces(model, start, out)
         visc = out.force.numpy().copy()
         out.force.zero_()
-        pressure.launch_isotropic_pressure_forces(model, start, out)
+        _every(model, start, out)
         assert np.abs(out.force.numpy().copy() - visc).max() <= 1e-12 * np.abs(visc).max()
     finally:
         model.pressure_stiffness.assign(k)
@@ -137,10 +143,80 @@ def test_the_solver_flag_swaps_the_pair_pressure_for_the_isotropic_one():
     if plain.pressure_density is not None:
         pressure.pressure_density(model, probe).assign(plain.pressure_density)
     probe.force.zero_()
-    pressure.launch_isotropic_pressure_forces(model, start, probe)
+    _every(model, start, probe)
     iso = probe.force.numpy().copy()
     probe.force.zero_()
     pressure.launch_pressure_forces(model, start, probe)
     pairs = probe.force.numpy().copy()
     assert np.abs(iso - pairs).max() > 0.0
     assert np.abs(difference - (iso - pairs)).max() < 1e-9 * np.abs(iso - pairs).max()
+
+
+def _isotropic_block(dtype=wp.float64, viscosity=5.0, **builder):
+    """``_compressed_block``'s block and start with ``Material.pressure_force = "isotropic"`` (its
+    default ``k_p``, ``energy_spiky``'s), not stepped."""
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", viscosity=viscosity,
+                                 pressure_force="isotropic")
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), mat)
+    if builder:
+        b.add_ground(0.0, **builder)
+    model = b.finalize(dtype=dtype)
+    rng = np.random.default_rng(1)
+    x0 = model.particle_x0
+    c = x0.mean(0)
+    start = model.state()
+    start.x.assign(c + 0.95 * (x0 - c) + 0.05 * model.spacing * rng.normal(size=x0.shape))
+    start.v.assign(0.05 * rng.normal(size=x0.shape))
+    return model, start
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_the_isotropic_option_steps_as_the_experimental_flag_on_the_default_force(fused):
+    """``pressure_force = "isotropic"`` is ``energy_spiky``'s pressure (its spiky density, rest
+    density and default ``k_p``) applied through the moments: a step of it gives, bit for bit,
+    the step of the default force with ``Solver._isotropic_pressure`` set (forces, densities,
+    positions), whose forces differ from the default's; a fused solver runs it on the unfused
+    kernels."""
+    model, start = _isotropic_block()
+    assert model.materials[0].pressure_stiffness == pytest.approx(
+        model.materials[0].replace(pressure_force="energy_spiky").pressure_stiffness)
+    out = model.state()
+    we.Solver(model, fused=fused).step(start, out, 1.0e-6)
+
+    default, _ = _isotropic_block()
+    default.set_material(0, default.materials[0].replace(pressure_force="energy_spiky"))
+    assert np.array_equal(default.particle_rest_density.numpy(), model.particle_rest_density.numpy())
+    flagged, plain = default.state(), default.state()
+    solver = we.Solver(default, fused=False)
+    solver._isotropic_pressure = True
+    solver.step(start, flagged, 1.0e-6)
+    we.Solver(default, fused=False).step(start, plain, 1.0e-6)
+    for name in ("force", "density", "pressure_density", "x", "v", "F"):
+        assert np.array_equal(getattr(out, name).numpy(), getattr(flagged, name).numpy()), name
+    assert np.abs(out.force.numpy() - plain.force.numpy()).max() > 1e-3 * np.abs(out.force.numpy()).max()
+
+
+def test_the_isotropic_option_is_refused_where_it_is_not_built():
+    """Beside another pressure force in one model (built or by ``set_material``), with floor
+    images and with the yield test's pair pressure stress: a ValueError naming the option."""
+    iso = we.Material.from_young(1.0e5, 0.3, pressure_force="isotropic")
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), iso)
+    b.add_box((0.08, 0.02, 0.02), np.full(3, 0.04), iso.replace(pressure_force="spiky"))
+    with pytest.raises(ValueError, match=r"pressure_force = 'isotropic' \(material 0\) is not allowed beside "
+                                         r"pressure_force = 'spiky' \(material 1\)"):
+        b.finalize()
+    with pytest.raises(ValueError, match="'isotropic' .* not allowed beside pressure_force = 'energy'"):
+        b2 = we.SceneBuilder(spacing=0.01)
+        b2.add_box(np.full(3, 0.02), np.full(3, 0.04), iso)
+        b2.add_box((0.08, 0.02, 0.02), np.full(3, 0.04), iso.replace(viscosity=1.0))
+        two = b2.finalize()
+        two.set_material(1, iso.replace(viscosity=1.0, pressure_force="energy"))
+    model, start = _isotropic_block(dtype=wp.float32)
+    images, start_images = _isotropic_block(dtype=wp.float32, images=True)
+    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'isotropic' is not allowed with floor images"):
+        we.Solver(images, fused=False).step(start_images, images.state(), 1.0e-6)
+    with pytest.raises(ValueError, match=r"yield_with_pressure=True\) is not allowed with Material\.pressure_force = "
+                                         "'isotropic'"):
+        we.Solver(model, yield_with_pressure=True).step(start, model.state(), 1.0e-6)

@@ -975,7 +975,7 @@ def test_a_default_pressure_stiffness_follows_the_pressure_force():
 
 def test_pressure_force_choice_is_validated_and_energy_spiky_by_default():
     assert we.Material(mu=1.0, lam=1.0).pressure_force == "energy_spiky"
-    allowed = "must be one of 'energy', 'spiky', 'energy_spiky'"
+    allowed = "must be one of 'energy', 'spiky', 'energy_spiky', 'isotropic'"
     with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed: " + allowed):
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")
 

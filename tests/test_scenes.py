@@ -177,7 +177,7 @@ BASE = textwrap.dedent(
         ("radius = 0.1", 'radius = 0.1\nfloor_margin = "wide"', r"key 'floor_margin' in \[\[bodies\]\] #1 .* must be a number, not str"),
         ("radius = 0.1", "radius = 0.1\nfloor = 2", r"unknown key 'floor' in \[\[bodies\]\] #1"),
         ('preset = "dough"', 'preset = "dough"\npressure_force = "spikey"',
-         r"\[materials\.m\]: pressure_force = 'spikey' is not allowed: must be one of 'energy', 'spiky', 'energy_spiky'"),
+         r"\[materials\.m\]: pressure_force = 'spikey' is not allowed: must be one of 'energy', 'spiky', 'energy_spiky', 'isotropic'"),
     ],
 )
 def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):

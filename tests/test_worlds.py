@@ -66,15 +66,16 @@ def _separate(builder, dtype):
     return model
 
 
-@pytest.mark.parametrize("b_pressure", ["energy", "energy_spiky"])
+@pytest.mark.parametrize("b_pressure", ["energy", "energy_spiky", "isotropic"])
 @pytest.mark.parametrize("dtype, tol", [(wp.float64, 1e-12), (wp.float32, 1e-6)])
 def test_two_worlds_match_two_separate_runs(dtype, tol, b_pressure):
     """Two worlds of different materials, on top of each other, give the positions of
     two separate runs (docs/fitting.md, Worlds: the same neighbour rows in the same order,
     so the same sums; the tolerance allows for the order of floating-point sums). With
     world 1 of ``energy_spiky`` the model sums a pressure density of its own (and world 1's
-    rest density is recomputed as the spiky sum's) while world 0 keeps the energy force's."""
-    mat_a = MAT_A.replace(pressure_force="energy")
+    rest density is recomputed as the spiky sum's) while world 0 keeps the energy force's. With
+    ``isotropic`` (every material or none) both worlds are of it."""
+    mat_a = MAT_A.replace(pressure_force="isotropic" if b_pressure == "isotropic" else "energy")
     mat_b = MAT_B.replace(pressure_force=b_pressure)
     model = _builder(mat_a).finalize(dtype=dtype, worlds=2)
     model.set_material(0, mat_b, world=1)

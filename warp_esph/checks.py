@@ -377,7 +377,7 @@ def same_state(model, name: str, state) -> None:
         want["alpha_image_flowed"] = ((n,), T.scalar)
         want["image_stress"] = ((n,), T.mat33)
     # (Not neighbor_d2: the step keeps it in the solver's scratch, and reading it here would
-    # allocate the state's own copy.) pressure_density: None unless a material is energy_spiky.
+    # allocate the state's own copy.) pressure_density: None unless a material is energy_spiky or isotropic.
     if getattr(state, "pressure_density", None) is not None:
         want["pressure_density"] = ((n,), T.scalar)
     # The rows of the colliders, tools and ghost floor: a state of a model with fewer static

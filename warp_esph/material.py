@@ -53,9 +53,16 @@ ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 #: apart where the poly6 one lets them merge (docs/physics.md, "The Fig. 8
 #: rest-configuration cube and the energy pressure force"): the default, since the poly6
 #: energy's pairing gives a flowed pile a spurious strength (docs/physics.md, "The default
-#: pressure force: energy_spiky").
-PRESSURE_FORCES = ("energy", "spiky", "energy_spiky")
+#: pressure force: energy_spiky"). ``isotropic``: ``energy_spiky``'s pressure (the same spiky
+#: density and default ``k_p``) applied as each particle's stress ``-p_i I`` through its
+#: neighbourhood's moment matrix, not along pairs, so a surface particle's own pressure forces
+#: carry ``p V I`` where the pair forms' carry a load the yield test does not see
+#: (docs/method.md §6, docs/physics.md, "The SPH pressure carries load the yield test does not
+#: see"); not beside another pressure force in one model, nor with floor images.
+PRESSURE_FORCES = ("energy", "spiky", "energy_spiky", "isotropic")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
+#: The forces whose pressure reads the spiky-kernel density (``State.pressure_density``).
+SPIKY_DENSITY_FORCES = ("energy_spiky", "isotropic")
 
 #: The default ``k_p = share * K / rho0`` of each pressure force (``K`` the bulk modulus).
 #: Either adds about a quarter of ``K`` to the bulk stiffness: the energy force's pressure
@@ -68,7 +75,8 @@ PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 #: energy's curvature is ``k_p rho0 c^2`` with ``c = -(d rho / d eps_v) / rho`` of the SPH
 #: density on a lattice (``h = 2 dx``), 1.055 for poly6 and 0.774 for the spiky density, so
 #: ``0.25 (1.055 / 0.774)^2 = 0.464`` (docs/physics.md, "A pressure energy of a spiky density").
-PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46}
+#: ``isotropic`` keeps ``energy_spiky``'s: the same pressure, only applied otherwise.
+PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46, "isotropic": 0.46}
 
 
 def p_wave_speed(mu, lam, density, pressure_stiffness):
@@ -147,7 +155,7 @@ class Material:
     material that can flow, and one on the paper's force, keeps eq. 9.
     ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
     bulk modulus) for the energy force, ``K / (2 rho0)`` for the spiky one and ``0.46 K /
-    rho0`` for ``energy_spiky`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
+    rho0`` for ``energy_spiky`` and ``isotropic`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
@@ -162,7 +170,11 @@ class Material:
     pile pairs its particles and stands taller; or ``"spiky"``, Müller et al.'s symmetrised
     pressure along the spiky kernel's gradient (the paper's), the gradient of no energy, which
     keeps a 16-across slumped yield-stress pile creeping at a flat rate where either energy
-    force lets it come to rest (docs/method.md §6). ``Model.stable_dt()`` bounds each force
+    force lets it come to rest; or ``"isotropic"``, ``energy_spiky``'s pressure applied as
+    each particle's stress ``-p_i I`` through its neighbourhood's moment matrix (the
+    variational force's map), so that a free-surface particle's own pressure forces have the
+    virial ``p V I``, which the pair forms' do not (the unfused step runs it; it may not share
+    a model with another pressure force, nor floor images) (docs/method.md §6). ``Model.stable_dt()`` bounds each force
     (docs/physics.md, "The step bound of undamped fast plastic flow").
     """
 

@@ -23,7 +23,7 @@ from .sim.fields import CompressionField
 from .sim.fields import precision_problem as field_precision_problem
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
 from .material import (DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS, Material,
-                       p_wave_speed, young_given)
+                       SPIKY_DENSITY_FORCES, p_wave_speed, young_given)
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -144,6 +144,20 @@ def _named_as_given(material: Material, name: str, value: float, why: str) -> tu
         return f"Material.{name}", value, why
     E, nu = young
     return "E", E, f"with nu = {nu!r} it gives {name} = {LAME_FORMULAS[name]} = {value:g}: {why}"
+
+
+def check_pressure_forces(materials: Sequence[Material]) -> None:
+    """Refuse ``pressure_force = "isotropic"`` beside another pressure force in one model: a pair
+    between the two would carry the pair material's pressure on one side only (the isotropic
+    particle applies its own through its moments, not along its pairs), and no force for such a
+    pair is defined (docs/method.md §6)."""
+    forces = [m.pressure_force for m in materials]
+    if "isotropic" in forces and any(f != "isotropic" for f in forces):
+        iso = forces.index("isotropic")
+        other = next(k for k, f in enumerate(forces) if f != "isotropic")
+        raise ValueError(f"Material.pressure_force = 'isotropic' (material {iso}) is not allowed beside "
+                         f"pressure_force = {forces[other]!r} (material {other}) in one model: make every material "
+                         "'isotropic' or none")
 
 
 def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
@@ -500,6 +514,7 @@ class Model:
         self.material_elastic_force = wp.array(
             [ELASTIC_FORCE_IDS[m.elastic_force] for m in materials], dtype=wp.int32, device=dev
         )
+        check_pressure_forces(materials)
         self.material_pressure_force = wp.array(
             [PRESSURE_FORCE_IDS[m.pressure_force] for m in materials], dtype=wp.int32, device=dev
         )
@@ -798,6 +813,7 @@ class Model:
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
         check_material_precision(material, self.scalar)
+        check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)])
         if material.density != old.density:
             # The particles' masses and rest densities come from it when the model is built:
             # a new density changed the stable step and the wave speeds but not the motion, and
@@ -806,8 +822,8 @@ class Model:
                              f"density {old.density!r}, and a model's particle masses are set when it is built "
                              "(finalize a model with the new one)")
         # The rest density is the pressure density's: its kernel may change with the force.
-        new_density_kernel = (self.materials[index].pressure_force == "energy_spiky") != (
-            material.pressure_force == "energy_spiky")
+        new_density_kernel = (self.materials[index].pressure_force in SPIKY_DENSITY_FORCES) != (
+            material.pressure_force in SPIKY_DENSITY_FORCES)
         self.materials[index] = material
         for name in self.MATERIAL_FIELDS:
             arr = getattr(self, name)
@@ -1052,7 +1068,8 @@ class Model:
         force (``material.p_wave_speed``): that is 1 / 0.95 of what the energy force adds to
         the bulk stiffness, 2 x the spiky force's and 1.7-2 x ``energy_spiky``'s, whose spiky
         core needs no shorter step (an undamped elastic box rests at 1.0 and 2.5 x, blows up at
-        3.5 x, as with the energy force: ``tests/test_adaptive_dt.py``).
+        3.5 x, as with the energy force: ``tests/test_adaptive_dt.py``), nor ``isotropic``'s,
+        the same pressure applied through the moments (the same box: the same three results).
 
         ``hourglass``: the strength ``c`` of the hourglass control the step runs (None: what a
         ``Solver(model)`` runs now, ``solver_choice()``; ``Solver.check_dt`` passes its own). Its springs add to the elastic stiffness, so with ``c > 0`` the wave limit
@@ -1368,14 +1385,22 @@ class Model:
             self._rest_moments = {}
 
     @property
+    def isotropic_pressure(self) -> bool:
+        """Whether the materials' pressure force is ``isotropic`` (all of them, or none:
+        ``check_pressure_forces``)."""
+        return any(m.pressure_force == "isotropic" for m in self.materials)
+
+    @property
     def separate_pressure_density(self) -> bool:
-        """Whether a material's pressure reads a density of its own (``energy_spiky``: the spiky
+        """Whether a material's pressure reads a density of its own (``energy_spiky``,
+        ``isotropic``: the spiky
         sum, ``State.pressure_density``); otherwise the pressure reads the SPH density."""
-        return any(m.pressure_force == "energy_spiky" for m in self.materials)
+        return any(m.pressure_force in SPIKY_DENSITY_FORCES for m in self.materials)
 
     def compute_rest_density(self):
         """The pressure density of the initial configuration (``particle_rest_density``): each
-        particle's pressure-free density (the poly6 sum; the spiky sum for ``energy_spiky``)."""
+        particle's pressure-free density (the poly6 sum; the spiky sum for ``energy_spiky`` and
+        ``isotropic``)."""
         from .sim import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)

@@ -527,7 +527,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
             if with_density != 0:
                 r += mass[j] * w
-                if form == 2:
+                if form >= 2:
                     rp += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
             if with_guard != 0:
                 # Only neighbours of non-zero weight count for the guard (rows reach
@@ -543,12 +543,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             if images != 0:
                 # The floor images enter both densities, each with its own kernel.
                 r += image_density(i, x, mass, nbr, n, h, c6, c_ws, 0, gn, goff, gmin)
-                if form == 2:
+                if form >= 2:
                     rp += image_density(i, x, mass, nbr, n, h, c6, c_ws, form, gn, goff, gmin)
             rho[i] = r
             vol[i] = mass[i] / r
             if with_density == 2:
-                if form != 2:
+                if form < 2:
                     rp = r
                 rho_p[i] = rp
                 vol_p[i] = mass[i] / rp

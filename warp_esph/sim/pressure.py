@@ -11,7 +11,9 @@ paper's pressure (``pressure_force = "spiky"``); the ``energy`` force is minus t
 of ``sum_k m_k e_k(rho_k)``, ``de/drho = p / rho^2``, and ``energy_spiky`` the same of a
 density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6),
 which only its pressure reads (``State.pressure_density``): ``rho`` and the volumes ``V``
-stay the poly6 ones for every material. The viscous force is
+stay the poly6 ones for every material. ``isotropic`` reads ``energy_spiky``'s pressure but
+applies it as each particle's stress ``-p_i I`` through its neighbourhood's moment matrix
+(``isotropic_pressure_forces``), not along the pairs. The viscous force is
 Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
 a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
@@ -84,19 +86,19 @@ def funcs(scalar) -> types.SimpleNamespace:
     def density_weight(r2: scalar, h: scalar, c6: scalar, c_ws: scalar, form: int) -> scalar:
         """The kernel a particle's pressure density sums (docs/method.md §6): poly6 (eq. 7) for
         the ``energy`` and ``spiky`` forces (and for the SPH density of every material), the
-        spiky kernel for ``energy_spiky`` (``form`` 2), whose slope does not vanish as two
-        particles meet."""
-        if form == 2:
+        spiky kernel for ``energy_spiky`` and ``isotropic`` (``form`` 2, 3), whose slope does
+        not vanish as two particles meet."""
+        if form >= 2:
             return sm.w_spiky_c(r2, h, c_ws)
         return sm.w_poly6_c(r2, h, c6)
 
     @wp.func
     def density_weight_gradient(d: vec3, r2: scalar, h: scalar, c6: scalar, c_spiky: scalar, form: int) -> vec3:
         """``d W / d d`` of ``density_weight`` at ``d`` (``r2 = |d|^2 < h^2``): poly6 ``-6 c6
-        (h^2 - r2)^2 d``; for ``form`` 2 the spiky kernel's ``grad_w_spiky_at`` (0 at ``d = 0``,
-        where the direction is undefined)."""
+        (h^2 - r2)^2 d``; for ``form`` 2 and 3 the spiky kernel's ``grad_w_spiky_at`` (0 at
+        ``d = 0``, where the direction is undefined)."""
         g = vec3()
-        if form == 2:
+        if form >= 2:
             if r2 > scalar(1.0e-24) * h * h:
                 g = sm.grad_w_spiky_at(d, wp.sqrt(r2), h, c_spiky)
         else:
@@ -132,7 +134,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         rij: vec3, vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
     ) -> vec3:
         """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``, 2
-        ``energy_spiky_pair_force``) plus viscous force of the pair on ``i``, the kernels
+        ``energy_spiky_pair_force``; 3, ``isotropic``, none: its pressure is
+        ``isotropic_pressure_forces``') plus viscous force of the pair on ``i``, the kernels
         sharing one ``|rij|``. ``VV = V_i V_j`` with the SPH (poly6) density's volumes ``m /
         rho`` (viscosity, the spiky force); ``rho_i, rho_j`` are the pressure densities and
         ``VVp = m_i m_j / (rho_i rho_j)`` (the energy forces): the same as the SPH density but
@@ -146,7 +149,7 @@ def funcs(scalar) -> types.SimpleNamespace:
             elif r2 > scalar(1.0e-24) * h * h:
                 if form == 1:
                     f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
-                else:
+                elif form == 2:
                     f = energy_spiky_pair_force(VVp, p_i, p_j, rho_i, rho_j, rij, rl, h, c_spiky)
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
@@ -910,13 +913,15 @@ def launch_pressure_image_forces_adjoint(model, state_in, state_out):
 
 @functools.cache
 def isotropic_kernels(scalar) -> types.SimpleNamespace:
-    """The isotropic pressure force (``launch_isotropic_pressure_forces``), forward only."""
+    """The isotropic pressure force (``launch_isotropic_pressure_forces``); Warp's generated
+    adjoint differentiates it (the moments are summed in ``isotropic_moments``, a function of
+    their own, before their inverse: docs/method.md, Warp pitfall 1)."""
     T = type_set(scalar)
     vec3 = T.vec3
     fn = funcs(scalar)
     Materials = materials.struct(scalar)
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(module="unique")
     def isotropic_pressure_forces(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
@@ -928,14 +933,18 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        every: int,
         f: wp.array(dtype=vec3),
     ):
         """Particle ``i``'s pressure ``p_i`` (of its pressure density, as the pair forces read
         it) applied as the stress ``-p_i I`` on its volume ``V_i = m_i / rho_i``: ``g_ij = w_ij
         M_i x_ij`` with ``M_i = isotropic_pressure_map``, taken from each neighbour ``j`` and
-        added to ``i``."""
+        added to ``i``. Only an ``isotropic`` material's particles (``pressure_force`` 3) apply
+        it, unless ``every`` (the experimental ``Solver._isotropic_pressure``)."""
         i = wp.tid()
         mi = material[i]
+        if every == 0 and mat.pressure_force[mi] != 3:
+            return
         n = count[i]
         p = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
         M = fn.isotropic_pressure_map(p, mass[i] / rho[i], fn.isotropic_moments(i, x, nbr, n, h))
@@ -951,34 +960,38 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(isotropic_pressure_forces=isotropic_pressure_forces)
 
 
-def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
+def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True, every: bool = False):
     """``launch_pressure_forces`` with each particle's pressure applied as the isotropic
     stress ``-p_i I`` through its neighbourhood's moment matrix (``isotropic_pressure_map``)
     instead of the pair forces: the virial of a particle's own pressure forces is ``p_i V_i I``
     also at a free surface, where the pair forms' is not (its neighbours lie to one side), and
     the pairs stay equal and opposite, with zero torque per particle (``A M^T = -p V I`` is
-    symmetric). The viscous force is the pair kernels' with every pressure stiffness at 0.
-    ``Solver(..., fused=False)`` with ``solver._isotropic_pressure = True`` selects it: an
-    experiment (docs/physics.md, "Still open", the SPH pressure bullet), forward only, without
-    floor images."""
-    if recording_tape() is not None:
-        raise RuntimeError("the isotropic pressure force is forward only: step is not allowed under a wp.Tape with "
-                           "Solver._isotropic_pressure set")
+    symmetric). The viscous force is the pair kernel's, whose pressure is none for an
+    ``isotropic`` material (``sph_pair_force``). ``Material.pressure_force = "isotropic"``
+    selects it (docs/method.md §6); ``every`` applies it to every material with its pair
+    pressure off (the experimental ``Solver._isotropic_pressure``, forward only). Either is
+    refused with floor images, whose pressure is a pair force."""
     if model.image_plane is not None:
-        raise ValueError("the isotropic pressure force is not allowed with floor images (add_ground(images=True)): "
-                         "their pressure is not built for it; use a particle or ghost floor or a collider")
-    k = kernels(model.scalar)
+        raise ValueError("Material.pressure_force = 'isotropic' is not allowed with floor images "
+                         "(add_ground(images=True)): their pressure is a pair force of the floor's mirror images; use a "
+                         "particle or ghost floor or a collider")
+    h = model.scalar(model.support_radius)
     rho_p = pressure_density(model, state_out)
     mats = model.material_arrays()
-    zero_k = materials.make(model.scalar, model.device, **{
-        name: getattr(mats, name) for name in materials.SCALAR_FIELDS + materials.INT_FIELDS
-        if name != "pressure_stiffness"})
-    h = model.scalar(model.support_radius)
-    model.launches(k.pressure_forces, model.particle_count,
-                   [state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
-                    model.particle_material, zero_k, state_out.neighbors, state_out.neighbor_count, h,
-                    *model.image_args(), 1], [state_out.force], device=model.device)
+    if every:
+        if recording_tape() is not None:
+            raise RuntimeError("the experimental Solver._isotropic_pressure is forward only: step is not allowed under a "
+                               "wp.Tape with it set; use Material.pressure_force = 'isotropic'")
+        zero_k = materials.make(model.scalar, model.device, **{
+            name: getattr(mats, name) for name in materials.SCALAR_FIELDS + materials.INT_FIELDS
+            if name != "pressure_stiffness"})
+        model.launches(kernels(model.scalar).pressure_forces, model.particle_count,
+                       [state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
+                        model.particle_rest_density, model.particle_material, zero_k, state_out.neighbors,
+                        state_out.neighbor_count, h, *model.image_args(), 1], [state_out.force], device=model.device)
+    else:
+        launch_pressure_forces(model, state_in, state_out, hand_adjoint)
     model.launches(isotropic_kernels(model.scalar).isotropic_pressure_forces, model.particle_count,
                    [state_in.x, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
-                    model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h],
+                    model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h, int(every)],
                    [state_out.force], device=model.device)

@@ -384,8 +384,10 @@ class Solver:
         #: (``pressure.launch_pressure_stress``, ``plasticity.flow_with_pressure``); it runs the
         #: non-fused kernels.
         self.yield_with_pressure = yield_with_pressure
-        #: Experimental: the SPH pressure applied as an isotropic stress per particle
-        #: (``pressure.launch_isotropic_pressure_forces``; forward only, unfused path alone).
+        #: Experimental: every material's SPH pressure applied as an isotropic stress per
+        #: particle (``pressure.launch_isotropic_pressure_forces``; forward only, unfused path
+        #: alone), kept for the runs made with it; ``Material.pressure_force = "isotropic"`` is
+        #: the option (differentiable).
         self._isotropic_pressure = False
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
@@ -919,11 +921,18 @@ class Solver:
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
         mats = m.material_arrays(rest=True) if rest_model else None
+        if self.yield_with_pressure and m.isotropic_pressure:
+            # Its pair virial (pressure.pressure_stress) has no isotropic term: the yield test
+            # would see no pressure at all.
+            raise ValueError("Solver(yield_with_pressure=True) is not allowed with Material.pressure_force = "
+                             "'isotropic': the yield test's pressure stress is the pair forces' virial; use another "
+                             "pressure force or yield_with_pressure=False")
         if self._isotropic_pressure and self.fused:
             raise ValueError("Solver._isotropic_pressure = True is not allowed with fused = True: the isotropic pressure "
                              "force runs on the unfused path alone; make the solver with fused=False")
+        # The isotropic pressure (docs/method.md §6) is the unfused kernels' alone.
         fast = (self.fused and not cmp and not self._curved and ghosts is None and not self.yield_with_pressure
-                and (tape is None or self._fast_under_tape(state_in, state_out)))
+                and not m.isotropic_pressure and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
         curved_rest = cmp and self._curved
         Fp_in = None
@@ -1007,8 +1016,9 @@ class Solver:
                     ghost_floor.launch_hand_over(m, state_out)
             if sph:
                 with phase("pressure"):
-                    if self._isotropic_pressure:
-                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand)
+                    if self._isotropic_pressure or m.isotropic_pressure:
+                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand,
+                                                                  every=self._isotropic_pressure)
                     else:
                         pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
