@@ -1,7 +1,9 @@
-"""The near-yield column and the slump with the experimental isotropic pressure force
-(``Solver._isotropic_pressure``, ``warp_esph.sim.pressure.launch_isotropic_pressure_forces``;
+"""The near-yield column and the slump with the isotropic pressure force
+(``Material.pressure_force = "isotropic"``, ``warp_esph.sim.pressure.launch_isotropic_pressure_forces``;
 docs/physics.md, "Still open", the SPH pressure bullet), against the same case with the default
-pair force: every ``Solver`` made inside ``isotropic_pressure()`` runs unfused with the flag set.
+pair force: every ``Solver`` made inside ``isotropic_pressure()`` runs unfused, its model's
+materials made ``isotropic`` (``energy_spiky``'s pressure and ``k_p``: the experimental
+``Solver._isotropic_pressure`` flag's step on the default force, bit for bit).
 
     python -m benchmarks.isotropic_pressure column --resolution 4 --periods 60
     python -m benchmarks.isotropic_pressure slump --S 0.2 --resolution 8 --duration 8
@@ -20,16 +22,22 @@ COLUMN_KEYS = ("plastic_over_theory", "elastic_measured", "nearest_neighbour_min
 
 @contextlib.contextmanager
 def isotropic_pressure(on: bool = True):
-    """Every ``warp_esph.Solver`` made in the block runs unfused (the flag's path) and, with
-    ``on``, with ``_isotropic_pressure`` set; ``on=False`` is the baseline on the same path."""
+    """Every ``warp_esph.Solver`` made in the block runs unfused (the isotropic force's path)
+    and, with ``on``, on a model whose every material is ``pressure_force = "isotropic"``
+    (``Model.set_material``, each keeping its ``k_p``); ``on=False`` is the baseline on the same
+    path."""
     import warp_esph as we
 
     init = we.Solver.__init__
 
     def patched(self, model, *args, **kwargs):
         kwargs["fused"] = False
+        if on:
+            for k, mat in enumerate(model.materials):
+                if mat.pressure_force != "isotropic":
+                    model.set_material(k, mat.replace(pressure_force="isotropic",
+                                                      pressure_stiffness=mat.pressure_stiffness))
         init(self, model, *args, **kwargs)
-        self._isotropic_pressure = on
 
     we.Solver.__init__ = patched
     try:

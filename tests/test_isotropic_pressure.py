@@ -220,3 +220,30 @@ def test_the_isotropic_option_is_refused_where_it_is_not_built():
     with pytest.raises(ValueError, match=r"yield_with_pressure=True\) is not allowed with Material\.pressure_force = "
                                          "'isotropic'"):
         we.Solver(model, yield_with_pressure=True).step(start, model.state(), 1.0e-6)
+
+
+def test_the_benchmarks_context_runs_the_isotropic_option_unfused():
+    """``benchmarks/isotropic_pressure.py``: a ``Solver`` made in ``isotropic_pressure()`` runs
+    unfused on a model made ``isotropic`` (each material keeping its ``k_p``), whose step is the
+    experimental flag's on the default force bit for bit; ``on=False`` leaves the force alone;
+    outside the block ``Solver`` is as before."""
+    from benchmarks.isotropic_pressure import isotropic_pressure
+
+    model, start = _isotropic_block()
+    default, _ = _isotropic_block()
+    default.set_material(0, default.materials[0].replace(pressure_force="energy_spiky"))
+    k_p = default.materials[0].pressure_stiffness
+    flagged = default.state()
+    solver = we.Solver(default, fused=False)
+    solver._isotropic_pressure = True
+    solver.step(start, flagged, 1.0e-6)
+    with isotropic_pressure(False):
+        assert not we.Solver(default).fused and default.materials[0].pressure_force == "energy_spiky"
+    with isotropic_pressure():
+        s = we.Solver(default)
+    assert not s.fused and default.materials[0].pressure_force == "isotropic"
+    assert default.materials[0].pressure_stiffness == k_p
+    out = default.state()
+    s.step(start, out, 1.0e-6)
+    assert np.array_equal(out.force.numpy(), flagged.force.numpy())
+    assert we.Solver(default).fused
