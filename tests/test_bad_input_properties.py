@@ -510,6 +510,24 @@ def test_a_start_frame_past_what_a_usd_time_code_counts_is_refused(tmp_path, sta
     assert (writer.first_frame, writer.last_frame) == (2**53 - 1, 2**53)
 
 
+@pytest.mark.parametrize("argument", ["start_frame", "frames"])
+@pytest.mark.parametrize("value", [-10**5000, -(10**400), -1.5], ids=["5001_digits", "401_digits", "float"])
+def test_a_negative_frame_count_or_start_is_named_whatever_its_size(argument, value):
+    """``start_frame`` (and ``frames``) below its range is refused naming it, however many
+    digits it has: a negative int of more than 4300 digits raised Python's 'Exceeds the limit
+    (4300 digits) for integer string conversion' from the refusal's own message, naming no
+    parameter, where a positive one past 2**53 was named (shortened)."""
+    from warp_esph.simulate import simulate
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    model = b.finalize()
+    kwargs = {"frames": 1, "start_frame": 0, argument: value}
+    with pytest.raises(ValueError, match=rf"^{argument} = .* is not allowed: must be an integer >= {int(argument == 'frames')}$") as info:
+        simulate(model, fps=1000.0, progress=False, **kwargs)
+    assert len(str(info.value)) < 200, str(info.value)[:300]
+
+
 @pytest.mark.parametrize("indices", [list(range(100000)) + [-1], np.arange(200).reshape(-1, 2), [0.5] * 10000])
 def test_a_pins_bad_indices_are_named_in_one_short_line(indices):
     """The refusal wrote the whole index list: 0.7 MB of message for 1e5 indices with one

@@ -1118,7 +1118,9 @@ def _check_run_start(model: Model, state: State, frames: int, fps: float, dt, ho
 
 def _frame_count(frames) -> int:
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
-        raise ValueError(f"frames = {frames!r} is not allowed: must be an integer >= 1")
+        # Shortened: a negative int past 4300 digits made repr() raise Python's own digit-limit
+        # error from this message, naming no parameter.
+        raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed: must be an integer >= 1")
     return int(frames)
 
 
@@ -1371,7 +1373,7 @@ def simulate(
             raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
         frames = _frame_count(frames)
         if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)) or start_frame < 0:
-            raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
+            raise ValueError(f"start_frame = {checks.shorten(start_frame)!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
         if start_frame + frames > MAX_FRAME_INDEX:
             # A frame's USD time code is a double: past 2**53 two frames got one time code, the
