@@ -582,3 +582,27 @@ def test_a_checkpoint_of_the_other_precision_is_refused_naming_the_precision_to_
     np.savez(tmp_path / "f16.npz", **data)
     with pytest.raises(ValueError, match=r"its metadata has dtype = 'float16' \(must be 'float32' or 'float64'\)$"):
         load_state(tmp_path / "f16.npz", target)
+
+
+def test_a_checkpoint_records_whether_the_yield_test_read_the_pressure(tmp_path):
+    """``Solver(yield_with_pressure=True)`` changes what flows (its yield test adds the SPH
+    pressure's stress) and runs the non-fused kernels: its checkpoint recorded neither (``fused =
+    True``, no word of the option), so a default solver resumed it without a word, another run
+    than the one saved, while a solver of the same option and ``fused=False``, which runs those
+    very kernels, was refused as 'fused = True'."""
+    model = _model()
+    solver = we.Solver(model, yield_with_pressure=True)
+    a, b = model.state(), model.state()
+    for _ in range(10):
+        solver.step(a, b, 4e-4)
+        a, b = b, a
+    path = save_state(tmp_path / "c.npz", model, a, step=10, frame=1, solver=solver)
+    other = _model()
+    with pytest.raises(ValueError, match=r"the run it continues had yield_with_pressure = True, this solver "
+                                         r"yield_with_pressure = False"):
+        load_state(path, other, solver=we.Solver(other))
+    fresh = _model()
+    same = we.Solver(fresh, fused=False, yield_with_pressure=True)
+    resumed, _ = load_state(path, fresh, solver=same)
+    np.testing.assert_array_equal(_advance_with(same, fresh, resumed, 5, 4e-4).x.numpy(),
+                                  _advance_with(solver, model, a, 5, 4e-4).x.numpy())

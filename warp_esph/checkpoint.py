@@ -117,8 +117,9 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     made it), unless that model is of the same scene (the same ``model_fingerprint``).
 
     ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
-    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels, whether the
-    rest-configuration model runs from ``state``: not where its body flowed), which
+    ran (``solver_settings``: fit, hourglass, contact ramp, guards, the yield test's pressure,
+    fused kernels, whether the rest-configuration model runs from ``state``: not where its
+    body flowed), which
     ``load_state(..., solver=)`` compares with the solver that resumes. Without it, those of
     the solver of ``model`` whose step wrote ``state``, or whose ``simulate`` run it starts (a
     callback's checkpoint of the start frame), are recorded (``State.written_by``) while that
@@ -217,8 +218,9 @@ def solver_settings(solver, state: State | None = None) -> dict:
     (``Model.solver_choice``: ``"auto"`` resolved, so ``fit="linear"`` where ``"auto"`` runs
     the linear fit is the same run; a strength set by hand, ``Solver.hourglass``, as it runs),
     the model's contact ramp, the neighbourhood guards,
-    whether the fused kernels run (the same equations, another round-off; the curvature-
-    corrected fit, comparison models and ghost floors never take them) and whether a step
+    whether the yield test reads the SPH pressure (``Solver.yield_with_pressure``), whether the
+    fused kernels run (the same equations, another round-off; the curvature-corrected fit,
+    comparison models, ghost floors and ``yield_with_pressure`` never take them) and whether a step
     from ``state`` runs the rest-configuration model (``Solver.runs_rest``; None: a new
     state): False from a state an incremental step wrote whose body flowed, where the
     incremental composition runs whatever the parameters allow. Not the neighbour skin: it
@@ -228,10 +230,13 @@ def solver_settings(solver, state: State | None = None) -> dict:
     # The strength the step runs: one set by hand (Solver.hourglass) is not the requested one,
     # which a fresh solver without the control matched.
     c = solver.next_hourglass()
-    fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
+    pressure_yield = bool(solver.yield_with_pressure)
+    fused = (solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
+             and not pressure_yield)
+    # The yield test before the kernel path: it is what a solver without it differs in first.
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
-            "fused": bool(fused),
+            "yield_with_pressure": pressure_yield, "fused": bool(fused),
             "rest_model": bool(solver.runs_rest(state))}
 
 

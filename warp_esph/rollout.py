@@ -1102,8 +1102,8 @@ class Rollout:
     def run_settings(self) -> dict:
         """What a run of this rollout reads besides the parameters, materials, tools and start:
         ``dt``, the model's ``gravity`` and the solver's settings (``checkpoint.solver_settings``:
-        the fit, hourglass strength, contact ramp, neighbourhood guards, fused kernels, rest
-        model), as a run now would take them."""
+        the fit, hourglass strength, contact ramp, neighbourhood guards, the yield test's pressure,
+        fused kernels, rest model), as a run now would take them."""
         from .checkpoint import solver_settings  # noqa: PLC0415 (checkpoint imports the model, as this module)
 
         return {"dt": self.dt, "gravity": tuple(self.model.gravity), **solver_settings(self.solver)}
