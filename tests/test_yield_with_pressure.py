@@ -172,3 +172,13 @@ def test_gradient_through_the_pressure_in_the_yield_test_matches_central_differe
     for eps in (1e-4, 1e-6):
         fd = (_loss(params, v_delta=eps)[0] - _loss(params, v_delta=-eps)[0]) / (2 * eps)
         assert grads["v0"][0, 0] == pytest.approx(fd, rel=1e-4, abs=1e-9), eps
+
+
+def test_a_solver_of_the_option_says_its_taped_step_runs_the_differentiable_kernels():
+    """``fast_under_tape()`` (what ``Rollout`` reads to run its untaped forward on the kernels
+    the tape records) said True for ``Solver(yield_with_pressure=True)`` on a model with
+    gradients, whose steps never take the fused kernels; the same solver without the option
+    does take them."""
+    model = _block(wp.float32, requires_grad=True)
+    assert we.Solver(model).fast_under_tape()
+    assert not we.Solver(model, yield_with_pressure=True).fast_under_tape()

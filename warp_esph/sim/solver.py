@@ -653,11 +653,12 @@ class Solver:
         hand-written adjoints (and the constitutive update's generated one) in their place:
         with ``fused`` and ``hand_adjoints``, a ``requires_grad`` model and no comparison model
         (either elastic force: ``forces.elastic_forces_adjoint`` for eqs. 10-13,
-        ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
+        ``forces.variational_forces_adjoint`` for the variational one) and without
+        ``yield_with_pressure``, whose steps never take the fused kernels. Otherwise the
         differentiable kernels run."""
         m = self.model
         return (self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
-                and self.ghost_search is None)
+                and self.ghost_search is None and not self.yield_with_pressure)
 
     def _pressure_stress(self, state_in: State, state_out: State, sph: bool, tape) -> wp.array | None:
         """With ``yield_with_pressure``, each particle's SPH pressure stress this step (zero
