@@ -182,3 +182,31 @@ def test_a_solver_of_the_option_says_its_taped_step_runs_the_differentiable_kern
     model = _block(wp.float32, requires_grad=True)
     assert we.Solver(model).fast_under_tape()
     assert not we.Solver(model, yield_with_pressure=True).fast_under_tape()
+
+
+def test_worlds_beside_a_ghost_floor_are_not_told_they_differ_from_their_separate_runs():
+    """A world beside a ghost floor is warned that alone it runs the fused kernels; with
+    ``yield_with_pressure`` no world alone runs them (the option runs the non-fused ones), so
+    the warning, and its advice to compare with ``fused=False`` runs, said what is not so. The
+    world's run is its separate run's under the same option to the bit."""
+    import warnings
+
+    from warp_esph.builder import finalize_worlds
+
+    def world(ghost):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="paste",
+                  velocity=(0.1, 0.0, 0.0))
+        b.add_particle_floor("paste", margin=0.02, layers=2, ghost=ghost)
+        b.add_ground(friction=0.5)
+        return b
+
+    model = finalize_worlds([world(True), world(False)], dtype=wp.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver = we.Solver(model, yield_with_pressure=True)
+    steps = dict(fps=30.0, dt=1.0 / 30.0 / 80.0, progress=False)
+    x = we.simulate(model, 1, solver=solver, **steps).x.numpy()
+    alone = world(False).finalize(dtype=wp.float64)
+    x1 = we.simulate(alone, 1, solver=we.Solver(alone, yield_with_pressure=True), **steps).x.numpy()
+    np.testing.assert_array_equal(x[model.world_particles(1)], x1)

@@ -398,7 +398,9 @@ class Solver:
                                      for mt in model.materials)
         if self._cmp:
             self.rest_set()
-        plain, why = model.worlds_fused_differ() if self.fused and not self._curved else ([], "")
+        # With yield_with_pressure every world alone runs the non-fused kernels too.
+        plain, why = (model.worlds_fused_differ() if self.fused and not self._curved and not self.yield_with_pressure
+                      else ([], ""))
         # A world whose fit differs alone (the warning above) differs by more than round-off:
         # alone it runs the curvature-corrected fit, not the fused kernels.
         plain = [w for w in plain if w not in differ]
