@@ -859,7 +859,8 @@ def launch_pressure_stress(model, state_in, state_out, sigma):
     """Each particle's SPH pressure stress (``pressure_stress``: its pressure pairs' virial over
     its volume, Cauchy, tension positive) at ``state_in.x`` with the densities in ``state_out``,
     into ``sigma`` (zeroed here). The floor images' pressure (``Model.image_plane``) is not in
-    it. Recorded on a tape as any launch (Warp's generated adjoint)."""
+    it (``Solver`` refuses the option beside them). Recorded on a tape as any launch (Warp's
+    generated adjoint)."""
     sigma.zero_()
     model.launches(
         kernels(model.scalar).pressure_stress, model.particle_count,
