@@ -1247,6 +1247,41 @@ def test_every_start_on_the_ground_that_finalize_accepts_is_quiet(floor, dtype):
         assert fastest < math.sqrt(2.0 * 9.81 * dx), (depth, fastest)
 
 
+def test_a_raw_step_from_a_blown_up_state_warns_without_a_read_of_its_own():
+    """``Solver.step`` at 20 x the stable step went on from NaN positions with only the
+    stability warning of its dt: the neighbour search's displacement check, which reads its
+    bounds back every step anyway, now flags a non-finite position, and the step from such a
+    state warns once (none inside ``caller_checks``, whose caller says so itself)."""
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("rubber"), name="blk")
+    b.add_ground()
+    model = b.finalize(device="cpu")
+    dt = 20.0 * model.stable_dt()
+
+    def words(caught):
+        return [str(w.message) for w in caught if "state_in holds a non-finite position" in str(w.message)]
+
+    for quiet in (False, True):
+        solver = we.Solver(model)
+        a, c = model.state(), model.state()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with solver.caller_checks() if quiet else contextlib.nullcontext():
+                for _ in range(60):
+                    solver.step(a, c, dt)
+                    a, c = c, a
+                    if not np.isfinite(a.x.numpy()).all():
+                        break
+                assert not np.isfinite(a.x.numpy()).all()
+                assert words(caught) == []  # every state it started from was finite
+                solver.step(a, c, dt)
+                solver.step(c, a, dt)
+        said = words(caught)
+        assert len(said) == (0 if quiet else 1), said
+        if not quiet:
+            assert "(dt is above it: use a smaller one)" in said[0], said
+
+
 @pytest.mark.parametrize("case", ["spacing", "empty_cloud"])
 def test_an_extreme_input_gets_its_one_line_and_no_numpy_notes_before_it(tmp_path, monkeypatch, capsys, case):
     """A spacing of 1e300 printed numpy's 'overflow encountered in scalar divide' before the

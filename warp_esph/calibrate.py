@@ -1120,9 +1120,10 @@ def _scene_run(model, substeps: int, dt: float):
         solver = Solver(model)
         current, spare = model.state(requires_grad=False), model.state(requires_grad=False)
         try:
-            for _ in range(int(frame) * substeps):
-                solver.step(current, spare, dt)
-                current, spare = spare, current
+            with solver.caller_checks():  # the caller reads the state back (None where it failed)
+                for _ in range(int(frame) * substeps):
+                    solver.step(current, spare, dt)
+                    current, spare = spare, current
         except (ValueError, ArithmeticError, RuntimeError):  # a refused step, a neighbour overflow
             return None
         x = current.x.numpy().astype(np.float64)

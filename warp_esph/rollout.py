@@ -973,7 +973,7 @@ class Rollout:
             states = self._taped_states(self.steps + 1)
             states[0].assign(self._initial)
             tape = wp.Tape()
-            with tape:
+            with tape, self.solver.caller_checks():
                 for k in range(self.steps):
                     self.solver.step(states[k], states[k + 1], self.dt)
             self._tape = tape
@@ -1143,7 +1143,8 @@ class Rollout:
             if k in self._frame_slot:
                 wp.copy(self.frame_positions[self._frame_slot[k]], cur.x)
             if k < self.steps:
-                self.solver.step(cur, nxt, self.dt)
+                with self.solver.caller_checks():
+                    self.solver.step(cur, nxt, self.dt)
                 self._store_forces(k, nxt)
                 cur, nxt = nxt, cur
         self._final = cur
@@ -1394,7 +1395,7 @@ class Rollout:
                 _zero_state_grads(s)
             seg[0].assign(ck)
             tape = wp.Tape()
-            with tape:
+            with tape, self.solver.caller_checks():
                 for k in range(length):
                     self.solver.step(seg[k], seg[k + 1], self.dt)
             end = seg[length]

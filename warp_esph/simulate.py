@@ -1492,7 +1492,8 @@ def simulate(
                                               particle=p, body=body, frame=start_frame + k) from None
                 for i in range(n_sub):
                     try:
-                        solver.step(current, spare, dt)
+                        with solver.caller_checks():  # the monitor reads each frame
+                            solver.step(current, spare, dt)
                     except NeighborOverflow as e:
                         raise _overflow_error(model, e, steps + i + 1 if adaptive else start_frame * n_sub + steps + i + 1,
                                               start_frame + k, float(current.time) + dt, dt) from e

@@ -277,13 +277,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         """For the displacements d = x - x_ref: out[k] = max d_k, out[k + 3] = max -d_k,
         out[6] = max |d - c|^2 for a given centre c; with ``with_stretch``, out[7] = 1
-        where a stretch bound exceeds what the particle's candidates cover."""
+        where a stretch bound exceeds what the particle's candidates cover; out[8] = 1 where
+        a position is not finite (a NaN fails every comparison below, so the maxima miss it)."""
         i = wp.tid()
         if with_stretch != 0:
             st = cand_stretch[i]
             if st < max_stretch and stretch_bound2(F[i]) > st * st:
                 out[7] = scalar(1.0)
         d = x[i] - x_ref[i]
+        if not (wp.isfinite(d[0]) and wp.isfinite(d[1]) and wp.isfinite(d[2])):
+            out[8] = scalar(1.0)
         for k in range(3):
             if d[k] > out[k]:
                 wp.atomic_max(out, k, d[k])
@@ -644,7 +647,11 @@ class NeighborSearch:
         self.candidate_count = wp.zeros(particle_count, dtype=wp.int32, device=device)
         self._x_ref = wp.zeros(particle_count, dtype=type_set(scalar).vec3, device=device)
         self._overflow = wp.zeros(1, dtype=wp.int32, device=device)
-        self._bounds = wp.zeros(8, dtype=scalar, device=device)
+        self._bounds = wp.zeros(9, dtype=scalar, device=device)
+        #: Whether the last ``candidates_valid`` found a non-finite position: read with the
+        #: displacement bounds the check reads anyway, so the solver can say so without a read
+        #: of its own (``Solver.step``).
+        self.found_non_finite = False
         self._bounds_view = self._bounds.numpy() if self._bounds.device.is_cpu else None
         self._centre = (0.0, 0.0, 0.0)
         self._have_candidates = False
@@ -745,6 +752,7 @@ class NeighborSearch:
         any fixed point ``c`` (the box centre at the previous check): a pair not among the
         candidates (``>= h s_i + skin`` apart when they were built) is still beyond the
         selection radius ``h sigma_max(F_i) <= h s_i`` while ``D < skin``."""
+        self.found_non_finite = False
         if not self._have_candidates or self.skin <= 0.0 or x.shape[0] != self.particle_count:
             return False
         if F is not None and not self._cand_with_stretch:
@@ -765,8 +773,10 @@ class NeighborSearch:
             ],
             [self._bounds], device=self.device, record_tape=False,
         )
-        # Eight numbers: Python floats cost less than numpy's calls on them.
+        # Nine numbers: Python floats cost less than numpy's calls on them.
         b = (view if view is not None else self._bounds.numpy()).tolist()
+        # Only said: the lists are judged as before (a NaN position passes every test).
+        self.found_non_finite = b[8] > 0.0
         if b[7] > 0.0:
             return False
         if not all(math.isfinite(v) for v in b[:7]):

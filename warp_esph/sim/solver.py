@@ -425,6 +425,8 @@ class Solver:
         self._tape_seen = None  # (the recording tape, the states its steps wrote): _check_taped_step
         self._warned_tape = False
         self._warned_cut = False
+        self._warned_non_finite = False
+        self._caller_checking = 0  # caller_checks() depth
         self._warned_worlds_kept = False
         #: Steps taken since construction, replays of a rollout's backward pass included (as
         #: ``guard_counts``): a count of work, not a fact about any state.
@@ -762,6 +764,31 @@ class Solver:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
                 and state_in.F.grad is not None)
 
+    @contextlib.contextmanager
+    def caller_checks(self):
+        """Inside, a step from a state with a non-finite position does not warn (``step``):
+        the caller reads its states back and stops on a blow-up in its own words (``simulate``,
+        ``Rollout``)."""
+        self._caller_checking += 1
+        try:
+            yield self
+        finally:
+            self._caller_checking -= 1
+
+    def _warn_non_finite(self, state_in, dt):
+        """Once per solver: ``state_in`` holds a non-finite position, seen by the neighbour
+        search's displacement check, which reads its bounds back every step anyway (with a
+        skin, after the first step): an earlier step blew up, and this one carries it on."""
+        self._warned_non_finite = True
+        stable = self.model.stable_dt(hourglass=self.hourglass)
+        warnings.warn(
+            f"Solver.step: state_in holds a non-finite position: an earlier step blew up, and the steps from it carry "
+            f"NaN on; dt = {dt:g} s, Model.stable_dt() = {stable:.3g} s"
+            + (" (dt is above it: use a smaller one)" if dt > stable * (1.0 + STEP_ROUNDING) else
+               " (dt is within it: check the start state and the parameters)")
+            + "; step does not read the particles back, so check a run's states where it reads them "
+            "(simulate.DivergenceMonitor, or np.isfinite(state.x.numpy()))", RuntimeWarning, stacklevel=4)
+
     def _warn_cut(self):
         # One small read per step until the first cut (the Verlet check reads too).
         if int(self.scratch.counters.numpy()[COUNT_NEIGHBORS_CUT]) > 0:
@@ -872,7 +899,25 @@ class Solver:
         return dt
 
     def step(self, state_in: State, state_out: State, dt: float):
-        """One step of the method, stage by stage (docs/physics.md has the table)."""
+        """One step of the method, stage by stage (docs/physics.md has the table).
+
+        The hot path: it reads back from the device only a few numbers it needs to go on (the
+        material parameter rows, which set ``stable_dt`` and which terms run; the neighbour
+        search's nine displacement bounds, which say whether its candidate lists still hold;
+        the cut-row count until a row is first cut), never the particles. Its checks are of
+        what it has: ``dt`` (``check_dt``: refused unless positive and resolvable; above
+        ``Model.stable_dt()`` a ``RuntimeWarning``, once per value, and the step runs), the
+        states' shapes, and, from the displacement bounds, whether ``state_in`` holds a
+        non-finite position (a ``RuntimeWarning``, once per solver; with the default
+        ``neighbor_skin``, from the second step). A step past the stable one returns what the
+        kernels computed, NaN included, without raising; the step after it warns. The
+        blow-up checks live where a run reads its states anyway: ``simulate`` (and
+        ``warp-esph run``) checks every frame with ``simulate.DivergenceMonitor`` (one read of
+        the particles a frame), ``Rollout.forward`` raises ``NonFiniteRollout``; their steps
+        run inside ``caller_checks``, which keeps the step's own warning quiet. A loop of one's
+        own checks as often as it reads the states: ``DivergenceMonitor(model,
+        state0).check(x, v, t)`` on the read ``x``, ``v`` (a blow-up that stays finite too), or
+        ``np.isfinite(state.x.numpy()).all()`` (docs/errors.md)."""
         launches, searches = self.model.launches, self.search.launches
         tape = recording_tape()
         if tape is None:
@@ -985,6 +1030,8 @@ class Solver:
                 ghosts.update(state_in, state_out, scratch.counters, COUNT_NEIGHBORS_CUT)
             if not self._warned_cut:
                 self._warn_cut()
+            if self.search.found_non_finite and not self._warned_non_finite and not self._caller_checking:
+                self._warn_non_finite(state_in, dt)
         state_out.force.zero_()
         # Each floor image's own F flows as the particles' does (State.F_image; docs/physics.md,
         # "The floor images' energy is not stored").
