@@ -35,6 +35,19 @@ from . import deformation, materials, smoothing
 from .replay import outside_recording_tape, recording_tape
 
 
+#: The conditioning ``q = det A / (tr A / 3)^3`` of the isotropic pressure's moments from
+#: which its map is ``A^-1`` itself (``isotropic_pressure_map``). Lattices, their surfaces
+#: and lattices jittered by 0.2 dx have ``q`` >= 0.47 (0.08 at 0.3 dx); neighbours near a
+#: plane (``lmin / lmax`` ~ 3.4 q) or a line lower it towards 0.
+ISOTROPIC_Q_FULL = 0.2
+#: The share of ``tr A / 3`` added to the diagonal of the isotropic pressure's moments at
+#: ``q = 0``: a compressed one-layer sheet keeps 0.94 of ``p V`` in its plane, and a particle
+#: of it moved off the plane is pushed with at most 5 ``p V / dx`` (at 0.2 dx, where the map
+#: is ``A^-1``; ``A^-1`` alone gave ``p V / d``, 1000 ``p V / dx`` at 0.001 dx, and no
+#: pressure at all on the plane: ``tests/test_isotropic_pressure.py``).
+ISOTROPIC_REGULARISATION = 0.1
+
+
 @functools.cache
 def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
@@ -281,15 +294,31 @@ def funcs(scalar) -> types.SimpleNamespace:
         return A
 
     @wp.func
+    def isotropic_regularisation(q: scalar) -> scalar:
+        """The share ``e`` of ``tr A / 3`` added to the moments' diagonal
+        (``isotropic_pressure_map``) at the conditioning ``q = det A / (tr A / 3)^3`` (1 for an
+        isotropic ``A``, 0 for neighbours on a plane or a line): 0 from ``ISOTROPIC_Q_FULL``
+        (the map is ``A^-1`` itself there), ``ISOTROPIC_REGULARISATION`` at 0, a smoothstep
+        between, so that the force stays continuous and differentiable in the positions."""
+        t = wp.clamp(q / scalar(ISOTROPIC_Q_FULL), scalar(0.0), scalar(1.0))
+        return scalar(ISOTROPIC_REGULARISATION) * (scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t))
+
+    @wp.func
     def isotropic_pressure_map(p: scalar, V: scalar, A: mat33) -> mat33:
-        """``M = -p V A^-1``: the variational force's map ``V P F^T A^-1`` (``forces.py``) of the
-        stress ``-p I`` on the current volume ``V``, so that ``sum_j x_ij (x) (-w M x_ij) = p V I``
-        exactly. 0 where ``A`` is near singular (neighbours on a plane or a line: the particle
-        then applies no pressure of its own)."""
+        """``M = -p V (A + e (tr A / 3) I)^-1``, ``e = isotropic_regularisation``: where ``A``
+        is well conditioned (``e = 0``) the variational force's map ``V P F^T A^-1``
+        (``forces.py``) of the stress ``-p I`` on the current volume ``V``, so that ``sum_j
+        x_ij (x) (-w M x_ij) = p V I`` exactly. Where the neighbours lie near a plane or a
+        line, ``A^-1`` would push a particle a distance ``d`` off the plane with ``p V / d``
+        (the virial's normal part kept at ``p V`` by ever shorter arms); the added diagonal
+        bounds that and keeps the pressure within the plane or along the line (a lone pair
+        repels), and ``A M^T`` stays symmetric (no torque). 0 for a particle alone."""
         M = mat33()
         tr = A[0, 0] + A[1, 1] + A[2, 2]
-        if p != scalar(0.0) and wp.determinant(A) > scalar(1.0e-6) * tr * tr * tr / scalar(27.0):
-            M = (-p * V) * wp.inverse(A)
+        if p != scalar(0.0) and tr > scalar(0.0):
+            a = tr / scalar(3.0)
+            e = isotropic_regularisation(wp.determinant(A) / (a * a * a))
+            M = (-p * V) * wp.inverse(A + (e * a) * wp.identity(n=3, dtype=scalar))
         return M
 
     @wp.func
@@ -310,6 +339,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         pair_virial_share=pair_virial_share,
         isotropic_weight=isotropic_weight, isotropic_moments=isotropic_moments,
         isotropic_pressure_map=isotropic_pressure_map, isotropic_pair_force=isotropic_pair_force,
+        isotropic_regularisation=isotropic_regularisation,
     )
 
 
