@@ -249,11 +249,10 @@ def test_the_benchmarks_context_runs_the_isotropic_option_unfused():
     assert we.Solver(default).fused
 
 
-def _sheet_own_forces(offset):
+def _sheet(offset):
     """A one-particle-thick 5 x 5 sheet of ``isotropic`` material compressed in its plane to
-    0.85 of its spacing, its middle particle moved ``offset`` spacings out of the plane: that
-    particle's pressure ``p V`` and its own pressure forces (every other particle's pressure
-    off), with the positions."""
+    0.85 of its spacing, its middle particle ``i`` moved ``offset`` spacings out of the plane,
+    stepped once for its neighbour rows and densities: ``(model, start, out, x, i)``."""
     dx = 0.01
     mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", pressure_force="isotropic")
     g = dx * np.stack(np.meshgrid(np.arange(5), np.arange(5), indexing="ij"), -1).reshape(-1, 2)
@@ -268,6 +267,13 @@ def _sheet_own_forces(offset):
     start, out = model.state(), model.state()
     start.x.assign(x)
     we.Solver(model, fused=False).step(start, out, 1.0e-9)
+    return model, start, out, x, i
+
+
+def _sheet_own_forces(offset):
+    """``_sheet``'s middle particle's pressure ``p V`` and its own pressure forces (every other
+    particle's pressure off), with the positions."""
+    model, start, out, x, i = _sheet(offset)
     p = model.pressure_stiffness.numpy()[0] * (pressure.pressure_density(model, out).numpy()[i]
                                                - model.particle_rest_density.numpy()[i])
     pV = p * model.particle_mass.numpy()[i] / out.density.numpy()[i]
@@ -294,3 +300,51 @@ def test_a_flat_layers_isotropic_pressure_pushes_within_it_and_stays_bounded_off
         virial = (x - x[i]).T @ f
         # In the plane (x, z) most of p V I, as the isotropic stress would carry.
         assert virial[0, 0] > 0.8 * pV and virial[2, 2] > 0.8 * pV, offset
+
+
+def test_the_isotropic_kernels_generated_adjoint_matches_central_differences_off_a_flat_layer():
+    """Where the moments are regularised (a particle 0.1 dx off a compressed one-layer sheet,
+    ``q`` below ``ISOTROPIC_Q_FULL``), Warp's generated adjoint of ``isotropic_pressure_forces``
+    in the positions (densities held) is its float64 central difference."""
+    model, start, out, x, i = _sheet(0.1)
+    xs = x - x[i]
+    r = np.linalg.norm(xs, axis=1)
+    h = model.support_radius
+    near = (r > 0) & (r < h)
+    w = (1 - r[near] / h) ** 2 * h / r[near]
+    A = (w[:, None, None] * xs[near][:, :, None] * xs[near][:, None, :]).sum(0)
+    assert 0.0 < np.linalg.det(A) / (np.trace(A) / 3) ** 3 < pressure.ISOTROPIC_Q_FULL
+    kernel = pressure.isotropic_kernels(wp.float64).isotropic_pressure_forces
+    rng = np.random.default_rng(3)
+    weights = wp.array(rng.normal(size=x.shape), dtype=wp.vec3d)
+
+    def loss(pos, grad=False):
+        xa = wp.array(pos, dtype=wp.vec3d, requires_grad=grad)
+        f = wp.zeros(len(pos), dtype=wp.vec3d, requires_grad=grad)
+        total = wp.zeros(1, dtype=wp.float64, requires_grad=grad)
+        tape = wp.Tape()
+        with tape:
+            wp.launch(kernel, len(pos), [xa, model.particle_mass, out.density, pressure.pressure_density(model, out),
+                                         model.particle_rest_density, model.particle_material, model.material_arrays(),
+                                         out.neighbors, out.neighbor_count, wp.float64(h), 0], [f])
+            wp.launch(_dot, len(pos), [f, weights], [total])
+        if grad:
+            tape.backward(loss=total)
+            return xa.grad.numpy().copy()
+        return total.numpy()[0]
+
+    g = loss(x, grad=True)
+    assert np.abs(g).max() > 0.0
+    eps = 1.0e-7 * model.spacing
+    for k in (i, 0):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[k, c] += eps
+            xm[k, c] -= eps
+            fd = (loss(xp) - loss(xm)) / (2 * eps)
+            assert g[k, c] == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(g).max()), (k, c)
+
+
+@wp.kernel
+def _dot(f: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), total: wp.array(dtype=wp.float64)):
+    wp.atomic_add(total, 0, wp.dot(f[wp.tid()], w[wp.tid()]))
