@@ -214,9 +214,6 @@ def test_the_isotropic_option_is_refused_where_it_is_not_built():
         two = b2.finalize()
         two.set_material(1, iso.replace(viscosity=1.0, pressure_force="energy"))
     model, start = _isotropic_block(dtype=wp.float32)
-    images, start_images = _isotropic_block(dtype=wp.float32, images=True)
-    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'isotropic' is not allowed with floor images"):
-        we.Solver(images, fused=False).step(start_images, images.state(), 1.0e-6)
     with pytest.raises(ValueError, match=r"yield_with_pressure=True\) is not allowed with Material\.pressure_force = "
                                          "'isotropic'"):
         we.Solver(model, yield_with_pressure=True).step(start, model.state(), 1.0e-6)
@@ -348,3 +345,34 @@ def test_the_isotropic_kernels_generated_adjoint_matches_central_differences_off
 @wp.kernel
 def _dot(f: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), total: wp.array(dtype=wp.float64)):
     wp.atomic_add(total, 0, wp.dot(f[wp.tid()], w[wp.tid()]))
+
+
+def test_the_isotropic_pressure_with_floor_images_is_refused_before_any_kernel_runs():
+    """Floor images, whose pressure is a pair force: ``finalize`` and ``set_material`` refuse
+    the ``isotropic`` material where it is given (docs/errors.md: before any kernel runs), and
+    a step with the experimental flag (or with it and ``yield_with_pressure``) is refused
+    before it writes anything of ``state_out``."""
+    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'isotropic' \(material 0\) is not allowed with "
+                                         r"floor images \(add_ground\(images=True\)\)"):
+        _isotropic_block(dtype=wp.float32, images=True)
+    model, start = _isotropic_block(dtype=wp.float32)
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational")
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), mat)
+    b.add_ground(0.0, images=True)
+    images = b.finalize(dtype=wp.float32)
+    with pytest.raises(ValueError, match=r"'isotropic' \(material 0\) is not allowed with floor images"):
+        images.set_material(0, mat.replace(pressure_force="isotropic"))
+    assert images.materials[0].pressure_force == "energy_spiky"
+    start, out = images.state(), images.state()
+    solver = we.Solver(images, fused=False)
+    solver._isotropic_pressure = True
+    with pytest.raises(ValueError, match=r"Solver\._isotropic_pressure = True is not allowed with floor images"):
+        solver.step(start, out, 1.0e-6)
+    assert not out.density.numpy().any() and not out.force.numpy().any()
+    plain = we.Solver(model, fused=False, yield_with_pressure=True)
+    plain_model = model
+    plain_model.set_material(0, plain_model.materials[0].replace(pressure_force="energy_spiky"))
+    plain._isotropic_pressure = True
+    with pytest.raises(ValueError, match=r"yield_with_pressure=True\) is not allowed with Solver\._isotropic_pressure"):
+        plain.step(plain_model.state(), plain_model.state(), 1.0e-6)

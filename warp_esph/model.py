@@ -146,11 +146,13 @@ def _named_as_given(material: Material, name: str, value: float, why: str) -> tu
     return "E", E, f"with nu = {nu!r} it gives {name} = {LAME_FORMULAS[name]} = {value:g}: {why}"
 
 
-def check_pressure_forces(materials: Sequence[Material]) -> None:
+def check_pressure_forces(materials: Sequence[Material], images: bool = False) -> None:
     """Refuse ``pressure_force = "isotropic"`` beside another pressure force in one model: a pair
     between the two would carry the pair material's pressure on one side only (the isotropic
     particle applies its own through its moments, not along its pairs), and no force for such a
-    pair is defined (docs/method.md §6)."""
+    pair is defined (docs/method.md §6); nor with floor images (``images``), whose pressure is a
+    pair force of the floor's mirror images. Here, where the materials are given, so that no
+    kernel has run (docs/errors.md)."""
     forces = [m.pressure_force for m in materials]
     if "isotropic" in forces and any(f != "isotropic" for f in forces):
         iso = forces.index("isotropic")
@@ -158,6 +160,10 @@ def check_pressure_forces(materials: Sequence[Material]) -> None:
         raise ValueError(f"Material.pressure_force = 'isotropic' (material {iso}) is not allowed beside "
                          f"pressure_force = {forces[other]!r} (material {other}) in one model: make every material "
                          "'isotropic' or none")
+    if images and "isotropic" in forces:
+        raise ValueError(f"Material.pressure_force = 'isotropic' (material {forces.index('isotropic')}) is not allowed "
+                         "with floor images (add_ground(images=True)): their pressure is a pair force of the floor's "
+                         "mirror images; use a particle or ghost floor or a collider")
 
 
 def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
@@ -554,6 +560,7 @@ class Model:
         #: ``(normal, offset)`` of the plane whose mirror images enter the fits (a rough floor,
         #: ``SceneBuilder.add_ground(images=True)``); None: none.
         self.image_plane = (tuple(imaged[0].normal), float(imaged[0].offset)) if imaged else None
+        check_pressure_forces(materials, self.image_plane is not None)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
@@ -813,7 +820,8 @@ class Model:
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
         check_material_precision(material, self.scalar)
-        check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)])
+        check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)],
+                              self.image_plane is not None)
         if material.density != old.density:
             # The particles' masses and rest densities come from it when the model is built:
             # a new density changed the stable step and the wave speeds but not the motion, and

@@ -1003,7 +1003,9 @@ def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: b
     pressure off (the experimental ``Solver._isotropic_pressure``, forward only). Either is
     refused with floor images, whose pressure is a pair force."""
     if model.image_plane is not None:
-        raise ValueError("Material.pressure_force = 'isotropic' is not allowed with floor images "
+        # Model and Solver.step refuse it before any kernel; this guards a direct call.
+        what = "Solver._isotropic_pressure = True" if every else "Material.pressure_force = 'isotropic'"
+        raise ValueError(f"{what} is not allowed with floor images "
                          "(add_ground(images=True)): their pressure is a pair force of the floor's mirror images; use a "
                          "particle or ghost floor or a collider")
     h = model.scalar(model.support_radius)

@@ -983,6 +983,13 @@ class Solver:
             raise ValueError("Solver(yield_with_pressure=True) is not allowed with Material.pressure_force = "
                              "'isotropic': the yield test's pressure stress is the pair forces' virial; use another "
                              "pressure force or yield_with_pressure=False")
+        if self._isotropic_pressure and self.yield_with_pressure:
+            raise ValueError("Solver(yield_with_pressure=True) is not allowed with Solver._isotropic_pressure = True: the "
+                             "yield test's pressure stress is the pair forces' virial, which the flag replaces")
+        if self._isotropic_pressure and m.image_plane is not None:
+            # Before any kernel of the step (a Material's refusal is Model's, where it is given).
+            raise ValueError("Solver._isotropic_pressure = True is not allowed with floor images (add_ground(images=True)): "
+                             "their pressure is a pair force of the floor's mirror images")
         if self._isotropic_pressure and self.fused:
             raise ValueError("Solver._isotropic_pressure = True is not allowed with fused = True: the isotropic pressure "
                              "force runs on the unfused path alone; make the solver with fused=False")
