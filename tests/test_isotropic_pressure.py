@@ -376,3 +376,37 @@ def test_the_isotropic_pressure_with_floor_images_is_refused_before_any_kernel_r
     plain._isotropic_pressure = True
     with pytest.raises(ValueError, match=r"yield_with_pressure=True\) is not allowed with Solver\._isotropic_pressure"):
         plain.step(plain_model.state(), plain_model.state(), 1.0e-6)
+
+
+def test_the_isotropic_pressure_adds_more_bulk_stiffness_than_energy_spikys_at_the_same_k_p():
+    """The middle particle of an 8-across lattice compressed evenly by 0.1 % in each direction:
+    with the default ``k_p = 0.46 K / rho0`` of both, the isotropic force's stress ``-p I`` adds
+    0.44 ``K`` per unit volumetric strain, ``energy_spiky``'s pair virial (the stress it
+    carries) 0.28 ``K``, so ``isotropic`` adds 1.6 x the pressure stiffness (and stays under
+    the ``rho0 k_p = 0.46 K`` that ``Model.stable_dt`` allows for)."""
+    added = {}
+    for force in ("energy_spiky", "isotropic"):
+        mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", pressure_force=force)
+        K = mat.lam + 2.0 * mat.mu / 3.0
+        b = we.SceneBuilder(spacing=0.01)
+        b.add_box(np.full(3, 0.02), np.full(3, 0.08), mat)
+        model = b.finalize(dtype=wp.float64)
+        x0 = model.particle_x0
+        c = x0.mean(0)
+        i = int(np.argmin(np.linalg.norm(x0 - c, axis=1)))
+        start, out = model.state(), model.state()
+        start.x.assign(c + 0.999 * (x0 - c))
+        we.Solver(model, fused=False).step(start, out, 1.0e-9)
+        ev = 3.0 * 0.001
+        if force == "isotropic":
+            p = model.pressure_stiffness.numpy()[0] * (pressure.pressure_density(model, out).numpy()[i]
+                                                       - model.particle_rest_density.numpy()[i])
+        else:
+            sigma = wp.zeros(model.particle_count, dtype=wp.mat33d)
+            pressure.launch_pressure_stress(model, start, out, sigma)
+            p = -np.trace(sigma.numpy()[i]) / 3.0
+        added[force] = p / (K * ev)
+        assert model.pressure_stiffness.numpy()[0] * 1000.0 == pytest.approx(0.46 * K)
+    assert added["isotropic"] == pytest.approx(0.44, abs=0.02)
+    assert added["energy_spiky"] == pytest.approx(0.28, abs=0.02)
+    assert added["isotropic"] < 0.46

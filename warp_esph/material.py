@@ -75,7 +75,12 @@ SPIKY_DENSITY_FORCES = ("energy_spiky", "isotropic")
 #: energy's curvature is ``k_p rho0 c^2`` with ``c = -(d rho / d eps_v) / rho`` of the SPH
 #: density on a lattice (``h = 2 dx``), 1.055 for poly6 and 0.774 for the spiky density, so
 #: ``0.25 (1.055 / 0.774)^2 = 0.464`` (docs/physics.md, "A pressure energy of a spiky density").
-#: ``isotropic`` keeps ``energy_spiky``'s: the same pressure, only applied otherwise.
+#: ``isotropic`` keeps ``energy_spiky``'s (the same pressure, only applied otherwise, so its
+#: runs are the experimental flag's), which adds 0.44 ``K`` through its stress ``-p I``, not a
+#: quarter: it applies ``p`` itself, where ``energy_spiky``'s pair virial is ``p c rho0 / rho~0``
+#: = 0.63 ``p`` (``c`` = 0.774, the lattice's spiky sum ``rho~0`` = 1.24 ``rho0``; 0.28 ``K``),
+#: still under the ``rho0 k_p`` that
+#: ``Model.stable_dt`` allows for (``tests/test_isotropic_pressure.py``).
 PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46, "isotropic": 0.46}
 
 
@@ -155,8 +160,9 @@ class Material:
     material that can flow, and one on the paper's force, keeps eq. 9.
     ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
     bulk modulus) for the energy force, ``K / (2 rho0)`` for the spiky one and ``0.46 K /
-    rho0`` for ``energy_spiky`` and ``isotropic`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
-    stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
+    rho0`` for ``energy_spiky`` and ``isotropic`` (``PRESSURE_BULK_SHARE``): SPH pressure adds about a quarter of the bulk
+    stiffness again, the "additional stability" of the paper's §4 (``isotropic``, at
+    ``energy_spiky``'s ``k_p``, 0.44 of it). Use ``0`` to switch
     pressure off.
 
     ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``):
