@@ -203,6 +203,22 @@ def test_the_isotropic_pressures_stiffness_gradient_matches_central_differences(
         assert grads["pressure_stiffness"].sum() == pytest.approx(fd, rel=1e-4), rel
 
 
+def test_the_isotropic_pressures_stiffness_gradient_from_zero_matches_forward_differences():
+    """``pressure_force = "isotropic"`` with ``k_p = 0``, where a fit may start it (every
+    pressure then 0): the taped gradient in ``k_p`` is its float64 forward difference at
+    ``k_p`` = 1e-4 and 1e-6 within 1e-3, not 0 (the step runs the SPH terms under a tape for
+    that slope, docs/method.md §6), thrown into the ground where particles are compressed."""
+    case, scene = "isotropic_pressure", "thrown"
+    model = _model(case, scene, {"pressure_stiffness": 0.0})
+    w = random_weights(model.particle_count, 2)
+    grads = _loss(case, model, w, ("pressure_stiffness",))[0]
+    base = _loss(case, _model(case, scene, {"pressure_stiffness": 0.0}), w)
+    for eps in (1e-4, 1e-6):
+        fd = (_loss(case, _model(case, scene, {"pressure_stiffness": eps}), w) - base) / eps
+        assert abs(fd) > 1e-12, "the loss does not reach k_p"
+        assert grads["pressure_stiffness"].sum() == pytest.approx(fd, rel=1e-3), eps
+
+
 #: Taped steps (each scene with a compression field) whose launches together are every kernel of
 #: docs/method.md's coverage table but the rest model's hand-over and hand-back (a step that
 #: switches models): (case of ``CASES``, material options, ``Solver`` options or None for the

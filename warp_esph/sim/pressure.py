@@ -312,10 +312,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         line, ``A^-1`` would push a particle a distance ``d`` off the plane with ``p V / d``
         (the virial's normal part kept at ``p V`` by ever shorter arms); the added diagonal
         bounds that and keeps the pressure within the plane or along the line (a lone pair
-        repels), and ``A M^T`` stays symmetric (no torque). 0 for a particle alone."""
+        repels), and ``A M^T`` stays symmetric (no torque). 0 for a particle alone. Also at
+        ``p = 0``: the adjoint keeps the slope in ``p`` there (``k_p = 0``, where a fit may
+        start it, and a body at rest), which a branch on ``p`` cut."""
         M = mat33()
         tr = A[0, 0] + A[1, 1] + A[2, 2]
-        if p != scalar(0.0) and tr > scalar(0.0):
+        if tr > scalar(0.0):
             a = tr / scalar(3.0)
             e = isotropic_regularisation(wp.determinant(A) / (a * a * a))
             M = (-p * V) * wp.inverse(A + (e * a) * wp.identity(n=3, dtype=scalar))
