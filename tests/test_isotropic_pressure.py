@@ -410,3 +410,29 @@ def test_the_isotropic_pressure_adds_more_bulk_stiffness_than_energy_spikys_at_t
     assert added["isotropic"] == pytest.approx(0.44, abs=0.02)
     assert added["energy_spiky"] == pytest.approx(0.28, abs=0.02)
     assert added["isotropic"] < 0.46
+
+
+def test_a_lone_pair_of_isotropic_particles_pushed_together_repels():
+    """Two particles of an ``isotropic`` body of two, pushed from one spacing to half of it
+    (each one's moments a single direction, singular): they push each other apart along their
+    line, equal and opposite, with 0.97 of each one's ``p V`` as the virial along it (the
+    added diagonal's 1 / (1 + 0.1 / 3)); ``A^-1``'s switch gave them no pressure at all."""
+    dx = 0.01
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", pressure_force="isotropic")
+    b = we.SceneBuilder(spacing=dx)
+    b.add_particles(np.array([[0.05, 0.05, 0.05], [0.05 + dx, 0.05, 0.05]]), mat)
+    model = b.finalize(dtype=wp.float64)
+    start, out = model.state(), model.state()
+    x = np.array([[0.05, 0.05, 0.05], [0.05 + 0.5 * dx, 0.05, 0.05]])
+    start.x.assign(x)
+    we.Solver(model, fused=False).step(start, out, 1.0e-9)
+    p = model.pressure_stiffness.numpy()[0] * (pressure.pressure_density(model, out).numpy()
+                                               - model.particle_rest_density.numpy())
+    pV = p * model.particle_mass.numpy() / out.density.numpy()
+    assert (pV > 0.0).all()
+    out.force.zero_()
+    pressure.launch_isotropic_pressure_forces(model, start, out)
+    f = out.force.numpy()
+    assert f[0, 0] < 0.0 < f[1, 0]
+    assert np.abs(f[:, 1:]).max() == 0.0 and f.sum(0) == pytest.approx(np.zeros(3), abs=1e-12 * np.abs(f).max())
+    assert f[1, 0] * 0.5 * dx == pytest.approx(pV.sum() / (1.0 + 0.1 / 3.0), rel=1e-9)
