@@ -24,7 +24,7 @@ COLUMN_KEYS = ("plastic_over_theory", "elastic_measured", "nearest_neighbour_min
 def isotropic_pressure(on: bool = True):
     """Every ``warp_esph.Solver`` made in the block runs unfused (the isotropic force's path)
     and, with ``on``, on a model whose every material is ``pressure_force = "isotropic"``
-    (``Model.set_material``, each keeping its ``k_p``); ``on=False`` is the baseline on the same
+    (``Model.set_materials``, each keeping its ``k_p``); ``on=False`` is the baseline on the same
     path."""
     import warp_esph as we
 
@@ -32,11 +32,10 @@ def isotropic_pressure(on: bool = True):
 
     def patched(self, model, *args, **kwargs):
         kwargs["fused"] = False
-        if on:
-            for k, mat in enumerate(model.materials):
-                if mat.pressure_force != "isotropic":
-                    model.set_material(k, mat.replace(pressure_force="isotropic",
-                                                      pressure_stiffness=mat.pressure_stiffness))
+        if on and any(mat.pressure_force != "isotropic" for mat in model.materials):
+            # Together: every material is isotropic or none (one at a time was refused).
+            model.set_materials([mat.replace(pressure_force="isotropic", pressure_stiffness=mat.pressure_stiffness)
+                                 for mat in model.materials])
         init(self, model, *args, **kwargs)
 
     we.Solver.__init__ = patched

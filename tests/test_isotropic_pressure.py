@@ -436,3 +436,30 @@ def test_a_lone_pair_of_isotropic_particles_pushed_together_repels():
     assert f[0, 0] < 0.0 < f[1, 0]
     assert np.abs(f[:, 1:]).max() == 0.0 and f.sum(0) == pytest.approx(np.zeros(3), abs=1e-12 * np.abs(f).max())
     assert f[1, 0] * 0.5 * dx == pytest.approx(pV.sum() / (1.0 + 0.1 / 3.0), rel=1e-9)
+
+
+def test_a_model_of_several_materials_switches_to_and_from_the_isotropic_pressure_at_once():
+    """Every material ``isotropic`` or none (``check_pressure_forces``), so one ``set_material``
+    at a time cannot switch a model of two materials (here a body and its elastic particle
+    floor): ``Model.set_materials`` switches them together, and back; the benchmarks' context
+    (``benchmarks/isotropic_pressure.py``) uses it, so it runs such a model; a refused
+    combination leaves the model as it was."""
+    from benchmarks.isotropic_pressure import isotropic_pressure
+
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, yield_stress=100.0, flow_rate=10.0)
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box(np.full(3, 0.02), np.full(3, 0.04), mat, name="a")
+    b.add_particle_floor("a", elastic=True, margin=0.02)
+    model = b.finalize(dtype=wp.float32)
+    assert len(model.materials) == 2
+    before = list(model.materials)
+    with isotropic_pressure():
+        we.Solver(model)
+    assert [m.pressure_force for m in model.materials] == ["isotropic", "isotropic"]
+    assert [m.pressure_stiffness for m in model.materials] == [m.pressure_stiffness for m in before]
+    assert model.material_pressure_force.numpy().tolist() == [3, 3]
+    with pytest.raises(ValueError, match=r"'isotropic' \(material 1\) is not allowed beside pressure_force = 'energy'"):
+        model.set_materials([before[0].replace(pressure_force="energy"), model.materials[1]])
+    assert [m.pressure_force for m in model.materials] == ["isotropic", "isotropic"]
+    model.set_materials(before)
+    assert model.materials == before and model.material_pressure_force.numpy().tolist() == [2, 2]

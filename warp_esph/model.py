@@ -159,7 +159,7 @@ def check_pressure_forces(materials: Sequence[Material], images: bool = False) -
         other = next(k for k, f in enumerate(forces) if f != "isotropic")
         raise ValueError(f"Material.pressure_force = 'isotropic' (material {iso}) is not allowed beside "
                          f"pressure_force = {forces[other]!r} (material {other}) in one model: make every material "
-                         "'isotropic' or none")
+                         "'isotropic' or none (Model.set_materials changes them together)")
     if images and "isotropic" in forces:
         raise ValueError(f"Material.pressure_force = 'isotropic' (material {forces.index('isotropic')}) is not allowed "
                          "with floor images (add_ground(images=True)): their pressure is a pair force of the floor's "
@@ -796,6 +796,39 @@ class Model:
         values = list(values) or [np.zeros(3) if dtype is self.types.vec3 else 0.0]
         return wp.array(np.array(values, dtype=self.types.np_dtype), dtype=dtype, device=self.device)
 
+    def set_materials(self, materials: Sequence[Material]):
+        """Replace every material at once (``set_material`` of each, in order; one entry per
+        material of the model, worlds after each other), so that a model of several materials
+        can switch to or from ``pressure_force = "isotropic"``, which every material or none
+        must have (``check_pressure_forces``) and one ``set_material`` at a time cannot change.
+        The combination is checked first; if a material is refused on the way, those set
+        before it are set back."""
+        if isinstance(materials, Material) or not isinstance(materials, Sequence):
+            raise ValueError(f"materials = {checks.shorten(materials)!r} is not allowed: must be a list of "
+                             f"{len(self.materials)} warp_esph.Material, one per material of the model")
+        materials = list(materials)
+        if len(materials) != len(self.materials):
+            raise ValueError(f"materials (a list of {len(materials)}) is not allowed: must have {len(self.materials)} "
+                             "entries, one per material of the model")
+        for k, m in enumerate(materials):
+            if not isinstance(m, Material):
+                raise ValueError(f"materials[{k}] = {checks.shorten(m)!r} is not allowed: must be a warp_esph.Material")
+        check_pressure_forces(materials, self.image_plane is not None)
+        old = list(self.materials)
+        # Each set_material checks the whole combination, which is the new one only at the end.
+        self._combination_checked = True
+        try:
+            for k, m in enumerate(materials):
+                if m is not self.materials[k]:
+                    self.set_material(k, m)
+        except ValueError:
+            for k, m in enumerate(old):
+                if m is not self.materials[k]:
+                    self.set_material(k, m)
+            raise
+        finally:
+            self._combination_checked = False
+
     def set_material(self, index: int, material: Material, world: int | None = None):
         """Replace material ``index`` in place (its particles keep their state).
 
@@ -820,8 +853,9 @@ class Model:
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
         check_material_precision(material, self.scalar)
-        check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)],
-                              self.image_plane is not None)
+        if not getattr(self, "_combination_checked", False):
+            check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)],
+                                  self.image_plane is not None)
         if material.density != old.density:
             # The particles' masses and rest densities come from it when the model is built:
             # a new density changed the stable step and the wave speeds but not the motion, and
