@@ -159,7 +159,20 @@ def funcs(scalar) -> types.SimpleNamespace:
                 + wp.ddot(D, D))
 
     @wp.func
-    def flow_step_at(
+    def yield_test_norm2(s: vec3, mu: scalar, F: mat33, D: mat33, with_pressure: int) -> scalar:
+        """The deviatoric stress ``|s|^2`` the yield test compares with the yield surface: the
+        elastic one of ``F``'s singular values ``s`` (paper §4), or, ``with_pressure != 0``,
+        that plus the SPH pressure's deviator ``D`` (``pressure_yield_norm2``)."""
+        dev = deviatoric(s)
+        n2 = deviatoric_stress_norm2(mu, wp.dot(dev, dev))
+        # A runtime switch, not a second function: the paper's path and the option's share
+        # every other formula, and with 0 passed through inlined calls it costs no SVD.
+        if with_pressure != 0:
+            n2 = pressure_yield_norm2(mu, wp.dot(dev, dev), left_stretch(F), D)
+        return n2
+
+    @wp.func
+    def flow_step(
         s: vec3,
         s_norm2: scalar,
         yield_stress: scalar,
@@ -169,9 +182,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         dt: scalar,
         non_newtonian: int,
     ):
-        """``flow_step`` with the tested deviatoric stress ``|s|^2`` given: the flow relaxes
-        the elastic singular values ``s`` at the rate that stress's excess over the yield
-        surface sets."""
+        """The flow of the singular values ``s`` under the tested deviatoric stress ``|s|^2``
+        (``yield_test_norm2``): it relaxes them at the rate that stress's excess over the yield
+        surface sets; returns (flowed, new singular values g = c s^p, c, p, new alpha)."""
         flowed, gamma = flow_fraction(s_norm2, yield_stress, hardening, alpha, flow_rate, dt, non_newtonian)
         g = s
         c = scalar(1.0)
@@ -184,26 +197,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         return flowed, g, c, p, alpha_new
 
     @wp.func
-    def flow_step(
+    def guarded_flow_step_under(
         s: vec3,
-        mu: scalar,
-        yield_stress: scalar,
-        flow_rate: scalar,
-        hardening: scalar,
-        alpha: scalar,
-        dt: scalar,
-        non_newtonian: int,
-    ):
-        """The flow of the singular values ``s``; returns (flowed, new singular values
-        g = c s^p, c, p, new alpha)."""
-        dev = deviatoric(s)
-        flowed, g, c, p, alpha_new = flow_step_at(s, deviatoric_stress_norm2(mu, wp.dot(dev, dev)), yield_stress,
-                                                  flow_rate, hardening, alpha, dt, non_newtonian)
-        return flowed, g, c, p, alpha_new
-
-    @wp.func
-    def guarded_flow_step(
-        s: vec3,
+        F: mat33,
+        D: mat33,
+        with_pressure: int,
         mu: scalar,
         yield_stress: scalar,
         flow_rate: scalar,
@@ -213,8 +211,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         kind: int,
         counters: wp.array(dtype=wp.int32),
     ):
-        """``flow_step`` unless the smallest singular value is below ``MIN_SINGULAR_VALUE``
-        (paper §4): then no flow, counted. ``kind``: the material model (1: non-Newtonian)."""
+        """``flow_step`` of ``F``'s singular values ``s`` under ``yield_test_norm2(s, mu, F, D,
+        with_pressure)``, unless the smallest is below ``MIN_SINGULAR_VALUE`` (paper §4): then
+        no flow, counted. ``kind``: the material model (1: non-Newtonian)."""
         flowed = int(0)
         g = s
         c = scalar(1.0)
@@ -222,14 +221,24 @@ def funcs(scalar) -> types.SimpleNamespace:
         alpha_new = alpha
         if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
             flowed, g, c, p, alpha_new = flow_step(
-                s, mu, yield_stress, flow_rate, hardening, alpha, dt, wp.where(kind == 1, 1, 0)
+                s, yield_test_norm2(s, mu, F, D, with_pressure), yield_stress, flow_rate, hardening, alpha, dt,
+                wp.where(kind == 1, 1, 0)
             )
         else:
             wp.atomic_add(counters, COUNT_PLASTICITY_SKIPPED, 1)
         return flowed, g, c, p, alpha_new
 
     @wp.func
-    def flow(
+    def guarded_flow_step(s: vec3, mu: scalar, yield_stress: scalar, flow_rate: scalar, hardening: scalar,
+                          alpha: scalar, dt: scalar, kind: int, counters: wp.array(dtype=wp.int32)):
+        """``guarded_flow_step_under`` with the paper's yield test, on ``F``'s singular values
+        alone (the fused kernels, which have ``s`` from their own SVD)."""
+        flowed, g, c, p, alpha_new = guarded_flow_step_under(s, mat33(), mat33(), 0, mu, yield_stress, flow_rate,
+                                                             hardening, alpha, dt, kind, counters)
+        return flowed, g, c, p, alpha_new
+
+    @wp.func
+    def flow_under(
         F: mat33,
         F_lo: mat33,
         a: scalar,
@@ -239,18 +248,25 @@ def funcs(scalar) -> types.SimpleNamespace:
         hardening: scalar,
         kind: int,
         dt: scalar,
+        D: mat33,
+        with_pressure: int,
         counters: wp.array(dtype=wp.int32),
     ):
         """``(F_e, F_e_lo, alpha)`` after this step's plastic flow of ``F + F_lo`` (``F_lo``:
-        ``F``'s round-off, ``State.F_lo``), differentiable: the new singular values through
-        ``isotropic_change`` with the divided differences of ``g = c s^p`` its adjoint needs.
-        The decomposition is ``F``'s: ``F_lo`` is below its round-off."""
+        ``F``'s round-off, ``State.F_lo``) under ``yield_test_norm2``: ``with_pressure != 0``
+        adds the SPH pressure's deviatoric stress ``D`` (in space) to the elastic one in the
+        yield test (``Solver(yield_with_pressure=True)``); the flow still relaxes the elastic
+        part only, so it stops where the sum sits on the yield surface. Differentiable: the
+        new singular values through ``isotropic_change`` with the divided differences of
+        ``g = c s^p`` its adjoint needs. The decomposition is ``F``'s: ``F_lo`` is below its
+        round-off."""
         Fe = F
         Fe_lo = F_lo
         a_new = a
         if flow_rate > scalar(0.0):
             s = iso.singular_values(F)
-            flowed, g, c, p, a_flow = guarded_flow_step(s, mu, yield_stress, flow_rate, hardening, a, dt, kind, counters)
+            flowed, g, c, p, a_flow = guarded_flow_step_under(s, F, D, with_pressure, mu, yield_stress, flow_rate,
+                                                              hardening, a, dt, kind, counters)
             if flowed != 0:
                 d1 = vec3(
                     power_difference(s[0], s[1], p, c),
@@ -263,49 +279,18 @@ def funcs(scalar) -> types.SimpleNamespace:
         return Fe, Fe_lo, a_new
 
     @wp.func
-    def flow_with_pressure(
-        F: mat33,
-        F_lo: mat33,
-        a: scalar,
-        mu: scalar,
-        yield_stress: scalar,
-        flow_rate: scalar,
-        hardening: scalar,
-        kind: int,
-        dt: scalar,
-        D: mat33,
-        counters: wp.array(dtype=wp.int32),
-    ):
-        """``flow`` with the SPH pressure's deviatoric stress ``D`` (in space) added to the
-        elastic one in the yield test (``pressure_yield_norm2``; ``Solver(yield_with_pressure=
-        True)``): the flow still relaxes the elastic part only, so it stops where the sum sits
-        on the yield surface."""
-        Fe = F
-        Fe_lo = F_lo
-        a_new = a
-        if flow_rate > scalar(0.0):
-            s = iso.singular_values(F)
-            if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
-                dev = deviatoric(s)
-                n2 = pressure_yield_norm2(mu, wp.dot(dev, dev), left_stretch(F), D)
-                flowed, g, c, p, a_flow = flow_step_at(s, n2, yield_stress, flow_rate, hardening, a, dt,
-                                                       wp.where(kind == 1, 1, 0))
-                if flowed != 0:
-                    d1 = vec3(
-                        power_difference(s[0], s[1], p, c),
-                        power_difference(s[0], s[2], p, c),
-                        power_difference(s[1], s[2], p, c),
-                    )
-                    Fe, Fe_lo = compensated_sum(F, F_lo + iso.isotropic_change(F, g, d1))
-                    a_new = a_flow
-            else:
-                wp.atomic_add(counters, COUNT_PLASTICITY_SKIPPED, 1)
+    def flow(F: mat33, F_lo: mat33, a: scalar, mu: scalar, yield_stress: scalar, flow_rate: scalar,
+             hardening: scalar, kind: int, dt: scalar, counters: wp.array(dtype=wp.int32)):
+        """``flow_under`` with the paper's yield test, on ``F`` alone."""
+        Fe, Fe_lo, a_new = flow_under(F, F_lo, a, mu, yield_stress, flow_rate, hardening, kind, dt, mat33(), 0,
+                                      counters)
         return Fe, Fe_lo, a_new
 
     return types.SimpleNamespace(
-        flow=flow, flow_with_pressure=flow_with_pressure, left_stretch=left_stretch,
-        deviatoric_tensor=deviatoric_tensor, pressure_yield_norm2=pressure_yield_norm2, flow_step_at=flow_step_at,
-        flow_step=flow_step, guarded_flow_step=guarded_flow_step, flow_fraction=flow_fraction,
+        flow=flow, flow_under=flow_under, left_stretch=left_stretch, yield_test_norm2=yield_test_norm2,
+        deviatoric_tensor=deviatoric_tensor, pressure_yield_norm2=pressure_yield_norm2,
+        flow_step=flow_step, guarded_flow_step=guarded_flow_step, guarded_flow_step_under=guarded_flow_step_under,
+        flow_fraction=flow_fraction,
         power_difference=power_difference, deviatoric=deviatoric, deviatoric_stress_norm2=deviatoric_stress_norm2,
         yield_surface=yield_surface, flow_rate_fraction=flow_rate_fraction, flowed_values=flowed_values,
     )
@@ -319,6 +304,41 @@ def kernels(scalar) -> types.SimpleNamespace:
     stress = forces.funcs(scalar, "poly6").stress
     stress_model = forces.funcs(scalar, "poly6").stress_model
     Materials = materials.struct(scalar)
+
+    flow_under = funcs(scalar).flow_under
+    deviatoric_tensor = funcs(scalar).deviatoric_tensor
+
+    @wp.func
+    def constitutive_point(
+        i: int,
+        F_in: wp.array(dtype=mat33),
+        F_lo_in: wp.array(dtype=mat33),
+        alpha_in: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        dt: scalar,
+        D: mat33,
+        with_pressure: int,
+        F_out: wp.array(dtype=mat33),
+        F_lo_out: wp.array(dtype=mat33),
+        alpha_out: wp.array(dtype=scalar),
+        stress_out: wp.array(dtype=mat33),
+        F_inv_out: wp.array(dtype=mat33),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """Particle ``i``'s plastic flow (``flow_under``), then the stress P* and ``F_e^-1`` the
+        pair forces read. It stores them itself: in this order, Warp's generated adjoint sums
+        ``F_e``'s contributions as it did when this was the kernel's own body."""
+        m = material[i]
+        kind = mat.model[m]
+        mu = mat.mu[m]
+        Fe, Fe_lo, a_new = flow_under(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m],
+                                      mat.hardening[m], kind, dt, D, with_pressure, counters)
+        F_out[i] = Fe
+        F_lo_out[i] = Fe_lo
+        alpha_out[i] = a_new
+        stress_out[i] = stress(Fe, mu, mat.lam[m], stress_model(mat, m))
+        F_inv_out[i] = wp.inverse(Fe)
 
     @wp.kernel(module="unique")
     def constitutive_update(
@@ -336,20 +356,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         counters: wp.array(dtype=wp.int32),
     ):
         """Plastic flow of the stored F, then the stress P* and F^-1 for the pair forces."""
-        i = wp.tid()
-        m = material[i]
-        kind = mat.model[m]
-        mu = mat.mu[m]
-        Fe, Fe_lo, a_new = flow(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m],
-                                kind, dt, counters)
-        F_out[i] = Fe
-        F_lo_out[i] = Fe_lo
-        alpha_out[i] = a_new
-        stress_out[i] = stress(Fe, mu, mat.lam[m], stress_model(mat, m))
-        F_inv_out[i] = wp.inverse(Fe)
-
-    flow_with_pressure = funcs(scalar).flow_with_pressure
-    deviatoric_tensor = funcs(scalar).deviatoric_tensor
+        constitutive_point(wp.tid(), F_in, F_lo_in, alpha_in, material, mat, dt, mat33(), 0, F_out, F_lo_out,
+                           alpha_out, stress_out, F_inv_out, counters)
 
     @wp.kernel(module="unique")
     def constitutive_update_with_pressure(
@@ -368,19 +376,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         counters: wp.array(dtype=wp.int32),
     ):
         """``constitutive_update`` whose yield test adds each particle's SPH pressure stress
-        (``pressure.launch_pressure_stress``) to the elastic one (``flow_with_pressure``)."""
+        (``pressure.launch_pressure_stress``) to the elastic one (``flow_under``)."""
         i = wp.tid()
-        m = material[i]
-        kind = mat.model[m]
-        mu = mat.mu[m]
-        Fe, Fe_lo, a_new = flow_with_pressure(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m],
-                                              mat.flow_rate[m], mat.hardening[m], kind, dt,
-                                              deviatoric_tensor(pressure_stress[i]), counters)
-        F_out[i] = Fe
-        F_lo_out[i] = Fe_lo
-        alpha_out[i] = a_new
-        stress_out[i] = stress(Fe, mu, mat.lam[m], stress_model(mat, m))
-        F_inv_out[i] = wp.inverse(Fe)
+        constitutive_point(i, F_in, F_lo_in, alpha_in, material, mat, dt, deviatoric_tensor(pressure_stress[i]), 1,
+                           F_out, F_lo_out, alpha_out, stress_out, F_inv_out, counters)
 
     @wp.kernel(module="unique")
     def image_constitutive_update(

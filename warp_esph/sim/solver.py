@@ -276,7 +276,7 @@ class Solver:
     ``yield_with_pressure`` (default False: the paper's yield test on the stored ``F`` alone)
     adds each particle's SPH pressure stress, the virial of its pressure pair forces over its
     volume (``pressure.launch_pressure_stress``), to the elastic stress in the yield test
-    (``plasticity.flow_with_pressure``: ``|2 mu dev(V_L) + dev(sigma_p)|`` against ``Y + K
+    (``plasticity.flow_under``: ``|2 mu dev(V_L) + dev(sigma_p)|`` against ``Y + K
     alpha``); the flow still relaxes the elastic part, so a flowing particle stops where the
     sum sits on the yield surface. The discrete pressure is not isotropic at a free surface
     and carries load there that a test on ``F`` does not see (docs/physics.md, "Still open",
@@ -389,7 +389,7 @@ class Solver:
         self.ghost_search = ghost_floor.StencilSearch(model) if model.ghost_floor is not None else None
         self.fused = bool(fused)
         #: Whether the yield test adds each particle's SPH pressure stress to the elastic one
-        #: (``pressure.launch_pressure_stress``, ``plasticity.flow_with_pressure``); it runs the
+        #: (``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the
         #: non-fused kernels.
         self.yield_with_pressure = yield_with_pressure
         #: Experimental: every material's SPH pressure applied as an isotropic stress per
