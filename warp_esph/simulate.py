@@ -369,7 +369,7 @@ class DivergenceMonitor:
         for k, named, reach in self.lifters:
             now = max(float(np.dot(self.tools.pose_at(k, s)[0], self.up)) for s in (self.t0, self.t0 + t))
             top = max(top, max(named, now) + reach)
-        return self.g * float((self.mass * np.maximum(top + self.extent - self.h0, 0.0)).sum())
+        return _lift_energy(self.g, self.mass, self.h0, top, self.extent)
 
     def driven_speed(self, t: float) -> float:
         """The fastest point of a moving tool or pinned set by time ``t`` (0 without them)."""
@@ -496,6 +496,15 @@ def _wave_speed(model: Model, p: dict, keep: np.ndarray) -> float:
     return float(model.wave_speeds(p)[np.unique(model.particle_material_np[keep])].max())
 
 
+def _lift_energy(g: float, mass: np.ndarray, heights: np.ndarray, top: float, size: float) -> float:
+    """The most gravitational energy (J) a moving tool whose reach got to the height ``top``
+    (m along ``-gravity``) can have given particles of ``mass`` at ``heights``: each lifted to
+    ``top`` plus the bodies' ``size`` above it (a body resting on the tool reaches that far
+    over it), none lowered. ``DivergenceMonitor.lift_given`` and ``energy_growth`` read at
+    the end of a run share it."""
+    return g * float((mass * np.maximum(top + size - heights, 0.0)).sum())
+
+
 def _energy_floor(mass: float, wave: float) -> float:
     """``0.5 M (0.1 c_P)^2`` (J): the kinetic energy a rest-configuration body of mass ``M``
     may hold without having blown up (the strain its positions may hold, and round-off),
@@ -594,8 +603,7 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
             # Read at the end alone, the most it can have given: each particle lifted to the
             # tools' highest reach plus the bodies' size above it.
             up = -g / np.linalg.norm(g)
-            memo["raised"] = max(memo["raised"], float(np.linalg.norm(g) * (
-                m * np.maximum(top + memo["size"] - x0 @ up, 0.0)).sum()))
+            memo["raised"] = max(memo["raised"], _lift_energy(float(np.linalg.norm(g)), m, x0 @ up, top, memo["size"]))
         grew = kinetic + lifted - memo["raised"]
     else:
         grew = kinetic + lifted
