@@ -1275,7 +1275,7 @@ def _growth_origin(model: Model, current: State, monitor, origin: State | None, 
     work it did then, uncounted, would read as growth."""
     if monitor is None or not monitor.keep.any():
         return None
-    motions = [] if model.tools is None else [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
+    motions = [] if model.tools is None else model.tools.motions
     if origin is None or any(isinstance(mo, tools.Scripted) for mo in motions):
         start = current
         stored = getattr(monitor, "e_elastic", 0.0) if origin is None else \
