@@ -117,14 +117,15 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def left_stretch(F: mat33) -> mat33:
-        """``U diag(sigma) U^T`` of ``F = U diag(sigma) V^T``: the principal values the flow rule
-        reads, in space (the frame of a Cauchy stress), so a stress given in space can be added
-        to the elastic one (``pressure_yield_norm2``)."""
+        """``U diag(sigma) U^T`` of ``F = U diag(sigma) V^T`` (``isotropic.from_principal`` with
+        ``U`` on both sides): the principal values the flow rule reads, in space (the frame of a
+        Cauchy stress), so a stress given in space can be added to the elastic one
+        (``pressure_yield_norm2``)."""
         U = mat33()
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
-        return U * wp.diag(s) * wp.transpose(U)
+        return iso.from_principal(U, s, U)
 
     @wp.func_grad(left_stretch)
     def adj_left_stretch(F: mat33, adj_ret: mat33):
