@@ -592,10 +592,7 @@ def test_a_checkpoint_records_whether_the_yield_test_read_the_pressure(tmp_path)
     very kernels, was refused as 'fused = True'."""
     model = _model()
     solver = we.Solver(model, yield_with_pressure=True)
-    a, b = model.state(), model.state()
-    for _ in range(10):
-        solver.step(a, b, 4e-4)
-        a, b = b, a
+    a = _advance_with(solver, model, model.state(), 10, 4e-4)
     path = save_state(tmp_path / "c.npz", model, a, step=10, frame=1, solver=solver)
     other = _model()
     with pytest.raises(ValueError, match=r"the run it continues had yield_with_pressure = True, this solver "
