@@ -1999,3 +1999,80 @@ def test_a_body_a_keyframed_tool_lifted_and_let_fall_passes_the_monitor_s_energy
         (0.0, 4.0, 4.4), ((0.0, -0.025, 0.0), (0.0, 3.975, 0.0), (0.4, 3.975, 0.0))))
     end = we.simulate(b.finalize(), 53, fps=10.0, progress=False)
     assert np.abs(end.v.numpy()[:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)  # it fell, 2 m and more
+
+
+def _press_then_slide(t):
+    """A plate over a 0.2 m block presses it 0.094 m (47 %) down in 0.3 s, then slides off
+    sideways at 0.5 m/s."""
+    return (0.5 * max(t - 0.3, 0.0), 0.225 - 0.094 * min(t / 0.3, 1.0), 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.filterwarnings("ignore:tools .'plate'. follow tools.Scripted motions:UserWarning")
+def test_a_body_a_scripted_tool_pressed_and_released_passes_the_energy_check_at_every_frame():
+    """A 4 x 4 x 4 rubber block without gravity on a frictionless floor, pressed 47 % by a
+    scripted plate and released by the plate sliding off: it springs back, giving as speed the
+    elastic energy the plate's push stored. No height was given, so only the plate's work (its
+    reaction along its motion) accounts for that speed: the per-frame ``energy_growth`` stopped
+    the healthy run at frame 20 as a blow-up (36.1 J against a limit of 34.3 J)."""
+    from warp_esph import tools  # noqa: PLC0415
+    from warp_esph.simulate import _energy_floor  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"), name="block")
+    b.add_ground(friction=0.0)
+    b.add_tool("box", half_extents=(0.2, 0.025, 0.2), motion=tools.Scripted(_press_then_slide), name="plate")
+    model = b.finalize()
+    frames = []
+    end = we.simulate(model, 21, fps=30.0, progress=False, callback=lambda k, s: frames.append(k))
+    assert frames == list(range(22))
+    # It sprang back: more kinetic energy than the floor a body at rest may hold.
+    mass = model.particle_mass.numpy().astype(np.float64)
+    v = end.v.numpy().astype(np.float64)
+    c_p = float(model.wave_speeds(model.parameter_values()).max())
+    assert 0.5 * (mass * (v * v).sum(axis=1)).sum() > _energy_floor(float(mass.sum()), c_p)
+
+
+def _press(t):
+    """A plate over the ``blowup_cases`` box, coming down at 1 m/s."""
+    return (0.0, 0.35 - 1.0 * t, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.filterwarnings("ignore:tools .'plate'. follow tools.Scripted motions:UserWarning")
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # dt past the stable step, on purpose
+def test_a_blow_up_under_a_pressing_scripted_tool_is_still_one_with_the_tool_s_work_counted():
+    """The tool's work is what it gives: a box a scripted plate presses, 4.6 x past its stable
+    step, is still stopped as a blow-up though the plate does work on it (the more, the faster
+    the blown-up particles strike it); at the stable stiffness the pressed box runs on."""
+    from blowup_cases import BLOWN_MU, DT, HEALTHY_MU  # noqa: PLC0415
+    from warp_esph import tools  # noqa: PLC0415
+
+    def builder(mu):
+        b = we.SceneBuilder(spacing=0.1)
+        b.add_box((0.0, 0.15, 0.0), (0.3, 0.3, 0.3), we.Material.preset("putty", mu=mu), name="paste")
+        b.add_ground()
+        b.add_tool("box", half_extents=(0.3, 0.05, 0.3), motion=tools.Scripted(_press), name="plate")
+        return b.finalize()
+
+    fps = 1.0 / (10 * DT)  # 10 steps a frame
+    model = builder(HEALTHY_MU)
+    end = we.simulate(model, 6, fps=fps, dt=DT, progress=False)
+    assert model.tools.reaction(end)["plate"][0][1] < 0.0  # it pressed the box down
+    with pytest.raises(we.SimulationError, match=r"kinetic \+ gravitational energy grew by .*\(less the tools' work on the bodies"):
+        we.simulate(builder(BLOWN_MU), 3, fps=fps, dt=DT, progress=False)
+
+
+def test_a_body_a_keyframed_tool_pressed_and_released_passes_the_monitor_s_energy_bound():
+    """The monitor's energy bound with a tool of known motion: the rubber block of the test
+    above, pressed 47 % and released by a ``Keyframes`` plate. The bound counted a tool's work
+    as the height it can have given alone, none here, and stopped the healthy spring-back at
+    frame 20 (36.1 J against 34.3 J); the plate's work (its reaction along its motion) now counts."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"), name="block")
+    b.add_ground(friction=0.0)
+    b.add_tool("box", half_extents=(0.2, 0.025, 0.2), name="plate", motion=tools.Keyframes(
+        (0.0, 0.3, 1.0), ((0.0, 0.225, 0.0), (0.0, 0.131, 0.0), (0.35, 0.131, 0.0))))
+    frames = []
+    we.simulate(b.finalize(), 21, fps=30.0, progress=False, callback=lambda k, s: frames.append(k))
+    assert frames == list(range(22))

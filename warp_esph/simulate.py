@@ -409,12 +409,14 @@ class DivergenceMonitor:
         """The largest of ``speed_bounds(t)``."""
         return float(self.speed_bounds(t).max())
 
-    def check(self, x: np.ndarray, v: np.ndarray, t: float):
+    def check(self, x: np.ndarray, v: np.ndarray, t: float, work: float | None = None):
         """``None``, or ``(why, particle)``: a non-finite position or velocity (whatever bounds
         run: a NaN passes every comparison, and a caller reading this alone, a fit's trial, took
         a NaN run as no blow-up), the exempt bodies' too (an exempt body is left out of the
         bounds alone: a non-finite value is no blow-up a scene shows but a lost state, which
-        spreads to what it meets; ``simulate`` stops on it), else the first bound exceeded."""
+        spreads to what it meets; ``simulate`` stops on it), else the first bound exceeded.
+        ``work``: the work (J) the tools and pinned sets did on the bodies since the monitor's
+        state (``ToolWork``), counted in place of ``lift_given``; None: not known."""
         bad = ~(np.isfinite(x[self.finite]).all(axis=1) & np.isfinite(v[self.finite]).all(axis=1))
         if bad.any():
             p = int(np.flatnonzero(self.finite)[int(np.argmax(bad))])
@@ -424,9 +426,9 @@ class DivergenceMonitor:
         # A blown-up speed past 1e154 m/s squares to inf in float64, which is past every bound
         # and reported as such: numpy's overflow warning would only add noise to that report.
         with np.errstate(over="ignore"):
-            return self._check(x, v, t)
+            return self._check(x, v, t, work)
 
-    def _check(self, x: np.ndarray, v: np.ndarray, t: float):
+    def _check(self, x: np.ndarray, v: np.ndarray, t: float, work: float | None = None):
         if not self.keep.all():
             x, v = x[self.keep], v[self.keep]
         x = x.astype(np.float64, copy=False)
@@ -451,7 +453,10 @@ class DivergenceMonitor:
             # blob a rising floor carried up had its budget fall to 0 J, and was a blow-up at
             # the tool's own speed. Held or fallen back (as speed): a block a keyframed platform
             # lifted 4 m and let fall was stopped in its fall when only the height held counted.
-            released = max(released, 0.0) + self.lift_given(t)
+            # Where the run counted the tools' work (their reactions along their motion) that is
+            # what they gave, elastic energy they pressed into a body and it gave back as speed
+            # too (a rubber block a plate pressed 47 % and slid off was stopped in its spring-back).
+            released = max(released, 0.0) + (self.lift_given(t) if work is None else max(float(work), 0.0))
         potential, given = self.field_energy(x, t)
         budget = max(self.ke0 + self.e_elastic + released + given + driven, 0.0)
         limit = self.ENERGY_FACTOR * budget + self.e_floor
@@ -459,8 +464,9 @@ class DivergenceMonitor:
         energy = float(held.sum())
         if energy > limit:
             fields = "gravity's, and all the fields held when they came on" if self.fields else ""
-            what = (f"and potential energy released{f' ({fields})' if fields else ''}, and every particle at the tools' speed"
-                    if driven > 0.0 else f"and potential energy released ({fields + '; ' if fields else ''}no work is done on the bodies)")
+            work_done = "" if work is None else f" (the tools' work on the bodies, {float(work):.3g} J, with it)"
+            what = (f"and potential energy released{f' ({fields})' if fields else ''}{work_done}, and every particle at the "
+                    "tools' speed" if driven > 0.0 else f"and potential energy released ({fields + '; ' if fields else ''}no work is done on the bodies)")
             kind = "kinetic energy and the fields' potential energy" if potential.any() else "kinetic energy"
             # The particle holding the most: one thrown far out may be at rest there.
             return (f"{kind} {energy:.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
@@ -557,7 +563,7 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
 
 
 def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scripted_seen,
-           memo: dict | None = None) -> tuple[str, int] | None:
+           memo: dict | None = None, work: float | None = None) -> tuple[str, int] | None:
     """``energy_growth``'s test: ``(what grew, particle)`` without its words around it, which
     ``simulate`` puts in its own divergence message (step, frame, time, advice). ``memo``:
     ``simulate``'s record across its frames (a dict, empty at the start; ``x0, v0, particles``
@@ -565,7 +571,10 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
     kinetic energy, its size) is read from the device and summed once, and ``"raised"``, the
     most gravitational energy a moving tool had given the bodies at the frames read before,
     is that height's work whether the bodies still hold it or have fallen back and hold it as
-    speed (read at the end alone, only the height they still hold is known)."""
+    speed (read at the end alone, only the height they still hold is known). ``work``: the work
+    (J) the tools and pinned sets did on the bodies since ``x0, v0`` (``ToolWork``), which, where
+    known, is what they gave in place of the heights and the scripted speed: what a tool pressed
+    into a body as elastic energy and the body gave back as speed too."""
     if getattr(model, "force_fields", None):
         return None
     per_frame = memo is not None
@@ -595,7 +604,10 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         ke = 0.5 * m * (v1 * v1).sum(axis=1)
         kinetic = float(ke.sum()) - memo["ke0"]
         lifted = float(-(m * ((x1 - x0) @ g)).sum())
-    if moving:
+    if moving and work is not None:
+        scripted = 0.0
+        grew = kinetic + lifted - max(float(work), 0.0)
+    elif moving:
         # A body a scripted platform lifted 4 m and let fall was stopped in its fall when only
         # the height it still held counted as the tool's work.
         memo["raised"] = max(lifted, memo["raised"])
@@ -613,7 +625,8 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         return None  # inside the limit without the floor (>= 0), whose wave speeds cost a frame as much again
     floor = _energy_floor(float(m.sum()), _wave_speed(model, model.parameter_values(), keep))
     if grew > BLOWUP_FACTOR * scale + floor:
-        does = (f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
+        does = (f"less the tools' work on the bodies, {float(work):.4g} J" if moving and work is not None
+                else f"with every particle at a scripted tool's fastest {scripted:.3g} m/s" if scripted > 0.0
                 else "nothing does work on the bodies")
         return (f"kinetic + gravitational energy grew by {grew:.4g} J, more than "
                 f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J plus a floor of {floor:.3g} J "
@@ -1174,7 +1187,8 @@ def _overflow_error(model: Model, e: NeighborOverflow, step: int, frame: int, t:
                            f"the neighbour search found that {e}{at}", step=step, particle=p, body=body, frame=frame)
 
 
-def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = None, t: float = 0.0):
+def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = None, t: float = 0.0,
+               work: float | None = None):
     """``None`` or ``(what went wrong, first bad particle)``: a non-finite position or
     velocity, else a bound of ``monitor`` exceeded."""
     x = state.x.numpy()
@@ -1184,7 +1198,7 @@ def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = N
         p = int(np.argmax(bad))
         return f"non-finite position or velocity (particle {p} is the first of {int(bad.sum())} bad particles)", p
     if monitor is not None:
-        return monitor.check(x, v, t)
+        return monitor.check(x, v, t, work)
     return None
 
 
@@ -1295,6 +1309,34 @@ def _record_scripted(seen: dict, step: dict) -> None:
         if old is not None:
             lin, ang, lo, hi = max(lin, old[0]), max(ang, old[1]), np.minimum(lo, old[2]), np.maximum(hi, old[3])
         seen[k] = (lin, ang, lo, hi)
+
+
+class ToolWork:
+    """The work (J) a run's tools and pinned sets do on the bodies, summed on the device as
+    the solver's steps go (``ToolSet.integrate``: each reaction row's force along its tool's
+    displacement plus its torque along its rotation) and read once per frame: the energy they
+    give, as height, speed or elastic energy, which the blow-up tests allow.
+    ``solver.tool_work`` holds it while the run lasts (``close`` gives back what it held)."""
+
+    def __init__(self, model: Model, solver: Solver, particles=None):
+        import warp as wp  # noqa: PLC0415
+
+        self.solver = solver
+        self.prior = getattr(solver, "tool_work", None)
+        tools_ = model.tools
+        rows = len(tools_.row_names)
+        self.rows = np.ones(rows, dtype=bool)
+        if particles is not None and model.world_count > 1:
+            # Row w * count + k is world w's: only the worlds of the particles checked.
+            worlds = np.unique(model.world_of_particle[np.asarray(particles, dtype=bool)])
+            self.rows = np.isin(np.arange(rows) // tools_.count, worlds)
+        solver.tool_work = wp.zeros(rows, dtype=wp.float64, device=model.device)
+
+    def read(self) -> float:
+        return float(self.solver.tool_work.numpy()[self.rows].sum())
+
+    def close(self) -> None:
+        self.solver.tool_work = self.prior
 
 
 def _takes_keyword(record, solver, **keyword) -> bool:
@@ -1468,6 +1510,7 @@ def simulate(
         growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver)
         seen = {}  # the Scripted motions as this run's steps evaluated them
         memo = {}  # the start's part of the energy check, summed once, and the most height the tools gave
+        work = ToolWork(model, solver, monitor.keep) if monitor is not None and model.tools is not None else None
 
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
@@ -1521,11 +1564,15 @@ def simulate(
                                                   frame=start_frame + k, advice=e.advice if refused else "") from None
                 steps += n_sub
                 frame = start_frame + k
-                bad = _first_bad(model, current, monitor, (t_origin + k) / fps)  # simulated time since the monitor's state
+                done = None if work is None else work.read()
+                # A resumed run's monitor judges from its origin, before the work counted here.
+                bad = _first_bad(model, current, monitor, (t_origin + k) / fps,  # simulated time since the monitor's state
+                                 work=done if monitor_origin is None else None)
                 if bad is None and growth is not None:
                     x0, v0, t_start, stored = growth
+                    # Beside a Scripted tool the growth is judged from this call's start, as the work.
                     bad = _grown(model, x0, v0, current.x.numpy(), current.v.numpy(), t0=t_start, dt=None, steps=None,
-                                 particles=monitor.keep, stored=stored, scripted_seen=seen, memo=memo)
+                                 particles=monitor.keep, stored=stored, scripted_seen=seen, memo=memo, work=done)
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
@@ -1559,6 +1606,8 @@ def simulate(
         finally:
             if bar is not None:
                 bar.close()
+            if work is not None:
+                work.close()
         by_body = {k: v - by_body0.get(k, 0) for k, v in solver.skipped_fits().items()}
         note = skipped_fit_warning(skipped_fits(solver.guard_counts()) - skipped0, model.particle_count * steps,
                                    _finer, coarse_bodies(model, by_body, steps))

@@ -512,7 +512,21 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
         k = wp.tid()
         dst[k] = dst[k] + scale * src[k]
 
-    return types.SimpleNamespace(poses=poses, accumulate=accumulate, quat=quat)
+    @wp.kernel(module="unique")
+    def work(rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat),
+             pose_dp: wp.array(dtype=vec3), pose_dr: wp.array(dtype=vec3), n_tools: int, dst: wp.array(dtype=wp.float64)):
+        """Add to ``dst[r]`` the work (J) reaction row ``r`` did on the material over the step:
+        its force along the tool's displacement plus its torque along the tool's rotation (the
+        rotation vector ``pose_dr`` is in the tool's frame at the step start). Each contact's
+        impulse times its surface point's velocity summed, as the ``apply`` and pin responses
+        measure that velocity, to first order in the step's rotation. Float64: a run's sum of
+        many small steps' terms."""
+        r = wp.tid()
+        k = r % n_tools
+        w = wp.dot(rforce[r], pose_dp[2 * k + 1]) + wp.dot(rtorque[r], wp.quat_rotate(pose_q[2 * k], pose_dr[2 * k + 1]))
+        dst[r] = dst[r] + wp.float64(w)
+
+    return types.SimpleNamespace(poses=poses, accumulate=accumulate, work=work, quat=quat)
 
 
 @functools.cache
@@ -1039,7 +1053,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         v_out[i] = v
 
     pk = pose_kernels(scalar)
-    return types.SimpleNamespace(poses=pk.poses, integrate=integrate, accumulate=pk.accumulate, quat=quat)
+    return types.SimpleNamespace(poses=pk.poses, integrate=integrate, accumulate=pk.accumulate, work=pk.work, quat=quat)
 
 
 @functools.cache
@@ -1488,6 +1502,11 @@ class ToolSet:
             rows = n * self.world_count
             self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
             self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+        work = getattr(solver, "tool_work", None)
+        if work is not None and not _taping():
+            self.model.launches(self.kernels.work, n * self.world_count,
+                                [state_out.reaction_force, state_out.reaction_torque, state_out.tool_pose_q,
+                                 state_out.tool_pose_dp, state_out.tool_pose_dr, int(n)], [work], device=dev)
 
     # ----------------------------------------------------------------- queries
     def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
