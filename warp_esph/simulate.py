@@ -219,7 +219,9 @@ class DivergenceMonitor:
     of the particles, colliders and the tools' poses), joins the speed bound and the kinetic
     energy of every particle moving that fast joins the energy bound; the potential energy
     the bodies gain (lifted by a tool) is the tools' work and takes nothing off it, and the
-    most they can have given (``lift_given``), held as height or fallen back as speed, joins it.
+    work the tools did (``check``'s ``work``, ``ToolWork``: height, speed and elastic energy
+    they gave alike) joins it, or where that is not known the most height they can have given
+    (``lift_given``), held as height or fallen back as speed.
 
     A repelling field (``strength < 0``) can add energy without bound, and a scripted motion
     (``tools.Scripted``) has no speed known beforehand: then only the non-finite check runs.
@@ -520,7 +522,7 @@ def _energy_floor(mass: float, wave: float) -> float:
 
 def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v: np.ndarray, *, t0: float = 0.0,
                   dt: float | None = None, steps: int | None = None, particles=None,
-                  stored: float = 0.0, scripted_seen: dict | None = None) -> tuple[str, int] | None:
+                  stored: float = 0.0, scripted_seen: dict | None = None, work: float | None = None) -> tuple[str, int] | None:
     """``(why, particle)`` where a run from positions and velocities ``x0, v0`` (at time
     ``t0``) to ``x, v`` has blown up without a non-finite value, else ``None``: the one test of
     energy growth that ``simulate`` (at every frame), ``sweep``'s samples, ``fit``'s evaluations
@@ -546,8 +548,11 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     ``steps`` steps of ``dt`` from ``t0`` joins the scale as ``0.5 M v^2``, and the height it
     lifts the bodies by is its work, not growth: read here at the end alone, up to each
     particle lifted to its highest position plus its reach and the bodies' size (``simulate``,
-    reading every frame, counts the most height at any frame, which a body let fall holds as
-    speed). ``scripted_seen``: the scripted motions as the
+    reading every frame, counts the tools' work instead, ``work``). ``work``: the work (J) the
+    tools and pinned sets did on the bodies since ``x0, v0`` (``ToolWork``, which ``simulate``
+    leaves in ``solver.tool_work_done``), taken off the growth in place of the heights and the
+    scripted speed: a tool's push stored as elastic energy and given back as speed counts too.
+    ``scripted_seen``: the scripted motions as the
     run's own steps evaluated them (``{k: (linear speed, angular speed, lowest, highest
     position)}``, the fastest over the steps, ``simulate``'s record of
     ``ToolSet.scripted_step_motion``), read in place of calling the poses again (``dt`` and
@@ -555,7 +560,7 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     world of a model of worlds, the bodies not exempt), None: all.
     """
     hit = _grown(model, x0, v0, x, v, t0=t0, dt=dt, steps=steps, particles=particles, stored=stored,
-                 scripted_seen=scripted_seen)
+                 scripted_seen=scripted_seen, work=work)
     if hit is None:
         return None
     return (f"the simulation blew up: {hit[0]}; the time step is likely above the stable limit {model.stable_dt():.3g} s",
@@ -1336,6 +1341,8 @@ class ToolWork:
         return float(self.solver.tool_work.numpy()[self.rows].sum())
 
     def close(self) -> None:
+        # The run's total stays readable (a sweep judges its sample's end with it).
+        self.solver.tool_work_done = self.read()
         self.solver.tool_work = self.prior
 
 

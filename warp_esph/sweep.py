@@ -739,6 +739,7 @@ def _run_sample(scene, task: _Task) -> dict:
             # A sweep's scene is resolved by its scale (sweep(scale=), --scale) or its builder's spacing.
             exempt = tuple(getattr(scene, "diverges", ()) or ())
             bounds = DivergenceMonitor(model, model.state(requires_grad=False), solver=solver) if exempt else None
+            solver.tool_work_done = None
             state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
                              monitor_exempt=exempt, _finer="a larger scale, or a smaller spacing")
             summary = _summary(model, state, solver)
@@ -746,7 +747,8 @@ def _run_sample(scene, task: _Task) -> dict:
             if why is None:
                 steps = task.frames * substeps
                 grew = energy_growth(model, model.particle_x0, model.particle_v0, state.x.numpy(), state.v.numpy(),
-                                     t0=float(state.time) - steps * dt, dt=dt, steps=steps)
+                                     t0=float(state.time) - steps * dt, dt=dt, steps=steps,
+                                     work=solver.tool_work_done)
                 why = None if grew is None else grew[0]
             if why is not None:
                 # The guard counts alone: the blown-up state's summary (a particle at 1.4e17 m) and
