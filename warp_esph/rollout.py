@@ -964,11 +964,19 @@ class Rollout:
 
     def _run(self, taped: bool):
         """The steps of ``_forward_checked`` from the loaded initial state."""
+        tools_ = self.model.tools
+        # The work the tools do on the bodies over the run (bounds_hit), per reaction row.
+        self._work = None if tools_ is None else wp.zeros(len(tools_.row_names), dtype=wp.float64, device=self.model.device)
         if self.checkpointing or not taped:
             # A loss value alone needs no tape: the same steps, unrecorded, on the two states the
             # checkpointed forward steps between (the very bits a taped run gives; a step between
             # the same two states also repacks fewer launch arguments, docs/performance.md).
-            self._forward_untaped()
+            prior = getattr(self.solver, "tool_work", None)
+            self.solver.tool_work = self._work  # untaped steps add their work as they go
+            try:
+                self._forward_untaped()
+            finally:
+                self.solver.tool_work = prior
         else:
             states = self._taped_states(self.steps + 1)
             states[0].assign(self._initial)
@@ -981,6 +989,11 @@ class Rollout:
                 wp.copy(out, states[f].x)
             for k in range(self.steps):
                 self._store_forces(k, states[k + 1])
+                if self._work is not None:  # each step's state holds its reactions and tool motion, off the tape
+                    st = states[k + 1]
+                    wp.launch(tools_.kernels.work, len(tools_.row_names),
+                              [st.reaction_force, st.reaction_torque, st.tool_pose_q, st.tool_pose_dp, st.tool_pose_dr,
+                               int(tools_.count)], [self._work], device=self.model.device)
             self._final = states[self.steps]
 
     def first_non_finite(self, particles=None, positions: np.ndarray | None = None) -> tuple[int, int, int] | None:
@@ -1032,18 +1045,33 @@ class Rollout:
         fails its samples on; the stored elastic energy the monitor finds at the start counts
         as energy the run may release), among the particles of the boolean mask ``checked``
         (None: all), else None: a blow-up that stayed finite. ``fit`` fails its trials on it;
-        the torch bridge raises on it. It reads the initial and last states once (no step's)."""
+        the torch bridge raises on it. It reads the initial and last states once (no step's), and
+        the work the tools did over the latest forward (``simulate.ToolWork``'s sum, made by its
+        steps), which both tests count as the energy the tools gave."""
         monitor = DivergenceMonitor(self.model, self._initial, particles=checked, solver=self.solver)
         final = self.final_state()
         x, v = final.x.numpy(), final.v.numpy()
-        hit = monitor.check(x, v, self.steps * self.dt)
+        work = self._work_done(checked)
+        hit = monitor.check(x, v, self.steps * self.dt, work)
         if hit is not None:
             return hit
         # A Scripted tool turns the bounds off: a box beside one, 5 x past its stable step, was
         # a fit's trial and a torch result at 1e35 J, where a sweep failed the same run.
         init = self._initial
         return energy_growth(self.model, init.x.numpy(), init.v.numpy(), x, v, t0=float(init.time), dt=self.dt,
-                             steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0))
+                             steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0), work=work)
+
+    def _work_done(self, checked=None) -> float | None:
+        """The work (J) the tools and pinned sets did in the latest forward on the worlds of the
+        particles ``checked`` (None: all), or None where it was not counted."""
+        work = getattr(self, "_work", None)
+        if work is None:
+            return None
+        rows = work.numpy()
+        if checked is not None and self.model.world_count > 1:
+            worlds = np.unique(self.model.world_of_particle[np.asarray(checked, dtype=bool)])
+            rows = rows[np.isin(np.arange(len(rows)) // self.model.tools.count, worlds)]
+        return float(rows.sum())
 
     def _check_bounds(self):
         """Raise ``DivergedRollout`` where ``bounds_hit`` finds the last state blown up."""
