@@ -573,16 +573,13 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
     ``simulate`` puts in its own divergence message (step, frame, time, advice). ``memo``:
     ``simulate``'s record across its frames (a dict, empty at the start; ``x0, v0, particles``
     and ``stored`` the same at every frame): what the start gives (its particles' masses, its
-    kinetic energy, its size) is read from the device and summed once, and ``"raised"``, the
-    most gravitational energy a moving tool had given the bodies at the frames read before,
-    is that height's work whether the bodies still hold it or have fallen back and hold it as
-    speed (read at the end alone, only the height they still hold is known). ``work``: the work
-    (J) the tools and pinned sets did on the bodies since ``x0, v0`` (``ToolWork``), which, where
-    known, is what they gave in place of the heights and the scripted speed: what a tool pressed
-    into a body as elastic energy and the body gave back as speed too."""
+    kinetic energy, its size) is read from the device and summed once. ``work``: the work (J)
+    the tools and pinned sets did on the bodies since ``x0, v0`` (``ToolWork``; ``simulate``
+    always counts it), which is what they gave, in place of the height and the scripted speed
+    that bound it where it is not known: a tool's push stored as elastic energy and given back
+    as speed counts too."""
     if getattr(model, "force_fields", None):
         return None
-    per_frame = memo is not None
     memo = {} if memo is None else memo
     if "keep" not in memo:
         keep = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
@@ -590,8 +587,7 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         x0k, v0k = np.asarray(x0, dtype=np.float64)[keep], np.asarray(v0, dtype=np.float64)[keep]
         m = model.particle_mass.numpy().astype(np.float64)[keep]
         memo.update(keep=keep, all=all_kept, x0=x0k, m=m, ke0=0.5 * float((m * (v0k * v0k).sum(axis=1)).sum()),
-                    size=(float(np.linalg.norm(x0k.max(axis=0) - x0k.min(axis=0))) + model.spacing) if len(m) else 0.0,
-                    raised=0.0)
+                    size=(float(np.linalg.norm(x0k.max(axis=0) - x0k.min(axis=0))) + model.spacing) if len(m) else 0.0)
     keep = memo["keep"]
     if not keep.any():
         return None
@@ -613,15 +609,15 @@ def _grown(model: Model, x0, v0, x, v, *, t0, dt, steps, particles, stored, scri
         scripted = 0.0
         grew = kinetic + lifted - max(float(work), 0.0)
     elif moving:
-        # A body a scripted platform lifted 4 m and let fall was stopped in its fall when only
-        # the height it still held counted as the tool's work.
-        memo["raised"] = max(lifted, memo["raised"])
-        if not per_frame and top is not None and np.linalg.norm(g) > 0.0:
-            # Read at the end alone, the most it can have given: each particle lifted to the
-            # tools' highest reach plus the bodies' size above it.
+        # Without the work, the most height it can have given, held or fallen back as speed (a
+        # body a scripted platform lifted 4 m and let fall was stopped in its fall when only the
+        # height it still held counted): each particle lifted to the tools' highest reach plus
+        # the bodies' size above it.
+        raised = max(lifted, 0.0)
+        if top is not None and np.linalg.norm(g) > 0.0:
             up = -g / np.linalg.norm(g)
-            memo["raised"] = max(memo["raised"], _lift_energy(float(np.linalg.norm(g)), m, x0 @ up, top, memo["size"]))
-        grew = kinetic + lifted - memo["raised"]
+            raised = max(raised, _lift_energy(float(np.linalg.norm(g)), m, x0 @ up, top, memo["size"]))
+        grew = kinetic + lifted - raised
     else:
         grew = kinetic + lifted
     scale = (memo["ke0"] + float(m.sum()) * float(np.linalg.norm(g)) * memo["size"]
