@@ -535,6 +535,35 @@ def test_fit_of_two_worlds_is_two_fits():
         assert joint.materials[w].yield_stress == pytest.approx(alone.materials[0].yield_stress, rel=1e-12)
 
 
+def test_a_world_whose_loss_weighs_1e4_times_less_moves_in_float32_as_its_fit_alone():
+    """Two worlds fitted jointly in float32, world 1's loss weighted 1e-4 (its gradient 1e-4 of
+    world 0's): Adam's eps had counted an entry at or below 1.2e-4 of the largest as round-off
+    in float32, so world 1's shear modulus crept where its fit alone, whose steps no loss unit
+    changes, went a full step each. An entry is round-off only where a step of it moves the
+    loss by less than the loss's own round-off: a unit step of world 1's moves it by 1.8e3
+    such units."""
+    from warp_esph.fit import fit
+
+    elastic = _material(yield_stress=1e4)  # the stretched block springs back as its mu says
+    target, _ = _run(_separate(_builder(elastic.replace(mu=2e3)), wp.float32))
+
+    def model_of(worlds):
+        m = _builder(elastic).finalize(dtype=wp.float32, requires_grad=True, worlds=worlds)
+        _perturb(m)
+        return m
+
+    options = dict(params=["mu"], steps=STEPS, dt=DT, optimizer="adam", iterations=4, progress=False,
+                   diagnostics=False)
+    model = model_of(2)
+    weights = (1.0, 1e-4)
+    joint = fit(model, losses.WorldLoss(model, [losses.PositionLoss(target, frames=[STEPS], weight=w) for w in weights]),
+                **options)
+    for w, weight in enumerate(weights):
+        alone = fit(model_of(1), losses.PositionLoss(target, frames=[STEPS], weight=weight), **options)
+        assert alone.materials[0].mu > 1.4e3  # four steps of lr 0.1 in log from 1000 Pa
+        assert joint.materials[w].mu == pytest.approx(alone.materials[0].mu, rel=1e-5)
+
+
 def test_split_materials_keeps_tools_and_solver_options():
     """A split model keeps the tools (with their current parameters), the pinned sets and
     the model's hourglass control: it runs as its source does, reactions included."""

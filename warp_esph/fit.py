@@ -1577,6 +1577,25 @@ class _Problem:
             r.apply(p)
         return p
 
+    def observed_roundoff(self) -> np.ndarray:
+        """Per optimiser entry, the weighted sum over the experiments of
+        ``Rollout.observed_roundoff`` at the last evaluation with a gradient: that of the world
+        the entry's material is in, so that a world's values are judged by its own loss (all
+        the worlds' where the entry is no material's)."""
+        out = np.zeros(len(self.z0))
+        for r in self.runs:
+            per_world = r.rollout.observed_roundoff()
+            if per_world is None:
+                continue
+            starts = np.asarray(r.model.world_material_start, dtype=np.int64)
+            idx = np.asarray(r.idx, dtype=np.int64)
+            if len(per_world) == 1 or len(idx) != self.k:
+                out += r.weight * float(per_world.sum())
+                continue
+            worlds = np.searchsorted(starts, idx, side="right") - 1
+            out += r.weight * np.tile(per_world[worlds], len(self.params))
+        return out
+
     def value_and_grad(self, z, losses=None, wants=None) -> tuple[float, np.ndarray | None]:
         """The weighted sum of the experiments' losses (or of ``losses``, one per run) and
         its gradient in optimiser space. ``wants(value)``: whether the gradient at that loss
@@ -2349,7 +2368,9 @@ def fit(
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol,
                                  bounds=prob.z_bounds(),
                                  told_apart=None if use_worlds else (lambda: track.moved or track.start_obs is None),
-                                 roundoff=_gradient_roundoff(runs))
+                                 precision=_loss_precision(runs),
+                                 observed_roundoff=(lambda: worlds_problem.roundoff[track.index]) if use_worlds
+                                 else prob.observed_roundoff)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
@@ -2537,6 +2558,9 @@ class _WorldsProblem:
         self.round_seconds = 0.0
         #: Whether each world's last run blew up (diverged, or non-finite).
         self.blew_up = [False] * worlds
+        #: Per world, the optimiser entries' ``_Problem.observed_roundoff`` at the world's last
+        #: evaluation with a gradient.
+        self.roundoff = [np.zeros(len(prob.z0)) for _ in range(worlds)]
 
     def evaluate(self, batch: dict[int, np.ndarray], wants=None) -> dict[int, tuple[float, np.ndarray | None, float, str | None]]:
         """Loss, optimiser-space gradient, seconds and note (why the materials refused the
@@ -2645,8 +2669,10 @@ class _WorldsProblem:
                             refused[w] = why
                     values += r.weight * world_values
                 return values, {w: None for w in batch}, blew_up
+            roundoff = np.zeros(W)
             for r in self.runs:
                 _, grads = r.rollout.backward(r.loss)
+                roundoff += r.weight * r.rollout.observed_roundoff()
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -2660,6 +2686,8 @@ class _WorldsProblem:
                     if w in batch:
                         gz[w] += r.weight * prob.grad_z(self.p[w], ran)
                 values += r.weight * world_values
+            for w in batch:
+                self.roundoff[w] = np.full(len(prob.z0), roundoff[w])
         except Collapsed:
             raise
         except FloatingPointError:
@@ -2831,15 +2859,17 @@ class _Stop(Exception):
 
 
 def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None,
-              told_apart=None, roundoff=0.0) -> str:
+              told_apart=None, precision=0.0, observed_roundoff=None) -> str:
     """Adam in optimiser space, each step projected onto the box. Box bounds (``bounds``:
     ``(lo, hi)`` in optimiser space, or None) as L-BFGS holds them: a value on a bound whose
     gradient points outward (``_held``) is held for the step, its moment dropped, and left out
     of ``clip``'s norm and of ``gtol``'s test (with every value held, converged).
     ``told_apart()``: whether any evaluation's observations differed from the start's beyond
-    round-off (``_tells_apart``), or None where the caller cannot tell. ``roundoff``: the share
-    of the first gradient's largest entry at or below which an entry is round-off
-    (``_adam_eps``)."""
+    round-off (``_tells_apart``), or None where the caller cannot tell. ``precision``: the
+    relative round-off of the loss's value (``_loss_precision``), from which an entry of the
+    first gradient that a step cannot move the loss beyond round-off is told (``_adam_eps``),
+    with ``observed_roundoff()``, per entry, the loss's round-off from that of the
+    observations it read at the last evaluation (``Rollout.observed_roundoff``; None: 0)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -2852,6 +2882,8 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
                 return _zero_gradient(evaluate, project, z, value, lr)
             # The free values' gradient, as L-BFGS reads it: a held one's does not fall.
             g0 = float(np.abs(np.where(held, 0.0, g)).max())
+            # Read now: a probe below evaluates elsewhere before eps is set.
+            roundoff = precision * abs(value) + (0.0 if observed_roundoff is None else observed_roundoff())
             if g0 == 0.0:
                 return "converged"  # every value on a bound with the loss falling beyond it: the corner
         if finite and g0 is not None:
@@ -2873,10 +2905,12 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
         good = z.copy()
         if held.any():
             g = np.where(held, 0.0, g)
+        shrink = 1.0
         if clip is not None:
             norm = float(np.linalg.norm(g))
             if norm > clip:
-                g = g * (clip / norm)
+                shrink = clip / norm
+                g = g * shrink
         z_new = project(opt.step(z, g, held))
         if float(np.abs(z_new - z).max()) < xtol:
             if it > 0:
@@ -2904,9 +2938,11 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # only tells a first step swallowed whole (a gradient of round-off) from one not.
             # Relative per entry, as Adam's steps are per coordinate: relative to the largest
             # entry, one value's path hung on the others' (a model of two worlds fitted jointly
-            # moved each world's yield stress otherwise than its fit alone); an entry of
-            # round-off takes the largest entry's (_adam_eps).
-            eps = _adam_eps(np.abs(np.where(held, 0.0, g)), g0, roundoff)
+            # moved each world's yield stress otherwise than its fit alone); an entry whose step
+            # the loss reads below its round-off takes one that holds it (_adam_eps).
+            # The loss's round-off scaled as clip scaled the gradient it is read against.
+            floor = LOSS_ROUNDOFF_UNITS * roundoff * shrink
+            eps = _adam_eps(np.abs(np.where(held, 0.0, g)), g0, floor)
             opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=eps)
             z_new = project(opt.step(z, g, held))
         z = z_new
@@ -2914,25 +2950,39 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
     return "iterations"
 
 
-#: Adam's eps, relative to each entry of the first gradient (the largest entry's for an entry
-#: of round-off, ``_adam_eps``; ``_run_adam``): every step after the first evaluation's test of a
+#: Adam's eps, relative to each entry of the first gradient (larger for an entry of
+#: round-off, ``_adam_eps``; ``_run_adam``): every step after the first evaluation's test of a
 #: swallowed step, which reads the absolute 1e-8.
 ADAM_EPS = 1e-8
 
+#: An entry of Adam's first gradient whose unit step in the optimiser's space moves the loss
+#: by at most this many units of the loss's round-off is round-off (``_adam_eps``): its value
+#: times its precision (``_loss_precision``) plus what the round-off of the observations it
+#: read makes of it (``Rollout.observed_roundoff``; a world's own in a model of worlds).
+#: Measured in these units (the landing cube beside a free-falling one,
+#: tests/test_fit_informative.py): the falling body's shear modulus 3.5e-5 (float64), 4.5e-3
+#: (float32 against a float64 target), 9.2e-4 (float32 against float32); the landing body's
+#: yield stress 1.1e12, 966, 2085.
+LOSS_ROUNDOFF_UNITS = 1.0
 
-def _adam_eps(first: np.ndarray, g0: float, roundoff: float) -> np.ndarray:
-    """Adam's eps per value from the first gradient's magnitudes ``first`` (a held value's 0)
-    and their largest ``g0``: ``ADAM_EPS`` times the entry's own, so that neither the loss's
-    units nor another value's gradient change a value's steps; but an entry at or below
-    ``roundoff`` times ``g0`` (0 included) takes ``ADAM_EPS`` times ``g0``, or ``roundoff``
-    times it where larger. Per entry alone, Adam's steps are the gradient's sign whatever its
-    size: a free-falling body's shear modulus, a step of which moved the loss by a twentieth of
-    a unit of its round-off (gradient 2e-28, 2e-18 of the largest entry), went from 1000 Pa to
-    2087 in 8 evaluations, 10 % each, where the other body's yield stress was being fitted
-    (tests/test_fit_informative.py). The optimiser's space sizes every value's step alike,
-    so the entries compare."""
-    floor = first <= roundoff * g0
-    return ADAM_EPS * np.where(floor, max(1.0, roundoff / ADAM_EPS) * g0, first)
+
+def _adam_eps(first: np.ndarray, g0: float, floor: np.ndarray | float) -> np.ndarray:
+    """Adam's eps per value from the first gradient's magnitudes ``first`` (a held value's 0),
+    their largest ``g0`` and the loss's round-off ``floor`` (``LOSS_ROUNDOFF_UNITS`` units of
+    it): ``ADAM_EPS`` times the entry's own, so that neither the loss's units nor another
+    value's gradient change a value's steps; but an entry at or below ``floor`` (0 included),
+    whose unit step in the optimiser's space moves the loss by no more than its round-off,
+    takes ``floor / ADAM_EPS`` (or ``ADAM_EPS`` times ``g0``, where larger), so that a gradient
+    of that size moves it by ``ADAM_EPS`` of a step. Per entry alone, Adam's steps are the
+    gradient's sign whatever its size: a free-falling body's shear modulus (3.5e-5 units of
+    the loss's round-off in float64, 4.5e-3 in float32) went 10 % a step (1000 Pa to 2087 in 8
+    evaluations in float64) where the other body's yield stress was being fitted
+    (tests/test_fit_informative.py). The floor is the loss's, not a share of the largest
+    entry: a world whose loss weighs 1e-4 of another's moves as it does alone
+    (tests/test_worlds.py), where such a share in float32 (1.2e-4) held it back.
+    ``floor``: one for all entries, or one per entry."""
+    at_floor = first <= floor
+    return np.where(at_floor, np.maximum(ADAM_EPS * g0, floor / ADAM_EPS), ADAM_EPS * first)
 
 
 #: The share of a probe's rise that its first-order (slope) part may take for the start to
@@ -2974,12 +3024,11 @@ ROUNDOFF_UNITS = 1000.0
 PLACE_UNITS = 8.0
 
 
-def _gradient_roundoff(runs) -> float:
-    """The share of a gradient's largest entry that is round-off (Adam's eps, ``_adam_eps``):
-    ``ROUNDOFF_UNITS`` units of the coarsest precision among the experiments (2.2e-13 in
-    float64, 1.2e-4 in float32)."""
+def _loss_precision(runs) -> float:
+    """The relative round-off of the loss's value: the coarsest precision among the
+    experiments (2.2e-16 in float64, 1.2e-7 in float32)."""
     coarse = any(r.model.scalar is wp.float32 for r in runs)
-    return ROUNDOFF_UNITS * float(np.finfo(np.float32 if coarse else np.float64).eps)
+    return float(np.finfo(np.float32 if coarse else np.float64).eps)
 
 
 def _observed(runs) -> list[list[tuple[bool, np.ndarray]]]:
