@@ -1577,14 +1577,14 @@ class _Problem:
             r.apply(p)
         return p
 
-    def observed_roundoff(self) -> np.ndarray:
+    def loss_roundoff(self) -> np.ndarray:
         """Per optimiser entry, the weighted sum over the experiments of
-        ``Rollout.observed_roundoff`` at the last evaluation with a gradient: that of the world
-        the entry's material is in, so that a world's values are judged by its own loss (all
-        the worlds' where the entry is no material's)."""
+        ``Rollout.loss_roundoff`` at the last evaluation with a gradient: that of the world the
+        entry's material is in, so that a world's values are judged by its own loss (all the
+        worlds' where the entry is no material's)."""
         out = np.zeros(len(self.z0))
         for r in self.runs:
-            per_world = r.rollout.observed_roundoff()
+            per_world = r.rollout.loss_roundoff()
             if per_world is None:
                 continue
             starts = np.asarray(r.model.world_material_start, dtype=np.int64)
@@ -2368,9 +2368,8 @@ def fit(
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol,
                                  bounds=prob.z_bounds(),
                                  told_apart=None if use_worlds else (lambda: track.moved or track.start_obs is None),
-                                 precision=_loss_precision(runs),
-                                 observed_roundoff=(lambda: worlds_problem.roundoff[track.index]) if use_worlds
-                                 else prob.observed_roundoff)
+                                 loss_roundoff=(lambda: worlds_problem.roundoff[track.index]) if use_worlds
+                                 else prob.loss_roundoff)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
@@ -2558,7 +2557,7 @@ class _WorldsProblem:
         self.round_seconds = 0.0
         #: Whether each world's last run blew up (diverged, or non-finite).
         self.blew_up = [False] * worlds
-        #: Per world, the optimiser entries' ``_Problem.observed_roundoff`` at the world's last
+        #: Per world, the optimiser entries' ``_Problem.loss_roundoff`` at the world's last
         #: evaluation with a gradient.
         self.roundoff = [np.zeros(len(prob.z0)) for _ in range(worlds)]
 
@@ -2672,7 +2671,7 @@ class _WorldsProblem:
             roundoff = np.zeros(W)
             for r in self.runs:
                 _, grads = r.rollout.backward(r.loss)
-                roundoff += r.weight * r.rollout.observed_roundoff()
+                roundoff += r.weight * r.rollout.loss_roundoff()
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -2859,17 +2858,17 @@ class _Stop(Exception):
 
 
 def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None,
-              told_apart=None, precision=0.0, observed_roundoff=None) -> str:
+              told_apart=None, loss_roundoff=None) -> str:
     """Adam in optimiser space, each step projected onto the box. Box bounds (``bounds``:
     ``(lo, hi)`` in optimiser space, or None) as L-BFGS holds them: a value on a bound whose
     gradient points outward (``_held``) is held for the step, its moment dropped, and left out
     of ``clip``'s norm and of ``gtol``'s test (with every value held, converged).
     ``told_apart()``: whether any evaluation's observations differed from the start's beyond
-    round-off (``_tells_apart``), or None where the caller cannot tell. ``precision``: the
-    relative round-off of the loss's value (``_loss_precision``), from which an entry of the
-    first gradient that a step cannot move the loss beyond round-off is told (``_adam_eps``),
-    with ``observed_roundoff()``, per entry, the loss's round-off from that of the
-    observations it read at the last evaluation (``Rollout.observed_roundoff``; None: 0)."""
+    round-off (``_tells_apart``), or None where the caller cannot tell. ``loss_roundoff()``:
+    the round-off of the loss at the last evaluation, per entry or one for all
+    (``_Problem.loss_roundoff``; None: float64's precision times the loss), from which an
+    entry of the first gradient whose step cannot move the loss beyond it is told
+    (``_adam_eps``)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -2883,7 +2882,7 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # The free values' gradient, as L-BFGS reads it: a held one's does not fall.
             g0 = float(np.abs(np.where(held, 0.0, g)).max())
             # Read now: a probe below evaluates elsewhere before eps is set.
-            roundoff = precision * abs(value) + (0.0 if observed_roundoff is None else observed_roundoff())
+            roundoff = float(np.finfo(np.float64).eps) * abs(value) if loss_roundoff is None else loss_roundoff()
             if g0 == 0.0:
                 return "converged"  # every value on a bound with the loss falling beyond it: the corner
         if finite and g0 is not None:
@@ -2957,8 +2956,8 @@ ADAM_EPS = 1e-8
 
 #: An entry of Adam's first gradient whose unit step in the optimiser's space moves the loss
 #: by at most this many units of the loss's round-off is round-off (``_adam_eps``): its value
-#: times its precision (``_loss_precision``) plus what the round-off of the observations it
-#: read makes of it (``Rollout.observed_roundoff``; a world's own in a model of worlds).
+#: times its precision plus what the round-off of the observations it read makes of it
+#: (``Rollout.loss_roundoff``; a world's own in a model of worlds).
 #: Measured in these units (the landing cube beside a free-falling one,
 #: tests/test_fit_informative.py): the falling body's shear modulus 3.5e-5 (float64), 4.5e-3
 #: (float32 against a float64 target), 9.2e-4 (float32 against float32); the landing body's
@@ -3022,13 +3021,6 @@ ROUNDOFF_UNITS = 1000.0
 #: 2000 Pa at the origin and was called uninformative 10 m from it (its 10 % move of mu, 2.3e-5 m,
 #: is 19.5 units of 10 m; tests/test_fit_informative.py).
 PLACE_UNITS = 8.0
-
-
-def _loss_precision(runs) -> float:
-    """The relative round-off of the loss's value: the coarsest precision among the
-    experiments (2.2e-16 in float64, 1.2e-7 in float32)."""
-    coarse = any(r.model.scalar is wp.float32 for r in runs)
-    return float(np.finfo(np.float32 if coarse else np.float64).eps)
 
 
 def _observed(runs) -> list[list[tuple[bool, np.ndarray]]]:

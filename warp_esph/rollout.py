@@ -728,8 +728,8 @@ class Rollout:
         self._last_guards = np.zeros_like(self._forward_guards)
         #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
         self.world_values = None
-        # The observations and the loss's gradient with respect to them at the last backward
-        # given a loss (observed_roundoff), else None.
+        # The observations, the loss's gradient with respect to them and its value at the last
+        # backward given a loss (loss_roundoff), else None.
         self._read = None
 
     # ----------------------------------------------------------------- set-up
@@ -1233,19 +1233,20 @@ class Rollout:
             out[COLLIDER_NAMES] = list(self.collider_names)
         return out
 
-    def observed_roundoff(self) -> np.ndarray | None:
-        """Per world, by how much the loss of the last ``backward`` (given a loss) moves, to
-        first order, where every observation it read moves by one unit of its own round-off
-        (the model's precision times its magnitude): ``sum |dL/do| |o| eps``. A loss of
-        positions reads their round-off, not its own: a free-falling body's shear modulus in
-        float32 moved the loss by 127 units of its value's precision, and by 0.0045 of this (the
-        landing body's yield stress beside it by 966; tests/test_fit_informative.py). Forces are summed, not split by world,
-        and counted in every world. None where the backward was given gradients, not a loss."""
+    def loss_roundoff(self) -> np.ndarray | None:
+        """Per world, the round-off of the loss of the last ``backward`` given a loss: its
+        value's (the model's precision times it; each world its own term where a
+        ``losses.WorldLoss`` gives them, the rest counted in every world) plus, to first order,
+        how far it moves where every observation it read moves by one unit of its own
+        round-off (``sum |dL/do| |o|`` times the precision). A loss of positions reads their
+        round-off more than its own: a free-falling body's shear modulus in float32 moved the
+        loss by 127 units of its value's round-off and by 0.0045 of this one (the landing
+        body's yield stress beside it by 966; tests/test_fit_informative.py). Forces are
+        counted in every world. None where the backward was given gradients, not a loss."""
         if self._read is None:
             return None
-        observed, grads = self._read
+        observed, grads, value = self._read
         m = self.model
-        eps = float(np.finfo(m.types.np_dtype).eps)
         starts = np.asarray(m.world_start, dtype=np.int64)
         out = np.zeros(len(starts) - 1)
         shared = 0.0
@@ -1261,7 +1262,14 @@ class Rollout:
                 out += per_particle[starts[1:]] - per_particle[starts[:-1]]
             else:
                 shared += float(read.sum())
-        return eps * (out + shared)
+        value = float(value)
+        if self.world_values is not None and len(self.world_values) == len(out):
+            terms = np.abs(np.asarray(self.world_values, dtype=np.float64))
+            out += terms
+            shared += abs(value - float(np.sum(self.world_values)))
+        else:
+            shared += abs(value)
+        return float(np.finfo(m.types.np_dtype).eps) * (out + shared)
 
     def positions(self) -> np.ndarray:
         """Positions at ``frames`` of the last ``forward``, ``(frames, n, 3)``."""
@@ -1387,10 +1395,10 @@ class Rollout:
                                      f"{np.asarray(self.model.world_start).tolist()}")
             observed = self.observations()
             value, grads = loss.value_and_grad(observed)
-            self._read = (observed, grads)
             # Each world's terms, also where the WorldLoss is a term of a sum (it read None there).
             parts = [leaf.world_values for leaf in worlds if leaf.world_values is not None]
             self.world_values = sum(parts[1:], parts[0]) if parts else None
+            self._read = (observed, grads, value)
         force_grads = collider_grads = None
         if isinstance(grads, Mapping) and (FORCES in grads or COLLIDER_FORCES in grads):
             grads = dict(grads)
