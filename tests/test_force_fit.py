@@ -1101,3 +1101,19 @@ def test_cli_fits_the_force_components_chosen_and_says_where_a_fitted_column_is_
         assert capsys.readouterr().err.strip().splitlines()[-1] == (
             f"warp-esph: error: --force-components = {bad!r} is not allowed: give distinct axes among x, y, z (e.g. z, "
             "or xz)")
+
+
+def test_adam_fits_the_press_modulus_to_its_force_curve():
+    """Adam reads the loss's round-off from its observations at its first step (the loss's
+    gradient of them times their size), forces included, whose gradient comes per step and
+    tool where the record is flat: the pairing had raised a broadcasting error. The modulus,
+    8000 Pa against a curve of 5000, moves down by lr in log a step."""
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    ends, truth = _press_curve(60, 10)
+    loss = ReactionForceLoss(truth, "plate", ends, window=10, components="y")
+    result = fit(_elastic_press(8000.0, 5000.0), loss, ["mu"], steps=60, dt=2.0e-4, optimizer="adam", iterations=2,
+                 progress=False, diagnostics=False)
+    mus = [h["params"]["mu"][0] for h in result.history]
+    assert len(mus) == 3, result.history
+    np.testing.assert_allclose(np.diff(np.log(mus)), -0.1, rtol=0.05)

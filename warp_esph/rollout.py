@@ -1256,12 +1256,16 @@ class Rollout:
             g = np.asarray(g.numpy() if hasattr(g, "numpy") else g, dtype=np.float64)
             o = observed[key]
             o = np.asarray(o.numpy() if hasattr(o, "numpy") else o, dtype=np.float64)
-            read = np.abs(g) * np.abs(o)
-            if isinstance(key, (int, np.integer)) and read.shape[0] == m.particle_count:
-                per_particle = np.concatenate([[0.0], np.cumsum(read.reshape(read.shape[0], -1).sum(axis=1))])
+            if g.size != o.size:
+                continue  # no entry-by-entry pairing to read
+            if isinstance(key, (int, np.integer)) and g.shape == o.shape and g.shape[0] == m.particle_count:
+                read = (np.abs(g) * np.abs(o)).reshape(g.shape[0], -1).sum(axis=1)
+                per_particle = np.concatenate([[0.0], np.cumsum(read)])
                 out += per_particle[starts[1:]] - per_particle[starts[:-1]]
             else:
-                shared += float(read.sum())
+                # Forces: a loss's gradient of them may come in another shape (per frame and
+                # tool) than the flat record, entry for entry.
+                shared += float(np.sum(np.abs(g.ravel()) * np.abs(o.ravel())))
         value = float(value)
         if self.world_values is not None and len(self.world_values) == len(out):
             terms = np.abs(np.asarray(self.world_values, dtype=np.float64))
