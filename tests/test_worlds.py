@@ -566,6 +566,30 @@ def test_a_world_whose_loss_weighs_far_less_moves_in_float32_as_its_fit_alone(we
         assert joint.materials[w].mu == pytest.approx(alone.materials[0].mu, rel=1e-5)
 
 
+def test_each_worlds_loss_roundoff_is_its_run_alones():
+    """``Rollout.loss_roundoff`` (what Adam's first step reads as round-off) is per world: a
+    world weighted 1e-3 of the other reads its own run's, not the model's, so that its values
+    are held or moved as in its fit alone."""
+    from warp_esph.rollout import Rollout
+
+    target, _ = _run(_separate(_builder(MAT_A.replace(yield_stress=15.0)), wp.float64))
+    weights = (1.0, 1e-3)
+    model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    _perturb(model)
+    joint = Rollout(model, STEPS, DT, frames=[STEPS])
+    joint.forward()
+    joint.backward(losses.WorldLoss(model, [losses.PositionLoss(target, frames=[STEPS], weight=w) for w in weights]))
+    both = joint.loss_roundoff()
+    assert both.shape == (2,) and both[1] < 1e-2 * both[0]
+    for w, weight in enumerate(weights):
+        alone_model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True)
+        _perturb(alone_model)
+        alone = Rollout(alone_model, STEPS, DT, frames=[STEPS])
+        alone.forward()
+        alone.backward(losses.PositionLoss(target, frames=[STEPS], weight=weight))
+        assert both[w] == pytest.approx(alone.loss_roundoff()[0], rel=1e-9)
+
+
 def test_split_materials_keeps_tools_and_solver_options():
     """A split model keeps the tools (with their current parameters), the pinned sets and
     the model's hourglass control: it runs as its source does, reactions included."""

@@ -2557,9 +2557,10 @@ class _WorldsProblem:
         self.round_seconds = 0.0
         #: Whether each world's last run blew up (diverged, or non-finite).
         self.blew_up = [False] * worlds
-        #: Per world, the optimiser entries' ``_Problem.loss_roundoff`` at the world's last
-        #: evaluation with a gradient.
+        #: Per world, the optimiser entries' ``_Problem.loss_roundoff`` at the world's first
+        #: evaluation with a gradient (``roundoff_read``: the worlds that had one).
         self.roundoff = [np.zeros(len(prob.z0)) for _ in range(worlds)]
+        self.roundoff_read: set[int] = set()
 
     def evaluate(self, batch: dict[int, np.ndarray], wants=None) -> dict[int, tuple[float, np.ndarray | None, float, str | None]]:
         """Loss, optimiser-space gradient, seconds and note (why the materials refused the
@@ -2669,9 +2670,13 @@ class _WorldsProblem:
                     values += r.weight * world_values
                 return values, {w: None for w in batch}, blew_up
             roundoff = np.zeros(W)
+            # Adam reads a start's round-off at its first evaluation alone: later rounds skip
+            # the host copies of every frame and its gradient.
+            unread = any(w not in self.roundoff_read for w in batch)
             for r in self.runs:
                 _, grads = r.rollout.backward(r.loss)
-                roundoff += r.weight * r.rollout.loss_roundoff()
+                if unread:
+                    roundoff += r.weight * r.rollout.loss_roundoff()
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -2686,7 +2691,9 @@ class _WorldsProblem:
                         gz[w] += r.weight * prob.grad_z(self.p[w], ran)
                 values += r.weight * world_values
             for w in batch:
-                self.roundoff[w] = np.full(len(prob.z0), roundoff[w])
+                if unread and w not in self.roundoff_read:
+                    self.roundoff[w] = np.full(len(prob.z0), roundoff[w])
+                    self.roundoff_read.add(w)
         except Collapsed:
             raise
         except FloatingPointError:
