@@ -351,6 +351,30 @@ def test_adam_reads_gtol_on_the_values_free_of_the_bounds():
     assert all(z[1] == 0.0 for z in points)
 
 
+def test_adam_moves_a_value_held_on_its_bound_at_the_first_gradient_once_it_points_back_in():
+    """A value on its bound at the start with the loss falling beyond it: its entry of the
+    first gradient is dropped (0), so Adam took it for round-off and gave it an eps of 1e8
+    times the loss's round-off; when the other value's move turned its gradient into the box,
+    that eps held it near the bound for the run (0.07 after 60 evaluations where its minimum
+    had reached 1, in float32's round-off). Released at its first gradient above round-off, it follows its minimum."""
+    lo, hi = np.array([-np.inf, 0.0]), np.array([np.inf, np.inf])
+    points, values = [], []
+
+    def evaluate(z):
+        # z[1]'s minimum, z[0] - 1, lies below its bound until z[0] passes 1.
+        value = (z[0] - 2.0) ** 2 + (z[1] - (z[0] - 1.0)) ** 2
+        grad = np.array([2.0 * (z[0] - 2.0) - 2.0 * (z[1] - (z[0] - 1.0)), 2.0 * (z[1] - (z[0] - 1.0))])
+        points.append(z.copy())
+        values.append(value)
+        return value, grad, True
+
+    float32 = float(np.finfo(np.float32).eps)
+    _run_adam(evaluate, lambda z: np.clip(z, lo, hi), np.zeros(2), 60, 0.1, None, None, lambda text: None,
+              xtol=1e-9, bounds=(lo, hi), loss_roundoff=lambda: float32 * abs(values[-1]))
+    assert points[1][1] == 0.0, points[:2]  # held on the bound while the loss falls beyond it
+    assert abs(points[-1][1] - 1.0) < 0.1 and abs(points[-1][0] - 2.0) < 0.1, points[-1]
+
+
 def test_a_value_on_its_bound_at_the_datas_best_is_not_said_to_lie_beyond_it(landing):
     """A fit whose answer is its bound (the target's flow rate 10/s, the lower bound 10/s, the
     fit started there) ends on the bound with the chi-square at its minimum: its slope there

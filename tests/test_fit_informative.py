@@ -289,3 +289,32 @@ def test_a_probe_already_evaluated_is_not_run_again(optimizer):
     points = [tuple(v for k in sorted(h["params"]) for v in h["params"][k]) for h in result.history]
     assert len(points) == len(set(points)), [(h["loss"], h["params"], h.get("note")) for h in result.history]
     assert result.stopped == "uninformative", result.stopped
+
+
+def test_adam_moves_a_value_whose_first_gradient_was_0_once_the_loss_reads_it():
+    """A value the loss does not read at the start (its gradient exactly 0, as a yield stress
+    set too high is where nothing yields) but reads once another value has moved (particles
+    yield): Adam held it with eps = 1e8 times the loss's round-off for the whole run, so in
+    float32 (round-off 1.2e-7 of the loss) its later gradient of order 1 moved it a few % of a step
+    and it ended 0.9 from its minimum after 40 evaluations. Judged round-off while its gradient
+    stays at or below the round-off, it takes eps relative to its first gradient above it, and
+    reaches its minimum as the other value does."""
+    from warp_esph.fit import _run_adam
+
+    points, values = [], []
+
+    def evaluate(z):
+        # z[1]'s term switches on where z[0] passes 0.5, as yielding does where the load grows.
+        on = max(z[0] - 0.5, 0.0)
+        value = (z[0] - 2.0) ** 2 + on * (z[1] - 1.0) ** 2
+        grad = np.array([2.0 * (z[0] - 2.0) + (z[1] - 1.0) ** 2 * (z[0] > 0.5), 2.0 * on * (z[1] - 1.0)])
+        points.append(z.copy())
+        values.append(value)
+        return value, grad, True
+
+    float32 = float(np.finfo(np.float32).eps)
+    _run_adam(evaluate, lambda z: z, np.zeros(2), 40, 0.1, None, None, lambda text: None, xtol=1e-9,
+              loss_roundoff=lambda: float32 * abs(values[-1]))
+    assert points[1][1] == 0.0, points[:2]  # held while the loss does not read it
+    assert abs(points[-1][1] - 1.0) < 0.1, points[-1]
+    assert values[-1] < 0.05 * values[0], (values[0], values[-1])

@@ -2875,11 +2875,13 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
     the round-off of the loss at the last evaluation, per entry or one for all
     (``_Problem.loss_roundoff``; None: float64's precision times the loss), from which an
     entry of the first gradient whose step cannot move the loss beyond it is told
-    (``_adam_eps``)."""
+    (``_adam_eps``), and held until a later gradient of it exceeds that first round-off
+    (``_adam_eps_release``)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
     g0 = None
+    round_off = np.zeros(len(z), dtype=bool)  # the entries whose eps holds them (_adam_eps)
     for it in range(iterations + 1):
         value, g, finite = evaluate(z)
         held = _held(z, g, bounds) if finite else None
@@ -2917,6 +2919,11 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             if norm > clip:
                 shrink = clip / norm
                 g = g * shrink
+        if it > 0 and round_off.any():
+            # A value the first gradient did not read (a yield stress nothing reached) is read
+            # once another has moved (particles yield): held for the run, it stayed frozen.
+            opt.eps, round_off = _adam_eps_release(opt.eps, round_off, np.abs(g),
+                                                   LOSS_ROUNDOFF_UNITS * roundoff * shrink)
         z_new = project(opt.step(z, g, held))
         if float(np.abs(z_new - z).max()) < xtol:
             if it > 0:
@@ -2948,7 +2955,9 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             # the loss reads below its round-off takes one that holds it (_adam_eps).
             # The loss's round-off scaled as clip scaled the gradient it is read against.
             floor = LOSS_ROUNDOFF_UNITS * roundoff * shrink
-            eps = _adam_eps(np.abs(np.where(held, 0.0, g)), g0, floor)
+            first = np.abs(np.where(held, 0.0, g))
+            eps = _adam_eps(first, g0, floor)
+            round_off = first <= floor
             opt = Adam(len(z), lr=opt.lr, betas=(opt.b1, opt.b2), eps=eps)
             z_new = project(opt.step(z, g, held))
         z = z_new
@@ -2979,7 +2988,8 @@ def _adam_eps(first: np.ndarray, g0: float, floor: np.ndarray | float) -> np.nda
     value's gradient change a value's steps; but an entry at or below ``floor`` (0 included),
     whose unit step in the optimiser's space moves the loss by no more than its round-off,
     takes ``floor / ADAM_EPS`` (or ``ADAM_EPS`` times ``g0``, where larger), so that a gradient
-    of that size moves it by ``ADAM_EPS`` of a step. Per entry alone, Adam's steps are the
+    of that size moves it by ``ADAM_EPS`` of a step, until a later gradient of it exceeds
+    ``floor`` (``_adam_eps_release``). Per entry alone, Adam's steps are the
     gradient's sign whatever its size: a free-falling body's shear modulus (3.5e-5 units of
     the loss's round-off in float64, 4.5e-3 in float32) went 10 % a step (1000 Pa to 2087 in 8
     evaluations in float64) where the other body's yield stress was being fitted
@@ -2989,6 +2999,17 @@ def _adam_eps(first: np.ndarray, g0: float, floor: np.ndarray | float) -> np.nda
     ``floor``: one for all entries, or one per entry."""
     at_floor = first <= floor
     return np.where(at_floor, np.maximum(ADAM_EPS * g0, floor / ADAM_EPS), ADAM_EPS * first)
+
+
+def _adam_eps_release(eps: np.ndarray, round_off: np.ndarray, g: np.ndarray, floor: np.ndarray | float):
+    """Adam's eps and its mask of entries still judged round-off (``_adam_eps``), given a later
+    gradient's magnitudes ``g`` and the round-off ``floor`` read at the first evaluation: an
+    entry of round-off whose gradient now exceeds ``floor`` takes ``ADAM_EPS`` times it, as the
+    first gradient's entries above ``floor`` took theirs, and is round-off no longer; one at or
+    below ``floor`` keeps the eps that holds it. ``floor``: one for all entries, or one per
+    entry (the first evaluation's, as the later ones' round-off is not read)."""
+    released = round_off & (g > floor)
+    return np.where(released, ADAM_EPS * g, eps), round_off & ~released
 
 
 #: The share of a probe's rise that its first-order (slope) part may take for the start to
