@@ -6,6 +6,7 @@ materials made ``isotropic`` (``energy_spiky``'s pressure and ``k_p``: the exper
 ``Solver._isotropic_pressure`` flag's step on the default force, bit for bit).
 
     python -m benchmarks.isotropic_pressure column --resolution 4 --periods 60
+    python -m benchmarks.isotropic_pressure column --resolution 6 --periods 72 --every 12
     python -m benchmarks.isotropic_pressure slump --S 0.2 --resolution 8 --duration 8
     (--baseline: the same run with the default pair force, unfused)
 """
@@ -18,6 +19,81 @@ import time
 #: What a run prints of ``near_yield_column``'s and ``slump``'s rows.
 COLUMN_KEYS = ("plastic_over_theory", "elastic_measured", "nearest_neighbour_min", "residual_rate_pct_per_s",
                "kinetic_over_weight", "highest_yielded_depth", "lean")
+
+
+@contextlib.contextmanager
+def column_history(every: float, resolution: int, periods: float, out=print):
+    """Inside the block, ``validation.near_yield_column``'s run reports its state every
+    ``every`` axial periods (the row has only its end), so a run to rest shows how it gets
+    there and a run cut short still leaves its state: ``out(dict)`` gets the period, the
+    shortening between the top and bottom layers' centres (m), the top's rate over the last
+    tenth of the interval (% of the 1-D theory per s, the row's ``residual_rate_pct_per_s``),
+    the kinetic energy over the weight's scale, the closest neighbours (dx, every particle, as
+    the row's ``nearest_neighbour_min``), the lean (dx) and the highest initial depth (over L)
+    of a free particle that reached the yield stress so far (sampled every 10 steps, as the
+    row's ``highest_yielded_depth``). The returned list collects them; its plastic part over the
+    theory needs the elastic reference, run after the plastic run
+    (``plastic_over_theory``)."""
+    import math
+
+    import numpy as np
+
+    from benchmarks import validation as v
+
+    rows, seen = [], {}
+    free_column, swap_run = v._free_column, v._swap_run
+
+    def capture(we, mat, n, aspect, dx, **kw):
+        r = free_column(we, mat, n, aspect, dx, **kw)
+        # The first column made is the plastic run's; the elastic reference comes after it.
+        if "model" not in seen:
+            seen.update(mat=mat, dx=dx, model=r[0], H=r[1], x0=r[2], top=r[3], bottom=r[4], free=r[5], L0=r[6])
+        return r
+
+    def run(model, solver, a, c, dt, steps, after=None):
+        if model is not seen.get("model"):
+            return swap_run(model, solver, a, c, dt, steps, after)
+        mat, dx, H, top, bottom, free, L0 = (seen[k] for k in ("mat", "dx", "H", "top", "bottom", "free", "L0"))
+        x0 = seen["x0"]
+        depth = (x0[:, 1].max() + 0.5 * dx - x0[:, 1]) / H
+        per = steps / periods  # steps per axial period, as near_yield_column counted them
+        stride = max(1, int(round(every * per)))
+        scale = v.RHO * v.G * H * (H - dx) / (2.0 * 1.5e5) + v.near_yield_column_theory(0.8) * (H - dx)
+        weight = float(model.particle_mass.numpy().sum()) * v.G * scale
+        peak = np.zeros(model.particle_count)
+        hist = []
+
+        def watch(state, k):
+            if k % 10 == 0:
+                np.maximum(peak, v._deviatoric_norm(state.F.numpy(), mat.mu) / mat.yield_stress, out=peak)
+            report = k % stride == 0 or k == steps
+            if k % stride > stride - 0.1 * stride or report:
+                x = state.x.numpy().astype(np.float64)
+                hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean())))
+            if report:
+                h = np.array(hist)
+                d2 = solver.scratch.neighbor_d2.numpy().astype(np.float64)
+                cnt = state.neighbor_count.numpy()
+                d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
+                yielded = (peak >= 0.99) & free
+                x = state.x.numpy().astype(np.float64)
+                row = {"period": k / per, "shortening": h[-1, 1],
+                       "rate_pct_per_s": 100.0 * np.polyfit(h[:, 0], h[:, 1], 1)[0] / scale if len(h) > 1 else math.nan,
+                       "kinetic_over_weight": v._kinetic(model, state) / weight,
+                       "nearest_dx": math.sqrt(d2.min()) / dx, "lean_dx": v._lean(x, top, bottom) / dx,
+                       "highest_yielded_depth": float(depth[yielded].min()) if yielded.any() else math.nan}
+                rows.append(row)
+                out(row)
+                hist.clear()
+            return None if after is None else after(state, k)
+
+        return swap_run(model, solver, a, c, dt, steps, watch)
+
+    v._free_column, v._swap_run = capture, run
+    try:
+        yield rows
+    finally:
+        v._free_column, v._swap_run = free_column, swap_run
 
 
 @contextlib.contextmanager
@@ -53,11 +129,15 @@ def main(argv=None):
     ap.add_argument("--S", type=float, default=0.2)
     ap.add_argument("--duration", type=float, default=8.0)
     ap.add_argument("--baseline", action="store_true")
+    ap.add_argument("--every", type=float, default=0.0,
+                    help="column: print its state every this many axial periods (0: the end only)")
     a = ap.parse_args(argv)
     from benchmarks import validation
 
     t = time.time()
-    with isotropic_pressure(not a.baseline):
+    history = column_history(a.every, a.resolution, a.periods, lambda r: print(json.dumps(r), flush=True)) \
+        if a.case == "column" and a.every > 0 else contextlib.nullcontext([])
+    with isotropic_pressure(not a.baseline), history as rows:
         if a.case == "column":
             row = validation.near_yield_column(resolution=a.resolution, width=0.04, floor="slip_ghost_particles",
                                                periods=a.periods)
@@ -66,6 +146,10 @@ def main(argv=None):
     out = {k: v for k, v in row.items() if not isinstance(v, list)}
     out["isotropic_pressure"] = not a.baseline
     out["wall_s"] = time.time() - t
+    if rows:
+        # The plastic part at each report, against the elastic reference run after the plastic run.
+        out["plastic_over_theory_history"] = [
+            [r["period"], (r["shortening"] - row["elastic_measured"]) / row["theory_plastic"]] for r in rows]
     print(json.dumps(out, default=str, indent=0))
 
 
