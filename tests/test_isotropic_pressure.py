@@ -463,3 +463,24 @@ def test_a_model_of_several_materials_switches_to_and_from_the_isotropic_pressur
     assert [m.pressure_force for m in model.materials] == ["isotropic", "isotropic"]
     model.set_materials(before)
     assert model.materials == before and model.material_pressure_force.numpy().tolist() == [2, 2]
+def test_the_benchmarks_column_history_reports_the_run_it_watches_without_changing_it():
+    """``benchmarks/isotropic_pressure.py --every``: the column's state is reported every given
+    fraction of the run, its last report is the row's end (shortening, lean, closest
+    neighbours, yield front), the column shortens between reports under its rising weight, and
+    watching leaves the run as it was, bit for bit."""
+    from benchmarks import validation
+    from benchmarks.isotropic_pressure import column_history
+
+    kw = dict(resolution=4, width=0.04, floor="slip_ghost_particles", periods=0.5, elastic_periods=0.05)
+    plain = validation.near_yield_column(**kw)
+    seen = []
+    with column_history(0.25, 4, 0.5, out=seen.append) as rows:
+        row = validation.near_yield_column(**kw)
+    assert rows == seen and len(rows) == 2
+    assert rows[0]["period"] == pytest.approx(0.25, abs=0.01) and rows[-1]["period"] == pytest.approx(0.5, abs=0.01)
+    assert 0.0 < rows[0]["shortening"] < rows[-1]["shortening"]
+    assert rows[-1]["shortening"] == row["shortening"] == plain["shortening"]
+    assert rows[-1]["lean_dx"] == pytest.approx(row["lean"], rel=1e-12, abs=1e-15)
+    assert rows[-1]["nearest_dx"] == row["nearest_neighbour_min"]
+    assert np.isnan(rows[-1]["highest_yielded_depth"]) == np.isnan(row["highest_yielded_depth"])
+    assert validation._swap_run is not None and validation._free_column.__name__ == "_free_column"
