@@ -342,7 +342,7 @@ def test_the_isotropic_kernels_generated_adjoint_matches_central_differences_off
             assert g[k, c] == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(g).max()), (k, c)
 
 
-@wp.kernel
+@wp.kernel(module="unique")
 def _dot(f: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), total: wp.array(dtype=wp.float64)):
     wp.atomic_add(total, 0, wp.dot(f[wp.tid()], w[wp.tid()]))
 
