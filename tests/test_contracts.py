@@ -13,7 +13,6 @@
 """
 
 import contextlib
-import math
 import pathlib
 import types
 
@@ -85,10 +84,8 @@ def _scene(option, dtype, offset=(0.0, 0.0, 0.0), requires_grad=False):
     elif option == "pins":
         b.pin(body="block", region=(at(-1, 0.2, -1), at(1, 1, 1)), motion=tools.Velocity((0.0, -0.2, 0.0)), name="grip")
     elif option == "colliders":
-        # Each touching four particles of the top layer (y = 0.23): a body may not start
-        # inside a static collider; the stirred ones moving up enter them in the first step.
-        b.add_sphere_collider(at(0.075, 0.23 + math.sqrt(0.06**2 - 2 * 0.025**2), 0.075), 0.06)
-        b.add_box_collider(at(0.075, 0.28, -0.075), (0.05, 0.05, 0.05))
+        b.add_sphere_collider(at(0.1, 0.27, 0), 0.06)
+        b.add_box_collider(at(-0.1, 0.27, 0), (0.03, 0.05, 0.03))
     elif option == "compression_field":
         b.add_compression_field(at(0, 0.13, 0), 10.0)
     model = b.finalize(device="cpu", dtype=dtype, requires_grad=requires_grad, worlds=2 if option == "worlds" else 1)

@@ -43,14 +43,6 @@ MAX_FLOOR_LAYERS = 8
 #: columns of the grid; about 10 s of numpy): a margin of thousands of spacings is refused
 #: before it stalls the builder.
 MAX_FLOOR_WORK = 5e8
-#: How deep a body's free particle may start inside a static collider, in spacings (plus the
-#: float64 round-off of its coordinates): none but round-off. The contact moves a particle
-#: found inside onto the surface within one step, a displacement of the boundary layer that
-#: the material meets as a strain of depth / spacing at once, so it leaves at about the
-#: p-wave speed times that strain: a two-layer rubber star 0.01, 0.1 and 0.4 spacings inside
-#: the ground reached 0.29, 3.0 and 12 m/s in 40 steps (0.01 m/s on it), a push worth a fall of
-#: 4 mm to 7 m, and exited 3 as diverged at 0.4 (docs/errors.md). Half a spacing was allowed.
-START_DEPTH = 1e-6
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -1148,11 +1140,10 @@ def _check_memory(count: int, max_neighbors: int, dev) -> None:
 
 
 def _check_outside_colliders(builder) -> None:
-    """Refuse a body that starts inside a static collider by more than round-off
-    (``START_DEPTH``; pinned particles aside: a particle floor may lie under the ground):
-    the contact pushed it out within a step, at a speed the run reported as a divergence
-    (exit 3 after the kernels ran) or, less deep, as a body thrown off the ground, or, inside
-    a box or sphere, left it there."""
+    """Refuse a body that starts more than half a spacing inside a static collider (pinned
+    particles aside: a particle floor may lie under the ground): the contact pushed it out
+    within a step, at a speed the run reported as a divergence (exit 3 after the kernels
+    ran) or, inside a box or sphere, left it there."""
     if not builder._points or not (builder.planes or builder.spheres or builder.boxes):
         return
     x = np.concatenate(builder._points)
@@ -1160,29 +1151,23 @@ def _check_outside_colliders(builder) -> None:
     for p in builder.pins:
         free[np.asarray(p.indices, dtype=np.int64)] = False
     starts = np.cumsum([0] + [b.count for b in builder._bodies])
-    scale = float(np.abs(x).max())
+    tol = 0.5 * builder.spacing
     # Named as the reaction rows and the force log name them (plane0, sphere0, box0).
-    # The shapes' depths are the tools' (``_tool_depth``), in each collider's own frame; the
-    # last entry, the collider's size, enters the depth's round-off.
-    depths = [(f"plane{k}", ("plane", k), _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)), abs(p.offset))
+    # The shapes' depths are the tools' (``_tool_depth``), in each collider's own frame.
+    depths = [(f"plane{k}", ("plane", k), _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)))
               for k, p in enumerate(builder.planes)]
-    depths += [(f"sphere{k}", ("sphere", k), _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)),
-                float(np.abs(s.center).max()) + s.radius) for k, s in enumerate(builder.spheres)]
-    depths += [(f"box{k}", ("box", k), _tool_depth("box", b.half_extents, x - np.array(b.center)),
-                float(np.abs(b.center).max() + np.abs(b.half_extents).max())) for k, b in enumerate(builder.boxes)]
-    for name, origin, d, size in depths:
-        # Lattice sites on the surface (a box set on the ground by its material's face has
-        # none there; one by its particles' centres has) may land a few float64 units inside.
-        tol = START_DEPTH * builder.spacing + 8.0 * float(np.finfo(np.float64).eps) * (scale + size)
+    depths += [(f"sphere{k}", ("sphere", k), _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)))
+               for k, s in enumerate(builder.spheres)]
+    depths += [(f"box{k}", ("box", k), _tool_depth("box", b.half_extents, x - np.array(b.center)))
+               for k, b in enumerate(builder.boxes)]
+    for name, origin, d in depths:
         d = np.where(free, d, -np.inf)
         inside = d > tol
         if inside.any():
             i = int(np.argmax(d))
             body = builder._bodies[int(np.searchsorted(starts, i, side="right")) - 1]
             why = (f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start "
-                   f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}), where at most {tol:.3g} m "
-                   f"(round-off) is allowed: the contact would push them out within a step, as fast as the material's "
-                   f"waves carry that strain; move it out by {d[i]:.3g} m, or the collider")
+                   f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, or the collider")
             # A scene file's: the collider's table, which plane0, sphere0, box0 do not name.
             builder._refuse(origin, why, why)
 
