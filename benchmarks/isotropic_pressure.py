@@ -2,8 +2,8 @@
 (``Material.pressure_force = "isotropic"``, ``warp_esph.sim.pressure.launch_isotropic_pressure_forces``;
 docs/physics.md, "Still open", the SPH pressure bullet), against the same case with the default
 pair force: every ``Solver`` made inside ``isotropic_pressure()`` runs unfused, its model's
-materials made ``isotropic`` (``energy_spiky``'s pressure and ``k_p``: the experimental
-``Solver._isotropic_pressure`` flag's step on the default force, bit for bit).
+materials made ``isotropic`` (``energy_spiky``'s pressure and ``k_p``, each material keeping its
+own: the step of a model built ``isotropic``, bit for bit).
 
     python -m benchmarks.isotropic_pressure column --resolution 4 --periods 60
     python -m benchmarks.isotropic_pressure column --resolution 6 --periods 72 --every 12

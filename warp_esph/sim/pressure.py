@@ -966,17 +966,16 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
-        every: int,
         f: wp.array(dtype=vec3),
     ):
         """Particle ``i``'s pressure ``p_i`` (of its pressure density, as the pair forces read
         it) applied as the stress ``-p_i I`` on its volume ``V_i = m_i / rho_i``: ``g_ij = w_ij
         M_i x_ij`` with ``M_i = isotropic_pressure_map``, taken from each neighbour ``j`` and
         added to ``i``. Only an ``isotropic`` material's particles (``pressure_force`` 3) apply
-        it, unless ``every`` (the experimental ``Solver._isotropic_pressure``)."""
+        it."""
         i = wp.tid()
         mi = material[i]
-        if every == 0 and mat.pressure_force[mi] != 3:
+        if mat.pressure_force[mi] != 3:
             return
         n = count[i]
         p = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
@@ -993,7 +992,7 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(isotropic_pressure_forces=isotropic_pressure_forces)
 
 
-def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True, every: bool = False):
+def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
     """``launch_pressure_forces`` with each particle's pressure applied as the isotropic
     stress ``-p_i I`` through its neighbourhood's moment matrix (``isotropic_pressure_map``)
     instead of the pair forces: the virial of a particle's own pressure forces is ``p_i V_i I``
@@ -1001,32 +1000,18 @@ def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: b
     the pairs stay equal and opposite, with zero torque per particle (``A M^T = -p V I`` is
     symmetric). The viscous force is the pair kernel's, whose pressure is none for an
     ``isotropic`` material (``sph_pair_force``). ``Material.pressure_force = "isotropic"``
-    selects it (docs/method.md §6); ``every`` applies it to every material with its pair
-    pressure off (the experimental ``Solver._isotropic_pressure``, forward only). Either is
-    refused with floor images, whose pressure is a pair force."""
+    selects it (docs/method.md §6); it is refused with floor images, whose pressure is a pair
+    force."""
     if model.image_plane is not None:
         # Model and Solver.step refuse it before any kernel; this guards a direct call.
-        what = "Solver._isotropic_pressure = True" if every else "Material.pressure_force = 'isotropic'"
-        raise ValueError(f"{what} is not allowed with floor images "
+        raise ValueError("Material.pressure_force = 'isotropic' is not allowed with floor images "
                          "(add_ground(images=True)): their pressure is a pair force of the floor's mirror images; use a "
                          "particle or ghost floor or a collider")
     h = model.scalar(model.support_radius)
     rho_p = pressure_density(model, state_out)
     mats = model.material_arrays()
-    if every:
-        if recording_tape() is not None:
-            raise RuntimeError("the experimental Solver._isotropic_pressure is forward only: step is not allowed under a "
-                               "wp.Tape with it set; use Material.pressure_force = 'isotropic'")
-        zero_k = materials.make(model.scalar, model.device, **{
-            name: getattr(mats, name) for name in materials.SCALAR_FIELDS + materials.INT_FIELDS
-            if name != "pressure_stiffness"})
-        model.launches(kernels(model.scalar).pressure_forces, model.particle_count,
-                       [state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
-                        model.particle_rest_density, model.particle_material, zero_k, state_out.neighbors,
-                        state_out.neighbor_count, h, *model.image_args(), 1], [state_out.force], device=model.device)
-    else:
-        launch_pressure_forces(model, state_in, state_out, hand_adjoint)
+    launch_pressure_forces(model, state_in, state_out, hand_adjoint)
     model.launches(isotropic_kernels(model.scalar).isotropic_pressure_forces, model.particle_count,
                    [state_in.x, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
-                    model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h, int(every)],
+                    model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h],
                    [state_out.force], device=model.device)

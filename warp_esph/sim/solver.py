@@ -392,11 +392,6 @@ class Solver:
         #: (``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the
         #: non-fused kernels.
         self.yield_with_pressure = yield_with_pressure
-        #: Experimental: every material's SPH pressure applied as an isotropic stress per
-        #: particle (``pressure.launch_isotropic_pressure_forces``; forward only, unfused path
-        #: alone), kept for the runs made with it; ``Material.pressure_force = "isotropic"`` is
-        #: the option (differentiable).
-        self._isotropic_pressure = False
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
@@ -983,16 +978,6 @@ class Solver:
             raise ValueError("Solver(yield_with_pressure=True) is not allowed with Material.pressure_force = "
                              "'isotropic': the yield test's pressure stress is the pair forces' virial; use another "
                              "pressure force or yield_with_pressure=False")
-        if self._isotropic_pressure and self.yield_with_pressure:
-            raise ValueError("Solver(yield_with_pressure=True) is not allowed with Solver._isotropic_pressure = True: the "
-                             "yield test's pressure stress is the pair forces' virial, which the flag replaces")
-        if self._isotropic_pressure and m.image_plane is not None:
-            # Before any kernel of the step (a Material's refusal is Model's, where it is given).
-            raise ValueError("Solver._isotropic_pressure = True is not allowed with floor images (add_ground(images=True)): "
-                             "their pressure is a pair force of the floor's mirror images")
-        if self._isotropic_pressure and self.fused:
-            raise ValueError("Solver._isotropic_pressure = True is not allowed with fused = True: the isotropic pressure "
-                             "force runs on the unfused path alone; make the solver with fused=False")
         # The isotropic pressure (docs/method.md §6) is the unfused kernels' alone.
         fast = (self.fused and not cmp and not self._curved and ghosts is None and not self.yield_with_pressure
                 and not m.isotropic_pressure and (tape is None or self._fast_under_tape(state_in, state_out)))
@@ -1081,9 +1066,8 @@ class Solver:
                     ghost_floor.launch_hand_over(m, state_out)
             if sph:
                 with phase("pressure"):
-                    if self._isotropic_pressure or m.isotropic_pressure:
-                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand,
-                                                                  every=self._isotropic_pressure)
+                    if m.isotropic_pressure:
+                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand)
                     else:
                         pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
