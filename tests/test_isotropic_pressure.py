@@ -360,6 +360,7 @@ def test_the_isotropic_kernels_generated_adjoint_matches_central_differences_off
     kernel = pressure.isotropic_kernels(wp.float64).isotropic_pressure_forces
     rng = np.random.default_rng(3)
     weights = wp.array(rng.normal(size=x.shape), dtype=wp.vec3d)
+    counters = wp.zeros(pressure.COUNT_PRESSURE_REGULARISED + 1, dtype=wp.int32)
 
     def loss(pos, grad=False):
         xa = wp.array(pos, dtype=wp.vec3d, requires_grad=grad)
@@ -369,7 +370,7 @@ def test_the_isotropic_kernels_generated_adjoint_matches_central_differences_off
         with tape:
             wp.launch(kernel, len(pos), [xa, model.particle_mass, out.density, pressure.pressure_density(model, out),
                                          model.particle_rest_density, model.particle_material, model.material_arrays(),
-                                         out.neighbors, out.neighbor_count, wp.float64(h)], [f])
+                                         out.neighbors, out.neighbor_count, wp.float64(h)], [f, counters])
             wp.launch(_dot, len(pos), [f, weights], [total])
         if grad:
             tape.backward(loss=total)
@@ -520,3 +521,72 @@ def test_the_benchmarks_column_history_reports_the_run_it_watches_without_changi
     assert rows[-1]["nearest_dx"] == row["nearest_neighbour_min"]
     assert np.isnan(rows[-1]["highest_yielded_depth"]) == np.isnan(row["highest_yielded_depth"])
     assert validation._swap_run is not None and validation._free_column.__name__ == "_free_column"
+
+
+def _pair(requires_grad=False):
+    """Two ``isotropic`` particles of a body of two pushed from one spacing to half of it (each
+    one's moments a single direction: ``q = 0``)."""
+    dx = 0.01
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, elastic_force="variational", pressure_force="isotropic")
+    b = we.SceneBuilder(spacing=dx)
+    b.add_particles(np.array([[0.05, 0.05, 0.05], [0.05 + dx, 0.05, 0.05]]), mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=requires_grad)
+    start = model.state()
+    start.x.assign(np.array([[0.05, 0.05, 0.05], [0.05 + 0.5 * dx, 0.05, 0.05]]))
+    return model, start
+
+
+@pytest.mark.parametrize("scene", ["pair", "sheet", "block"])
+@pytest.mark.parametrize("fused", [False, True])
+def test_the_solver_counts_the_particles_whose_isotropic_pressure_map_is_regularised(scene, fused):
+    """``Solver.guard_counts()["pressure_regularised"]``: the particle-steps whose moments had
+    ``q < ISOTROPIC_Q_FULL`` (the map regularised), as an independent numpy sum of the
+    moments finds them: every particle of a lone pair and of a one-layer sheet at every step,
+    none of a compressed and jittered block (its surface included); ``reset_counts`` zeroes it."""
+    if scene == "pair":
+        model, start = _pair()
+    elif scene == "sheet":
+        model, start, _, _, _ = _sheet(0.0)
+    else:
+        model, start = _isotropic_block(viscosity=0.0)
+    solver = we.Solver(model, fused=fused)
+    a, b = model.state(), model.state()
+    a.x.assign(start.x)
+    steps = 3
+    expected = 0
+    for _ in range(steps):
+        x = a.x.numpy()
+        solver.step(a, b, 1.0e-7)
+        _, q = _numpy_isotropic_forces(model, x, b)
+        expected += int((q < pressure.ISOTROPIC_Q_FULL).sum())
+        a, b = b, a
+    counts = solver.guard_counts()
+    assert counts["pressure_regularised"] == expected
+    n = model.particle_count
+    assert expected == {"pair": steps * n, "sheet": steps * n, "block": 0}[scene]
+    solver.reset_counts()
+    assert solver.guard_counts()["pressure_regularised"] == 0
+
+
+def test_a_taped_step_and_its_backward_count_the_regularised_particles_once():
+    """The count is a diagnostic off the gradient path: a step recorded on a ``wp.Tape`` counts
+    the lone pair's two particles once, and the backward pass (Warp's generated adjoint, whose
+    replayed forward skips the atomic count) adds none."""
+    model, start = _pair(requires_grad=True)
+    solver = we.Solver(model, fused=False)
+    out = model.state()
+    tape = wp.Tape()
+    with tape:
+        solver.step(start, out, 1.0e-7)
+    assert solver.guard_counts()["pressure_regularised"] == 2
+    seed = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    tape.backward(grads={out.v: wp.array(seed, dtype=wp.vec3d)})
+    assert solver.guard_counts()["pressure_regularised"] == 2
+    g = start.x.grad.numpy().copy()
+    assert np.abs(g).max() > 0.0
+    # A rollout reports it with the other guards' counts, its taped forward's steps once each.
+    from warp_esph.rollout import Rollout
+
+    rollout = Rollout(model, 2, 1.0e-7, frames=[2])
+    rollout.forward(start.x.numpy())
+    assert rollout.guard_counts()["pressure_regularised"] == 2 * 2

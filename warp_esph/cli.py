@@ -921,7 +921,7 @@ def _cmd_run(args) -> int:
     written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
                f"frames 0..{writer.last_frame} ({start_frame}..{writer.last_frame} by this run)")
     print(f"wrote {writer.path}: {written}, {model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
-    print(f"guard counts (particle-steps skipped): {guards}{skipped}")
+    print(f"guard counts (particle-steps each guard held): {guards}{skipped}")
     if log is not None:
         print(f"reaction forces ({', '.join(_log_kinds(model))}): {tool_files[0]}, {tool_files[1]}")
     if args.surface:

@@ -33,7 +33,7 @@ COUNT_INVERTED = 2
 #: Body ``b``'s particle-steps whose fit a guard of paper §4 skipped are counted at
 #: ``COUNT_BODY + b`` (after the solver's ``GUARD_NAMES``), beside the guard's own count: the
 #: run's warning names the bodies too coarse for the fit, not only the share of all of them.
-COUNT_BODY = 5
+COUNT_BODY = 6
 
 
 @wp.func

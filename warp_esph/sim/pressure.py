@@ -46,6 +46,10 @@ ISOTROPIC_Q_FULL = 0.2
 #: is ``A^-1``; ``A^-1`` alone gave ``p V / d``, 1000 ``p V / dx`` at 0.001 dx, and no
 #: pressure at all on the plane: ``tests/test_isotropic_pressure.py``).
 ISOTROPIC_REGULARISATION = 0.1
+#: Index into the solver's guard counters (``Solver.guard_counts()["pressure_regularised"]``):
+#: particle-steps whose isotropic pressure map was regularised (``q < ISOTROPIC_Q_FULL``), where
+#: the virial of the particle's own forces is short of ``p V I`` (a flat layer, a line, a pair).
+COUNT_PRESSURE_REGULARISED = 5
 
 
 @functools.cache
@@ -294,6 +298,28 @@ def funcs(scalar) -> types.SimpleNamespace:
         return A
 
     @wp.func
+    def isotropic_conditioning(A: mat33) -> scalar:
+        """``q = det A / (tr A / 3)^3`` of the isotropic pressure's moments: 1 for an isotropic
+        ``A``, 0 for neighbours on a plane or a line; 1 where ``tr A = 0`` (no neighbour: no
+        map, nothing regularised)."""
+        q = scalar(1.0)
+        tr = A[0, 0] + A[1, 1] + A[2, 2]
+        if tr > scalar(0.0):
+            a = tr / scalar(3.0)
+            q = wp.determinant(A) / (a * a * a)
+        return q
+
+    @wp.func
+    def isotropic_regularised(A: mat33) -> int:
+        """1 where the isotropic pressure map of the moments ``A`` is regularised
+        (``isotropic_conditioning`` below ``ISOTROPIC_Q_FULL``, ``isotropic_regularisation``
+        above 0), else 0: what ``COUNT_PRESSURE_REGULARISED`` counts."""
+        r = int(0)
+        if isotropic_conditioning(A) < scalar(ISOTROPIC_Q_FULL):
+            r = 1
+        return r
+
+    @wp.func
     def isotropic_regularisation(q: scalar) -> scalar:
         """The share ``e`` of ``tr A / 3`` added to the moments' diagonal
         (``isotropic_pressure_map``) at the conditioning ``q = det A / (tr A / 3)^3`` (1 for an
@@ -319,7 +345,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         tr = A[0, 0] + A[1, 1] + A[2, 2]
         if tr > scalar(0.0):
             a = tr / scalar(3.0)
-            e = isotropic_regularisation(wp.determinant(A) / (a * a * a))
+            e = isotropic_regularisation(isotropic_conditioning(A))
             M = (-p * V) * wp.inverse(A + (e * a) * wp.identity(n=3, dtype=scalar))
         return M
 
@@ -341,7 +367,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         pair_virial_share=pair_virial_share,
         isotropic_weight=isotropic_weight, isotropic_moments=isotropic_moments,
         isotropic_pressure_map=isotropic_pressure_map, isotropic_pair_force=isotropic_pair_force,
-        isotropic_regularisation=isotropic_regularisation,
+        isotropic_regularisation=isotropic_regularisation, isotropic_conditioning=isotropic_conditioning,
+        isotropic_regularised=isotropic_regularised,
     )
 
 
@@ -967,19 +994,24 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
         count: wp.array(dtype=wp.int32),
         h: scalar,
         f: wp.array(dtype=vec3),
+        counters: wp.array(dtype=wp.int32),
     ):
         """Particle ``i``'s pressure ``p_i`` (of its pressure density, as the pair forces read
         it) applied as the stress ``-p_i I`` on its volume ``V_i = m_i / rho_i``: ``g_ij = w_ij
         M_i x_ij`` with ``M_i = isotropic_pressure_map``, taken from each neighbour ``j`` and
         added to ``i``. Only an ``isotropic`` material's particles (``pressure_force`` 3) apply
-        it."""
+        it; each whose map is regularised is counted in ``counters`` (an int32 diagnostic
+        without gradient: the replayed forward of the adjoint does not count again)."""
         i = wp.tid()
         mi = material[i]
         if mat.pressure_force[mi] != 3:
             return
         n = count[i]
         p = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
-        M = fn.isotropic_pressure_map(p, mass[i] / rho[i], fn.isotropic_moments(i, x, nbr, n, h))
+        A = fn.isotropic_moments(i, x, nbr, n, h)
+        M = fn.isotropic_pressure_map(p, mass[i] / rho[i], A)
+        if fn.isotropic_regularised(A) != 0:
+            wp.atomic_add(counters, COUNT_PRESSURE_REGULARISED, 1)
         xi = x[i]
         fi = vec3()
         for k in range(n):
@@ -992,7 +1024,7 @@ def isotropic_kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(isotropic_pressure_forces=isotropic_pressure_forces)
 
 
-def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
+def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True, counters=None):
     """``launch_pressure_forces`` with each particle's pressure applied as the isotropic
     stress ``-p_i I`` through its neighbourhood's moment matrix (``isotropic_pressure_map``)
     instead of the pair forces: the virial of a particle's own pressure forces is ``p_i V_i I``
@@ -1001,7 +1033,8 @@ def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: b
     symmetric). The viscous force is the pair kernel's, whose pressure is none for an
     ``isotropic`` material (``sph_pair_force``). ``Material.pressure_force = "isotropic"``
     selects it (docs/method.md §6); it is refused with floor images, whose pressure is a pair
-    force."""
+    force. ``counters`` (the solver's guard counters, ``Solver.guard_counts``) counts at
+    ``COUNT_PRESSURE_REGULARISED`` the particles whose map was regularised; None: not counted."""
     if model.image_plane is not None:
         # Model and Solver.step refuse it before any kernel; this guards a direct call.
         raise ValueError("Material.pressure_force = 'isotropic' is not allowed with floor images "
@@ -1014,4 +1047,18 @@ def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: b
     model.launches(isotropic_kernels(model.scalar).isotropic_pressure_forces, model.particle_count,
                    [state_in.x, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
                     model.particle_material, mats, state_out.neighbors, state_out.neighbor_count, h],
-                   [state_out.force], device=model.device)
+                   [state_out.force, counters if counters is not None else _no_counters(model.device)],
+                   device=model.device)
+
+
+_NO_COUNTERS: dict = {}
+
+
+def _no_counters(device) -> wp.array:
+    """Where a direct call of the isotropic launch counts nothing: a scratch of the guard
+    counters' size (``COUNT_PRESSURE_REGULARISED`` its last slot), one per device (the same
+    array at every call, so a replayed launch does not repack it)."""
+    key = str(device)
+    if key not in _NO_COUNTERS:
+        _NO_COUNTERS[key] = wp.zeros(COUNT_PRESSURE_REGULARISED + 1, dtype=wp.int32, device=device)
+    return _NO_COUNTERS[key]

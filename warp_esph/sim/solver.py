@@ -24,9 +24,12 @@ from . import (comparison, curvature, deformation, fields, forces, fused, ghost_
                plasticity, pressure)
 
 #: The keys of ``Solver.guard_counts()``: particle-steps each guard of the deformation update skipped
-#: (docs/method.md: the guards of §2, the flow skipped in §4, ``neighbors_cut`` the rows §1's search cut).
-GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
+#: (docs/method.md: the guards of §2, the flow skipped in §4, ``neighbors_cut`` the rows §1's search cut),
+#: and ``pressure_regularised`` those whose isotropic pressure map was regularised (§6).
+GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut",
+               "pressure_regularised")
 assert len(GUARD_NAMES) == deformation.COUNT_BODY  # the bodies' counts follow the guards'
+assert GUARD_NAMES.index("pressure_regularised") == pressure.COUNT_PRESSURE_REGULARISED
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
 #: non-zero weight (more such neighbours than the row width ``Model.max_neighbors``, or an
 #: elastic stretch beyond ``neighbors.MAX_STRETCH``). Each is a possible jump of the loss.
@@ -1067,7 +1070,7 @@ class Solver:
             if sph:
                 with phase("pressure"):
                     if m.isotropic_pressure:
-                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand)
+                        pressure.launch_isotropic_pressure_forces(m, state_in, state_out, hand, scratch.counters)
                     else:
                         pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
