@@ -838,7 +838,8 @@ class Solver:
         self.phase_times = {} if on else None
 
     def guard_counts(self) -> dict[str, int]:
-        """How many particle-steps each guard skipped since construction or ``reset_counts``."""
+        """How many particle-steps each guard skipped since construction or ``reset_counts``
+        (``pressure_regularised``: whose isotropic pressure map was regularised, not skipped)."""
         return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy()[:len(GUARD_NAMES)])))
 
     def skipped_fits(self) -> dict[str, int]:
