@@ -35,6 +35,11 @@ from warp_esph.material import DEFORMATIONS
 from warp_esph.scenes import FIG8_BODIES, FIG8_RELEASE, SCENES
 from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
 from warp_esph.sim.replay import forward_only
+from warp_esph.sim import deformation
+
+# Room for every guard's count and each body's skipped fits (deformation.COUNT_BODY + body): a
+# shorter array lets a kernel write past its end.
+COUNTERS = deformation.COUNT_BODY + 16
 
 SCALE = 0.6  # 6^3 particles per cube
 DT = 5.0e-4  # about half the stable step at scale 0.6
@@ -248,7 +253,7 @@ def test_rest_model_fits_the_total_deformation_exactly():
     eye = np.tile(np.eye(3), (n, 1, 1))
     Fp = rng.standard_normal((n, 3, 3)) * 0.1 + eye  # F_e = F F_p^-1
     F_out = wp.zeros(n, dtype=wp.mat33d)
-    counters = wp.zeros(4, dtype=wp.int32)
+    counters = wp.zeros(COUNTERS, dtype=wp.int32)
     wp.launch(forward_only(k.update_deformation), n, [X, y, X, model.particle_body, nbr, count, nbr, count, wp.zeros(n, dtype=wp.int32),
                                         *model.rest_moments(False), wp.zeros(n, dtype=wp.int32), model.particle_material, model.material_arrays(),
                                         wp.array(eye, dtype=wp.mat33d), wp.array(Fp, dtype=wp.mat33d), model.support_radius,
@@ -273,7 +278,7 @@ def test_additive_model_adds_the_green_strain_of_the_step():
     eps0 = eps0 + eps0.transpose(0, 2, 1)
     y = wp.array(model.particle_x0 @ dF.T, dtype=wp.vec3d)
     F_out = wp.zeros(n, dtype=wp.mat33d)
-    counters = wp.zeros(4, dtype=wp.int32)
+    counters = wp.zeros(COUNTERS, dtype=wp.int32)
     eye = np.tile(np.eye(3), (n, 1, 1))
     wp.launch(forward_only(k.update_deformation), n, [X, y, X, model.particle_body, state.neighbors, state.neighbor_count, state.neighbors,
                                         state.neighbor_count, wp.zeros(n, dtype=wp.int32),
@@ -292,7 +297,7 @@ def _constitutive(model, F, Fp, dt=1e-3):
     n = len(F)
     m = model
     outs = [wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.mat33d),
-            wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.mat33d), wp.zeros(4, dtype=wp.int32)]
+            wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.mat33d), wp.zeros(COUNTERS, dtype=wp.int32)]
     mat = wp.zeros(n, dtype=wp.int32)
     wp.launch(forward_only(k.constitutive_update), n, [wp.array(F, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.array(Fp, dtype=wp.mat33d),
                                          mat, m.material_arrays(), dt], outs)

@@ -68,7 +68,7 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     Fa, F_lo_a = wp.array(F.astype(np.float32), dtype=T.mat33), wp.array(F_lo, dtype=T.mat33)
     F_out, F_lo_out = wp.zeros_like(Fa), wp.zeros_like(Fa)
     lo = wp.zeros_like(state.x)
-    counters = wp.zeros(4, dtype=wp.int32)
+    counters = wp.zeros(deformation.COUNT_BODY + 16, dtype=wp.int32)  # every guard and body slot a kernel may write
     wp.launch(forward_only(deformation.kernels(model.scalar, model.fit_weight).update_deformation), n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
                model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(), Fa],
@@ -103,7 +103,7 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
     lo = wp.zeros_like(state.x)
     F = [wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
     F_lo = [wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
-    counters = wp.zeros(4, dtype=wp.int32)
+    counters = wp.zeros(deformation.COUNT_BODY + 16, dtype=wp.int32)  # every guard and body slot a kernel may write
     for k in range(steps):
         a, b = k % 2, 1 - k % 2
         wp.launch(forward_only(fit.kernels(model.scalar, model.fit_weight).update_deformation), n,
