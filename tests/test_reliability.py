@@ -2031,6 +2031,14 @@ def test_a_body_a_keyframed_tool_pressed_and_released_passes_the_monitor_s_energ
     above, pressed 47 % and released by a ``Keyframes`` plate. The bound counted a tool's work
     as the height it can have given alone, none here, and stopped the healthy spring-back at
     frame 20 (36.1 J against 34.3 J); the plate's work (its reaction along its motion) now counts."""
+    frames = []
+    we.simulate(_keyframed_press(), 21, fps=30.0, progress=False, callback=lambda k, s: frames.append(k))
+    assert frames == list(range(22))
+
+
+def _keyframed_press():
+    """The rubber block of the test above, pressed 47 % by a ``Keyframes`` plate in 0.3 s and
+    released by the plate sliding off: it springs back at about frame 20 (of 30 a second)."""
     from warp_esph import tools  # noqa: PLC0415
 
     b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
@@ -2038,9 +2046,66 @@ def test_a_body_a_keyframed_tool_pressed_and_released_passes_the_monitor_s_energ
     b.add_ground(friction=0.0)
     b.add_tool("box", half_extents=(0.2, 0.025, 0.2), name="plate", motion=tools.Keyframes(
         (0.0, 0.3, 1.0), ((0.0, 0.225, 0.0), (0.0, 0.131, 0.0), (0.35, 0.131, 0.0))))
-    frames = []
-    we.simulate(b.finalize(), 21, fps=30.0, progress=False, callback=lambda k, s: frames.append(k))
-    assert frames == list(range(22))
+    return b.finalize()
+
+
+def test_a_run_resumed_from_a_checkpoint_counts_the_tools_work_before_it(tmp_path, monkeypatch):
+    """The keyframed press above, checkpointed at frame 14 and resumed: the checkpoint did not
+    keep the plate's work, so the resumed run's bounds read the height the plate can have given
+    in its place (none here) and stopped the healthy spring-back at frame 20 (36.1 J against
+    34.3 J), which the uninterrupted run let pass. The work is kept (``State.tool_work``), and
+    each resumed frame is judged with the work the uninterrupted run judged it with; a
+    checkpoint without it (written before) falls back on the height, and a resumed run that
+    truly blows up is still stopped."""
+    from warp_esph.checkpoint import load_state  # noqa: PLC0415
+
+    seen = []  # (frame, the tools' work the monitor's energy bound counted) at each frame
+
+    def check(self, x, v, t, work=None):
+        seen.append((round(t * 30.0), work))
+        return real(self, x, v, t, work)
+
+    real = DivergenceMonitor.check
+    monkeypatch.setattr(DivergenceMonitor, "check", check)
+    path, old = tmp_path / "at14.npz", tmp_path / "before.npz"
+
+    def checkpoint(k, s):
+        if k == 14:
+            save_state(path, model, s, step=-1, frame=k)
+            unknown = model.state(requires_grad=False)
+            unknown.assign(s)
+            unknown.tool_work = None  # as a checkpoint written before the work was kept
+            save_state(old, model, unknown, step=-1, frame=k)
+
+    model = _keyframed_press()
+    we.simulate(model, 21, fps=30.0, progress=False, callback=checkpoint)
+    whole = dict(seen)
+    assert sorted(whole) == list(range(1, 22)) and whole[21] > 10.0  # the plate did real work
+    seen.clear()
+    resumed = _keyframed_press()
+    state, meta = load_state(path, resumed)
+    assert meta["tool_work"] == pytest.approx(whole[14], rel=1e-12)
+    we.simulate(resumed, 7, fps=30.0, progress=False, state=state, start_frame=14,
+                monitor_origin=resumed.state(requires_grad=False))
+    assert [k for k, _ in seen] == list(range(15, 22))
+    for k, work in seen:
+        assert work == pytest.approx(whole[k], rel=1e-9), k
+    seen.clear()
+    before = _keyframed_press()
+    state, meta = load_state(old, before)
+    assert "tool_work" not in meta and state.tool_work is None
+    we.simulate(before, 1, fps=30.0, progress=False, state=state, start_frame=14,
+                monitor_origin=before.state(requires_grad=False))
+    assert seen == [(15, None)]
+    blown = _keyframed_press()
+    state, _ = load_state(path, blown)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # past the stable step, on purpose
+        with pytest.raises(we.SimulationError, match="the simulation diverged"):
+            # The fewest whole steps a frame at 4.6 x the stable step or more.
+            we.simulate(blown, 7, fps=30.0, substeps=int(1.0 / (30.0 * 4.6 * blown.stable_dt())), progress=False,
+                        state=state, start_frame=14,
+                        monitor_origin=blown.state(requires_grad=False))
 
 
 @pytest.mark.filterwarnings("ignore:tools .'plate'. follow tools.Scripted motions:UserWarning")

@@ -6,7 +6,9 @@ and the floor images' own ``F_image`` and ``alpha_image``; an older checkpoint w
 loads them as ``I`` and 0, ``F_image`` as ``F``, ``alpha_image`` as ``alpha``),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
-built), the step and frame counters, a free-form ``run`` record (the CLI stores the
+built), the step and frame counters, the tools' work on the bodies since the run's start
+(``State.tool_work``, where ``simulate`` counted it: a resumed run's blow-up bounds add it),
+a free-form ``run`` record (the CLI stores the
 scene, scale, time step, output and solver options there) and the settings of the solver
 that ran (``solver_settings``: the one ``save_state`` is given, else the one whose step wrote
 the state, while it exists). The step depends on nothing else, so
@@ -191,6 +193,15 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint": model_fingerprint(model),
         "fingerprint_version": FINGERPRINT_VERSION,
     }
+    work = getattr(state, "tool_work", None)
+    if work is not None:
+        # What a resumed run's blow-up bounds need of the run before it (State.tool_work):
+        # without it they fell back on the height the tools can have given.
+        if isinstance(work, bool) or not isinstance(work, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(float(work)):
+            raise ValueError(f"state.tool_work = {checks.shorten(work)!r} is not allowed: must be a finite number of "
+                             "joules (the tools' work since the run's start) or None (not known)")
+        meta["tool_work"] = float(work)
     if solver is not None:
         # What it runs from this state (a body that flowed keeps the incremental composition),
         # as a resume reads it: State.flowed is not saved, load_state reads it from the
@@ -400,6 +411,9 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
                                  f"{(a.shape[0], 3)} finite values")
             a.assign(b)
     state.time = float(meta.get("time", 0.0))
+    # Written before it was kept (or by a run that did not count it): None, and a resumed run's
+    # bounds read the height the tools can have given in its place (docs/errors.md).
+    state.tool_work = meta.get("tool_work")
     if "rest_model" in meta:
         state.rest_model = meta["rest_model"] if meta["rest_model"] in (True, False) else None
     else:
@@ -531,6 +545,9 @@ def _check_meta(where: str, meta: dict) -> None:
     t = meta.get("time", 0.0)
     if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
         wrong.append(f"time = {t!r} (must be a finite number >= 0)")
+    w = meta.get("tool_work")
+    if w is not None and (isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w)):
+        wrong.append(f"tool_work = {w!r} (must be a finite number of joules)")
     if "fingerprint" in meta and not isinstance(meta["fingerprint"], str):
         wrong.append(f"fingerprint = {meta['fingerprint']!r} (must be a string)")
     if not isinstance(meta.get("solver", {}), dict):

@@ -285,6 +285,12 @@ class State:
         #: it exists, so a resume with another hourglass strength (one set by hand,
         #: Solver.hourglass) is refused, not run.
         self.written_by = None
+        #: The work (J) the moving tools and pinned sets did on the bodies from the run's start
+        #: to this state, as ``simulate`` counted it (``ToolWork``) and ``save_state`` keeps it;
+        #: None where not known (a state a step wrote outside ``simulate``, a new one). A resumed
+        #: ``simulate`` (``monitor_origin``) adds it to the work its own steps do, so its blow-up
+        #: bounds count the work done before the checkpoint as the uninterrupted run did.
+        self.tool_work = None
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
         # The selection's squared distances: scratch of the search, allocated only when asked
@@ -379,6 +385,7 @@ class State:
         self.rest_model = getattr(other, "rest_model", None)
         self.flowed = getattr(other, "flowed", None)
         self.written_by = getattr(other, "written_by", None)
+        self.tool_work = getattr(other, "tool_work", None)
 
     @property
     def particle_count(self) -> int:

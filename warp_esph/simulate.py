@@ -1281,23 +1281,39 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
 
-def _growth_origin(model: Model, current: State, monitor, origin: State | None, exempt, solver: Solver):
-    """``(x0, v0, t0, stored elastic energy)`` of the state ``simulate`` judges its energy growth
-    from (``energy_growth``), copied (the run's states are reused), or None where the monitor
-    is off. A resumed run's is the run's own initial state (``origin``), as the monitor's, so
-    each frame is judged as the uninterrupted run judged it; beside a ``Scripted`` tool it is
-    the state this call starts from: the tool's poses before it were not seen here, and the
-    work it did then, uncounted, would read as growth."""
+def _growth_origin(model: Model, current: State, monitor, origin: State | None, exempt, solver: Solver,
+                   work_known: bool = True):
+    """``(x0, v0, t0, stored elastic energy, from the origin)`` of the state ``simulate`` judges
+    its energy growth from (``energy_growth``), copied (the run's states are reused), or None
+    where the monitor is off. A resumed run's is the run's own initial state (``origin``), as
+    the monitor's, so each frame is judged as the uninterrupted run judged it; beside a
+    ``Scripted`` tool whose work before this call is not known (``work_known``: a checkpoint
+    written before ``State.tool_work`` was kept) it is the state this call starts from: the
+    work the tool did before, uncounted, would read as growth."""
     if monitor is None or not monitor.keep.any():
         return None
     motions = [] if model.tools is None else model.tools.motions
-    if origin is None or any(isinstance(mo, tools.Scripted) for mo in motions):
+    if origin is None or (not work_known and any(isinstance(mo, tools.Scripted) for mo in motions)):
         start = current
         stored = getattr(monitor, "e_elastic", 0.0) if origin is None else \
             DivergenceMonitor(model, current, exempt, solver=solver).e_elastic
     else:
         start, stored = origin, getattr(monitor, "e_elastic", 0.0)
-    return (start.x.numpy().astype(np.float64), start.v.numpy().astype(np.float64), float(start.time), stored)
+    return (start.x.numpy().astype(np.float64), start.v.numpy().astype(np.float64), float(start.time), stored,
+            start is origin)
+
+
+def _work_given(state: State | None) -> float | None:
+    """The work (J) the tools did on the bodies before ``state`` since the run's start, as
+    ``simulate`` left it on the state (``State.tool_work``; a loaded checkpoint's), or None
+    where it is not known (a state no ``simulate`` counted; a checkpoint written before)."""
+    w = None if state is None else getattr(state, "tool_work", None)
+    if w is None:
+        return None
+    if isinstance(w, bool) or not isinstance(w, (int, float, np.integer, np.floating)) or not math.isfinite(float(w)):
+        raise ValueError(f"state.tool_work = {checks.shorten(w)!r} is not allowed: must be a finite number of joules "
+                         "(the tools' work since the run's start) or None (not known)")
+    return float(w)
 
 
 def _record_scripted(seen: dict, step: dict) -> None:
@@ -1403,14 +1419,22 @@ def simulate(
       USD time code is a double).
 
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``'s bounds,
-      then ``energy_growth`` from the monitor's state, at every frame; beside a ``Scripted``
-      tool from this call's start, its speed read from the poses the steps evaluated);
+      then ``energy_growth`` from the monitor's state, at every frame, the tools' work counted;
+      beside a ``Scripted`` tool its speed read from the poses the steps evaluated);
       ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
       bodies its bounds leave out (``Scene.diverges``: a body a scene shows blowing up); a
       non-finite position or velocity in them still stops the run, as ``fit`` fails the trial.
       ``monitor_origin``: the state of frame 0 whose bounds the monitor keeps, the time
       counted from it (a resumed run: the run's initial state, so that each frame is judged
-      as the uninterrupted run judged it; default: the state this call starts from).
+      as the uninterrupted run judged it; default: the state this call starts from). With it,
+      ``state.tool_work`` (a loaded checkpoint's: the tools' work from the run's start to the
+      checkpoint) is added to the work this call's steps do; where it is None (a checkpoint
+      written before it was kept) the bounds read the height the tools can have given in its
+      place, and beside a ``Scripted`` tool ``energy_growth`` judges from this call's start.
+      The states handed to ``writer`` and ``callback`` and the one returned carry the work
+      since the monitor's state (``State.tool_work``; None where the monitor is off or the
+      scene has no tools), which
+      ``save_state`` keeps.
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
     when a position or velocity becomes non-finite, the monitor finds a blow-up (its bounds, or
@@ -1507,10 +1531,18 @@ def simulate(
         monitor = DivergenceMonitor(model, current if monitor_origin is None else monitor_origin,
                                     monitor_exempt, solver=solver) if monitor else None
         t_origin = 0 if monitor_origin is None else start_frame  # frames from the monitor's state to this call's
+        # The tools' work from the monitor's state to this call's (J; None: not known). A resumed
+        # run's is what its first run had counted by the checkpoint (State.tool_work, which
+        # save_state keeps): without it the resumed bounds read the height the tools can have
+        # given alone, and stopped a rubber block a keyframed plate had pressed, in its
+        # spring-back, which the uninterrupted run let pass.
+        work_before = 0.0 if monitor_origin is None else _work_given(state)
+        current.tool_work = work_before
         # energy_growth, the test a sweep, a fit and the torch bridge fail a run on, at each frame
         # beside the bounds: beside a Scripted tool the bounds are off, and a box 4.6 x past its
         # stable step ran to its end and returned particles 20 m out as a success.
-        growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver)
+        growth = _growth_origin(model, current, monitor, monitor_origin, monitor_exempt, solver,
+                                work_known=work_before is not None)
         seen = {}  # the Scripted motions as this run's steps evaluated them
         memo = {}  # the start's part of the energy check, summed once, and the most height the tools gave
         work = ToolWork(model, solver, monitor.keep) if monitor is not None and model.tools is not None else None
@@ -1568,14 +1600,18 @@ def simulate(
                 steps += n_sub
                 frame = start_frame + k
                 done = None if work is None else work.read()
-                # A resumed run's monitor judges from its origin, before the work counted here.
+                # Since the monitor's state: a resumed run's adds what its first run had counted.
+                total = None if done is None or work_before is None else work_before + done
+                current.tool_work = total
                 bad = _first_bad(model, current, monitor, (t_origin + k) / fps,  # simulated time since the monitor's state
-                                 work=done if monitor_origin is None else None)
+                                 work=total)
                 if bad is None and growth is not None:
-                    x0, v0, t_start, stored = growth
-                    # Beside a Scripted tool the growth is judged from this call's start, as the work.
+                    x0, v0, t_start, stored, from_origin = growth
+                    # Judged from this call's start (a Scripted tool's run resumed without the work
+                    # before it), the work of this call's steps alone.
                     bad = _grown(model, x0, v0, current.x.numpy(), current.v.numpy(), t0=t_start, dt=None, steps=None,
-                                 particles=monitor.keep, stored=stored, scripted_seen=seen, memo=memo, work=done)
+                                 particles=monitor.keep, stored=stored, scripted_seen=seen, memo=memo,
+                                 work=total if from_origin else done)
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name

@@ -1137,6 +1137,9 @@ class Solver:
         # incremental step may have made it flow (read at a later hand-over, not here).
         state_out.flowed = True if flowed else (flowed if rest_model else None)
         state_out.written_by = self._weak_self
+        # The work up to it is simulate's to count (it reads the tools' sum once a frame): a
+        # value carried from an earlier state would be stale.
+        state_out.tool_work = None
         if self.step_count == 0:
             self._warn_all_few()
         self.step_count += 1
