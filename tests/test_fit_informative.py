@@ -321,6 +321,33 @@ def test_adam_moves_a_value_whose_first_gradient_was_0_once_the_loss_reads_it():
     assert values[-1] < 0.05 * values[0], (values[0], values[-1])
 
 
+def test_adam_judges_a_held_value_against_the_round_off_of_the_loss_it_is_read_at():
+    """A value the loss reads late and weakly (its term switched on by the other value's move,
+    weighing 1e-3 against a start of 4e4): held as round-off at the start (gradient 0), its
+    later gradient of up to 1e-3 is far above the round-off of the loss by then (float32's
+    1.2e-7 of a loss of a few units), but below that of the start's loss (4.8e-3), which alone
+    was read: it stayed at its guess for the run. Judged against the round-off of the loss its
+    gradient is of, it moves to its minimum."""
+    from warp_esph.fit import _run_adam
+
+    points, values = [], []
+
+    def evaluate(z):
+        on = max(z[0] - 1.5, 0.0)
+        value = 1e4 * (z[0] - 2.0) ** 2 + 1e-3 * on * (z[1] - 1.0) ** 2
+        grad = np.array([2e4 * (z[0] - 2.0) + 1e-3 * (z[1] - 1.0) ** 2 * (z[0] > 1.5), 2e-3 * on * (z[1] - 1.0)])
+        points.append(z.copy())
+        values.append(value)
+        return value, grad, True
+
+    float32 = float(np.finfo(np.float32).eps)
+    _run_adam(evaluate, lambda z: z, np.zeros(2), 60, 0.1, None, None, lambda text: None, xtol=1e-9,
+              loss_roundoff=lambda: float32 * abs(values[-1]))
+    assert points[1][1] == 0.0, points[:2]  # held while the loss does not read it
+    assert abs(points[-1][0] - 2.0) < 0.1, points[-1]
+    assert abs(points[-1][1] - 1.0) < 0.2, points[-1]
+
+
 def test_adam_moves_a_yield_stress_nothing_reached_at_the_start_once_the_body_yields():
     """The landing cube in float32 from a shear modulus half the target's and a yield stress
     of 1500 Pa (the target's 300) that the softer landing never reaches: nothing yields, and

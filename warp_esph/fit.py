@@ -2557,7 +2557,7 @@ class _WorldsProblem:
         self.round_seconds = 0.0
         #: Whether each world's last run blew up (diverged, or non-finite).
         self.blew_up = [False] * worlds
-        #: Per world, the optimiser entries' ``_Problem.loss_roundoff`` at the world's first
+        #: Per world, the optimiser entries' ``_Problem.loss_roundoff`` at the world's latest
         #: evaluation with a gradient (``roundoff_read``: the worlds that had one).
         self.roundoff = [np.zeros(len(prob.z0)) for _ in range(worlds)]
         self.roundoff_read: set[int] = set()
@@ -2670,13 +2670,11 @@ class _WorldsProblem:
                     values += r.weight * world_values
                 return values, {w: None for w in batch}, blew_up
             roundoff = np.zeros(W)
-            # Adam reads a start's round-off at its first evaluation alone: later rounds skip
-            # the host copies of every frame and its gradient.
-            unread = any(w not in self.roundoff_read for w in batch)
+            # Adam reads a start's round-off at each evaluation while it holds an entry as
+            # round-off (_run_adam): one host copy of the frames and their gradient a round.
             for r in self.runs:
                 _, grads = r.rollout.backward(r.loss)
-                if unread:
-                    roundoff += r.weight * r.rollout.loss_roundoff()
+                roundoff += r.weight * r.rollout.loss_roundoff()
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -2691,9 +2689,8 @@ class _WorldsProblem:
                         gz[w] += r.weight * prob.grad_z(self.p[w], ran)
                 values += r.weight * world_values
             for w in batch:
-                if unread and w not in self.roundoff_read:
-                    self.roundoff[w] = np.full(len(prob.z0), roundoff[w])
-                    self.roundoff_read.add(w)
+                self.roundoff[w] = np.full(len(prob.z0), roundoff[w])
+                self.roundoff_read.add(w)
         except Collapsed:
             raise
         except FloatingPointError:
@@ -2875,8 +2872,8 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
     the round-off of the loss at the last evaluation, per entry or one for all
     (``_Problem.loss_roundoff``; None: float64's precision times the loss), from which an
     entry of the first gradient whose step cannot move the loss beyond it is told
-    (``_adam_eps``), and held until a later gradient of it exceeds that first round-off
-    (``_adam_eps_release``)."""
+    (``_adam_eps``), and held until a later gradient of it exceeds the round-off of the loss
+    it is a gradient of, read again at each evaluation (``_adam_eps_release``)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -2885,13 +2882,18 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
     for it in range(iterations + 1):
         value, g, finite = evaluate(z)
         held = _held(z, g, bounds) if finite else None
+        if finite and (g0 is None or round_off.any()):
+            # This evaluation's, read now (a probe below evaluates elsewhere before eps is set),
+            # and at each later one while an entry is held: a held entry is judged against the
+            # round-off of the loss its gradient is of. Against the first's, stale once the loss
+            # fell, a value the loss read late (a term switched on by another's move, weighing
+            # 1e-3 against a start of 4e4) stayed held at its guess for the run.
+            roundoff = float(np.finfo(np.float64).eps) * abs(value) if loss_roundoff is None else loss_roundoff()
         if finite and g0 is None:
             if float(np.abs(g).max()) == 0.0:
                 return _zero_gradient(evaluate, project, z, value, lr)
             # The free values' gradient, as L-BFGS reads it: a held one's does not fall.
             g0 = float(np.abs(np.where(held, 0.0, g)).max())
-            # Read now: a probe below evaluates elsewhere before eps is set.
-            roundoff = float(np.finfo(np.float64).eps) * abs(value) if loss_roundoff is None else loss_roundoff()
             if g0 == 0.0:
                 return "converged"  # every value on a bound with the loss falling beyond it: the corner
         if finite and g0 is not None:
@@ -3003,11 +3005,11 @@ def _adam_eps(first: np.ndarray, g0: float, floor: np.ndarray | float) -> np.nda
 
 def _adam_eps_release(eps: np.ndarray, round_off: np.ndarray, g: np.ndarray, floor: np.ndarray | float):
     """Adam's eps and its mask of entries still judged round-off (``_adam_eps``), given a later
-    gradient's magnitudes ``g`` and the round-off ``floor`` read at the first evaluation: an
-    entry of round-off whose gradient now exceeds ``floor`` takes ``ADAM_EPS`` times it, as the
-    first gradient's entries above ``floor`` took theirs, and is round-off no longer; one at or
-    below ``floor`` keeps the eps that holds it. ``floor``: one for all entries, or one per
-    entry (the first evaluation's, as the later ones' round-off is not read)."""
+    gradient's magnitudes ``g`` and the round-off ``floor`` of the loss that gradient is of
+    (read at its evaluation): an entry of round-off whose gradient now exceeds ``floor`` takes
+    ``ADAM_EPS`` times it, as the first gradient's entries above ``floor`` took theirs, and is
+    round-off no longer; one at or below ``floor`` keeps the eps that holds it. ``floor``: one
+    for all entries, or one per entry."""
     released = round_off & (g > floor)
     return np.where(released, ADAM_EPS * g, eps), round_off & ~released
 
