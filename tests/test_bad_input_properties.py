@@ -320,7 +320,7 @@ def test_replacing_an_array_is_checked_again(models):
 
 
 def test_a_states_check_is_remembered_across_the_steps_that_write_it(models):
-    """The step sets ``time``, ``rest_model``, ``flowed`` and ``written_by`` on its
+    """The step sets ``time``, ``rest_model``, ``flowed``, ``written_by`` and ``tool_work`` on its
     ``state_out``; that cleared the memo of ``checks.same_state``, so both states were checked
     in full at every step (two of the six launches' worth of Python at 142 particles). The
     memo now outlives those, and still goes with a replaced array."""

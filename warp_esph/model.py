@@ -347,7 +347,7 @@ class State:
     #: What every step writes on its ``state_out`` besides arrays: none of it is what
     #: ``checks.same_state`` checks, so setting it keeps that check's memo (cleared by these
     #: too, the full check ran twice a step, docs/performance.md).
-    BOOKKEEPING = frozenset(("time", "rest_model", "flowed", "written_by"))
+    BOOKKEEPING = frozenset(("time", "rest_model", "flowed", "written_by", "tool_work"))
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
