@@ -603,3 +603,34 @@ def test_a_checkpoint_records_whether_the_yield_test_read_the_pressure(tmp_path)
     resumed, _ = load_state(path, fresh, solver=same)
     np.testing.assert_array_equal(_advance_with(same, fresh, resumed, 5, 4e-4).x.numpy(),
                                   _advance_with(solver, model, a, 5, 4e-4).x.numpy())
+
+
+def test_the_tools_work_a_state_carries_is_kept_and_a_bad_one_is_refused_by_name(tmp_path):
+    """``State.tool_work`` (the tools' work since the run's start, J) goes into the checkpoint
+    and back; a state a step wrote outside ``simulate`` carries None (not known), and so does
+    a checkpoint without it. A value that is no finite number is refused by name where it is
+    saved, loaded (a hand-edited file) or resumed, not stored or run on."""
+    model = _model()
+    state = _advance(model, model.state(), 2)
+    assert state.tool_work is None
+    path = save_state(tmp_path / "c.npz", model, state, step=2, frame=0)
+    assert "tool_work" not in read_checkpoint(path)[0] and load_state(path, _model())[0].tool_work is None
+    state.tool_work = 12.5
+    loaded, meta = load_state(save_state(path, model, state, step=2, frame=0), _model())
+    assert meta["tool_work"] == 12.5 and loaded.tool_work == 12.5
+    for bad in (float("nan"), "12", True):
+        state.tool_work = bad
+        with pytest.raises(ValueError, match=r"state\.tool_work = .* is not allowed: must be a finite number of joules"):
+            save_state(tmp_path / "d.npz", model, state, step=2, frame=0)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["tool_work"] = "12"
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=r"its metadata has tool_work = '12' \(must be a finite number of joules\)"):
+        load_state(path, _model())
+    fresh = _model()
+    loaded.tool_work = float("inf")
+    with pytest.raises(ValueError, match=r"state\.tool_work = inf is not allowed: must be a finite number of joules"):
+        we.simulate(fresh, 1, progress=False, state=loaded, start_frame=1, monitor_origin=fresh.state(requires_grad=False))
