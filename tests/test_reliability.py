@@ -1997,6 +1997,51 @@ def test_a_body_a_scripted_tool_pressed_and_released_passes_the_energy_check_at_
     assert 0.5 * (mass * (v * v).sum(axis=1)).sum() > _energy_floor(float(mass.sum()), c_p)
 
 
+@pytest.mark.filterwarnings("ignore:tools .'plate'. follow tools.Scripted motions:UserWarning")
+def test_a_resumed_run_beside_a_scripted_tool_judges_its_energy_growth_as_the_uninterrupted_run(tmp_path, monkeypatch):
+    """The scripted press above, checkpointed at frame 14 and resumed: without the plate's work
+    before the checkpoint the resumed run judged ``energy_growth`` from the checkpoint's state
+    with its own steps' work alone, not as the uninterrupted run judged those frames. With the
+    work kept, each resumed frame's growth is read from the run's initial state with the
+    work the uninterrupted run counted there."""
+    import sys  # noqa: PLC0415
+
+    from warp_esph import tools  # noqa: PLC0415
+    from warp_esph.checkpoint import load_state  # noqa: PLC0415
+
+    here = sys.modules["warp_esph.simulate"]
+    real, seen = here._grown, []
+
+    def grown(model, x0, v0, x, v, **kw):
+        seen.append((np.asarray(x0).copy(), kw["work"]))
+        return real(model, x0, v0, x, v, **kw)
+
+    monkeypatch.setattr(here, "_grown", grown)
+
+    def press():
+        b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.1, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"), name="block")
+        b.add_ground(friction=0.0)
+        b.add_tool("box", half_extents=(0.2, 0.025, 0.2), motion=tools.Scripted(_press_then_slide), name="plate")
+        return b.finalize()
+
+    path = tmp_path / "at14.npz"
+    model = press()
+    we.simulate(model, 18, fps=30.0, progress=False,
+                callback=lambda k, s: save_state(path, model, s, step=-1, frame=k) if k == 14 else None)
+    whole = seen[14:]
+    assert len(whole) == 4 and whole[-1][1] > 10.0  # J: the plate pressed
+    seen.clear()
+    resumed = press()
+    state, _ = load_state(path, resumed)
+    we.simulate(resumed, 4, fps=30.0, progress=False, state=state, start_frame=14,
+                monitor_origin=resumed.state(requires_grad=False))
+    assert len(seen) == 4
+    for (x0, work), (x0_whole, work_whole) in zip(seen, whole):
+        np.testing.assert_array_equal(x0, x0_whole)  # from the run's initial state
+        assert work == pytest.approx(work_whole, rel=1e-9)
+
+
 def _press(t):
     """A plate over the ``blowup_cases`` box, coming down at 1 m/s."""
     return (0.0, 0.35 - 1.0 * t, 0.0), (0.0, 0.0, 0.0, 1.0)
