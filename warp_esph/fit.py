@@ -2670,8 +2670,9 @@ class _WorldsProblem:
                     values += r.weight * world_values
                 return values, {w: None for w in batch}, blew_up
             roundoff = np.zeros(W)
-            # Adam reads a start's round-off at each evaluation while it holds an entry as
-            # round-off (_run_adam): one host copy of the frames and their gradient a round.
+            # Every round: Adam reads a start's round-off at each evaluation while it holds an
+            # entry as round-off (_run_adam), which is not known here; the cost is one host copy
+            # of the frames and their gradient a round.
             for r in self.runs:
                 _, grads = r.rollout.backward(r.loss)
                 roundoff += r.weight * r.rollout.loss_roundoff()
