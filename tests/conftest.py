@@ -125,6 +125,20 @@ def dropped_cube():
     return drop
 
 
+@pytest.fixture(scope="session")
+def run_once(request, tmp_path_factory):
+    """``run_once(key, fn)``: ``fn()``'s result, computed once per test session, for the
+    module fixtures of long runs (``shared_run``: under xdist the workers share it). Without
+    workers it just calls ``fn``."""
+    from shared_run import shared_run
+
+    if getattr(request.config, "workerinput", None) is None:
+        return lambda key, fn: fn()
+    # Each worker's basetemp is <the session's>/popen-gwN: the parent is the session's own.
+    root = tmp_path_factory.getbasetemp().parent
+    return lambda key, fn: shared_run(root, key, fn)
+
+
 # The thin spread pile (a 5 s run shared by two tests through one module fixture, about a
 # minute) goes first: with two workers (`-n 2 --dist worksteal`) it then runs beside the rest
 # instead of near the end of one worker's half, where the other worker would wait for it.

@@ -273,11 +273,11 @@ BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "floa
 
 
 @pytest.fixture(scope="module")
-def beam6():
+def beam6(run_once):
     """The default solver (``fit="auto"``: for this elastic beam the rest-configuration model
     with the curvature-corrected total fit and the hourglass control at 0.05, docs/physics.md,
     "The default: the fit by material"), 6 thick; one run shared by the tests below."""
-    return validation.beam_deflection(resolution=6, **BEAM)
+    return run_once("validation-beam6", lambda: validation.beam_deflection(resolution=6, **BEAM))
 
 
 def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
@@ -295,9 +295,9 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
 
 
 @pytest.fixture(scope="module")
-def beam4():
+def beam4(run_once):
     """The default solver, 4 thick."""
-    return validation.beam_deflection(resolution=4, **BEAM)
+    return run_once("validation-beam4", lambda: validation.beam_deflection(resolution=4, **BEAM))
 
 
 def test_beam_with_the_papers_linear_fit_is_too_soft(beam4):
@@ -350,11 +350,12 @@ SLUMP_FLOOR = {"floor": "particles", "floor_radius": 2.4}
 
 
 @pytest.fixture(scope="module")
-def slumped():
+def slumped(run_once):
     """S = 0.2, 8 particles across H0, variational force, 5 s (50 x sqrt(H0/g)): on the
     particle floor the pile flows longer than on the ground collider (at 3 s its top still
     sinks 0.95 % H0/s)."""
-    return validation.slump(0.2, resolution=8, elastic_force="variational", duration=5.0, **SLUMP_FLOOR)
+    return run_once("validation-slumped", lambda: validation.slump(0.2, resolution=8, elastic_force="variational", duration=5.0,
+                                                                    **SLUMP_FLOOR))
 
 
 def test_slumped_cylinder_comes_to_rest(slumped):
@@ -381,13 +382,14 @@ def test_the_plug_is_not_judged_where_the_run_cannot_resolve_it(slumped):
 
 
 @pytest.fixture(scope="module")
-def slumped_stiff():
+def slumped_stiff(run_once):
     """S = 0.5, 8 across, variational force, 2 s: the 1-D plug is 4 dx thick, and its top
     half, which the sudden release leaves below yield, is 2 dx = one support radius: resolved
     (the top 2 layers near the axis, 24 particles). Read at 2 s, this stiff pile is at rest:
     top 0.015 % H0/s (bound 0.1; 0.097 at 1.5 s, 8e-6 at 3 s), and its plug, height and
     radius read as at 3 s to 1e-5 H0."""
-    return validation.slump(0.5, resolution=8, elastic_force="variational", duration=2.0, **SLUMP_FLOOR)
+    return run_once("validation-slumped_stiff", lambda: validation.slump(0.5, resolution=8, elastic_force="variational",
+                                                                          duration=2.0, **SLUMP_FLOOR))
 
 
 def test_slumped_cylinder_keeps_an_unyielded_plug(slumped_stiff):
@@ -504,7 +506,7 @@ def test_slump_shallow_theory_holds_the_cylinder_volume_and_falls_with_its_aspec
 
 
 @pytest.fixture(scope="module")
-def spread_pile():
+def spread_pile(run_once):
     """The spread limit at its smallest size: a = h_RC / R_RC = 0.25, 3 particles through h_RC
     (720 particles), on the default particle floor under a disc of 1.0 R_RC (it rests at 0.85),
     read at 5 s. Whether it comes to rest takes 14 s to see (a rearrangement at its rim at
@@ -512,7 +514,8 @@ def spread_pile():
     spread pile under energy_spiky: a late rearrangement, then rest"), over 3 minutes of
     this suite's CPU time, so the 14 s run is the validation benchmark's
     (``python -m benchmarks.validation --quick --only spread``, docs/validation.md)."""
-    return validation.spread(resolution=3, shallowness=0.25, duration=5.0, floor="particles", floor_radius=1.0)
+    return run_once("validation-spread_pile", lambda: validation.spread(resolution=3, shallowness=0.25, duration=5.0,
+                                                                        floor="particles", floor_radius=1.0))
 
 
 def test_spread_pile_holds_the_theory_volume_and_slows_to_a_creep(spread_pile):
@@ -742,8 +745,8 @@ def test_a_cases_solver_counts_every_particle_step_whose_neighbour_row_was_full(
 
 
 @pytest.fixture(scope="module")
-def near_yield4():
-    return validation.near_yield_column(resolution=4, periods=24.0)
+def near_yield4(run_once):
+    return run_once("validation-near_yield4", lambda: validation.near_yield_column(resolution=4, periods=24.0))
 
 
 def test_near_yield_column_holds_with_only_its_bottom_yielding(near_yield4):
@@ -932,8 +935,8 @@ def test_the_validation_plan_names_the_solvers_fit_weights():
 
 
 @pytest.fixture(scope="module")
-def bent():
-    return validation.three_point_bending(resolution=4)
+def bent(run_once):
+    return run_once("validation-bent", lambda: validation.three_point_bending(resolution=4))
 
 
 def test_three_point_bending_is_soft_at_4_across(bent):
@@ -964,11 +967,11 @@ def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent)
 
 
 @pytest.fixture(scope="module")
-def indented():
+def indented(run_once):
     """8 across, the default solver: for this elastic block the curvature-corrected fit with
     the hourglass control at 0.05 (docs/physics.md, "The default: the fit by material"), on
     the rest model, the tools notwithstanding."""
-    return validation.sphere_indentation(resolution=8)
+    return run_once("validation-indented", lambda: validation.sphere_indentation(resolution=8))
 
 
 def test_sphere_indentation_at_2_mm_within_10_percent_of_the_bonded_layer(indented):

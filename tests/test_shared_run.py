@@ -1,0 +1,46 @@
+"""The suite's shared runs (tests/shared_run.py): a long validation case that several tests
+read runs once per session, not once per xdist worker."""
+
+import fcntl
+import threading
+
+import pytest
+
+from shared_run import shared_run
+
+
+def test_a_second_caller_reads_the_first_callers_run(tmp_path):
+    calls = []
+
+    def run():
+        calls.append(1)
+        return {"ratio": 1.07, "history": [0.5, 0.25]}
+
+    first = shared_run(tmp_path, "case", run)
+    second = shared_run(tmp_path, "case", run)
+    assert calls == [1] and second == first == {"ratio": 1.07, "history": [0.5, 0.25]}
+    assert shared_run(tmp_path, "other case", run) == first and calls == [1, 1]  # a key of its own runs
+
+
+def test_the_run_holds_its_lock_while_it_computes_so_a_second_caller_waits_for_it(tmp_path):
+    """The two workers ask at once: while the first computes, the key's lock is taken (a
+    second caller blocks on it; probed without blocking here, so the test cannot hang), and
+    once it is done the second reads its result instead of running its own."""
+    started, go, probe = threading.Event(), threading.Event(), {}
+
+    def slow():
+        started.set()
+        assert go.wait(30.0)
+        return 1.0
+
+    first = threading.Thread(target=lambda: probe.setdefault("first", shared_run(tmp_path, "case", slow)))
+    first.start()
+    try:
+        assert started.wait(30.0)
+        with open(tmp_path / "shared_run-case.lock", "w") as lock, pytest.raises(BlockingIOError):
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    finally:
+        go.set()
+        first.join(30.0)
+    assert probe == {"first": 1.0}
+    assert shared_run(tmp_path, "case", lambda: 2.0) == 1.0
