@@ -1212,6 +1212,60 @@ def test_a_body_that_starts_inside_a_static_collider_is_refused_by_name(collider
     ok.finalize()
 
 
+@pytest.mark.parametrize("collider, dtype", [("ground", wp.float32), ("ground", wp.float64), ("box", wp.float32),
+                                             ("sphere", wp.float32)])
+def test_a_body_started_a_little_inside_a_static_collider_is_placed_on_it_and_stays_slow(collider, dtype):
+    """A two-layer rubber star 0.1 spacings inside the ground was accepted and its first step
+    moved the bottom layer onto the surface while the top layer stayed: 3.1 m/s within the
+    first steps (12 m/s at 0.4 spacings, exit 3 as diverged). Now finalize places those
+    particles on the surface, their rest positions with them, and says so once, naming the
+    body, the collider, the count and the depth; the body starts unstrained and stays below
+    a tenth of the speed of a fall through one spacing. Pinned particles stay where built."""
+    dx, depth = 0.01, 0.001
+    b = we.SceneBuilder(spacing=dx)
+    b.add_star((0.0, 0.5 * dx - depth, 0.0), outer_radius=0.05, inner_radius=0.025, thickness=2 * dx,
+               material=we.Material.preset("rubber"), name="plate")
+    name, top = {"ground": (lambda: b.add_ground(0.0, friction=0.6), "plane0"),
+                 "box": (lambda: b.add_box_collider((0.0, -0.1, 0.0), (0.2, 0.1, 0.2), friction=0.6), "box0"),
+                 "sphere": (lambda: b.add_sphere_collider((0.0, -10.0, 0.0), 10.0, friction=0.6), "sphere0")}[collider]
+    name()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", dtype=dtype)
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    fastest = 0.0
+    for _ in range(30):
+        solver.step(a, c, 0.5 * model.stable_dt())
+        a, c = c, a
+        fastest = max(fastest, float(np.linalg.norm(a.v.numpy(), axis=1).max()))
+    assert fastest < 0.1 * math.sqrt(2.0 * 9.81 * dx), fastest
+    assert a.x.numpy()[:, 1].min() > -0.1 * dx
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 1, said
+    bottom = np.asarray(b._points[0])[:, 1] < 0.0
+    m = re.search(rf"^body 'plate': (\d+) of its particles start inside {top}, up to ([0-9.e-]+) m deep \(([0-9.]+) spacings\); "
+                  "they are placed on its surface, their rest positions with them", said[0])
+    assert m and int(m.group(1)) == int(bottom.sum()) > 0, said
+    assert float(m.group(2)) == pytest.approx(depth, rel=0.02) and float(m.group(3)) == pytest.approx(0.1, rel=0.02), said
+    x = model.particle_x0.astype(np.float64)
+    # On the surface (the sphere's: 10 m from its centre), the top layer where it was built.
+    height = np.linalg.norm(x - (0.0, -10.0, 0.0), axis=1) - 10.0 if collider == "sphere" else x[:, 1]
+    assert np.abs(height[bottom]).max() <= 2e-6 and np.allclose(x[~bottom, 1], dx - depth, atol=1e-6), height[bottom]
+
+
+def test_a_pinned_particle_inside_a_static_collider_is_not_placed_on_it():
+    """A particle floor lies under the ground by design: finalize leaves it there, silently."""
+    b = we.SceneBuilder(spacing=0.02)
+    body = b.add_box((0.0, 0.08, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="dough")
+    b.add_particle_floor(body, margin=0.02)
+    b.add_ground(0.03)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = b.finalize()
+    assert np.array_equal(model.particle_x0, np.concatenate(b._points).astype(model.particle_x0.dtype))
+
+
 def test_a_raw_step_from_a_blown_up_state_warns_without_a_read_of_its_own():
     """``Solver.step`` at 20 x the stable step went on from NaN positions with only the
     stability warning of its dt: the neighbour search's displacement check, which reads its

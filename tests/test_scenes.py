@@ -282,6 +282,21 @@ def test_scene_file_bodies_refused_where_they_start_name_file_and_table(tmp_path
         load_scene_file(path).builder.finalize()
 
 
+def test_scene_file_body_started_a_little_inside_a_collider_is_placed_on_it_naming_file_and_table(tmp_path):
+    """A body 0.1 spacings inside the file's plane is placed on it at finalize; the warning
+    names the file and the collider's table, as the refusal of a deeper start does."""
+    path = tmp_path / "low.toml"
+    path.write_text(BASE)
+    low = float(np.concatenate(load_scene_file(path).builder._points)[:, 1].min())
+    path.write_text(BASE.replace("offset = 0.0", f"offset = {low + 0.005!r}"))
+    with pytest.warns(UserWarning) as caught:
+        model = load_scene_file(path).builder.finalize()
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{path}: [[colliders]] #1 (type 'plane'): body 'sphere0': "), said
+    assert re.search(r"start inside plane0, up to 0\.005 m deep \(0\.1 spacings\); they are placed on its surface", said[0])
+    assert float(model.particle_x0[:, 1].min()) == pytest.approx(low + 0.005, abs=1e-7)
+
+
 def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
     """``floor_margin`` / ``floor_layers`` / ``floor_elastic`` on a body are
     ``SceneBuilder.add_particle_floor``: the same particles, velocities, bodies, materials

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -1024,7 +1025,11 @@ class SceneBuilder:
         ``worlds=W`` puts ``W`` copies of the scene in one model (``finalize_worlds``):
         each with its own materials (``model.set_material(i, material, world=w)``), none
         seeing another (they may overlap in space), all sharing the colliders and tools
-        (each world reports its own tool reactions, ``tools.ToolSet``)."""
+        (each world reports its own tool reactions, ``tools.ToolSet``).
+
+        A body's particles that start inside a static collider are placed on its surface, as
+        their initial and rest positions both (a ``UserWarning`` names the body, the collider,
+        how many and how deep); more than half a spacing deep is refused (docs/errors.md)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
             raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be an integer >= 1")
         if worlds > MAX_WORLDS:  # 1e12 ended in a MemoryError building the list of copies
@@ -1152,16 +1157,8 @@ def _check_outside_colliders(builder) -> None:
         free[np.asarray(p.indices, dtype=np.int64)] = False
     starts = np.cumsum([0] + [b.count for b in builder._bodies])
     tol = 0.5 * builder.spacing
-    # Named as the reaction rows and the force log name them (plane0, sphere0, box0).
-    # The shapes' depths are the tools' (``_tool_depth``), in each collider's own frame.
-    depths = [(f"plane{k}", ("plane", k), _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)))
-              for k, p in enumerate(builder.planes)]
-    depths += [(f"sphere{k}", ("sphere", k), _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)))
-               for k, s in enumerate(builder.spheres)]
-    depths += [(f"box{k}", ("box", k), _tool_depth("box", b.half_extents, x - np.array(b.center)))
-               for k, b in enumerate(builder.boxes)]
-    for name, origin, d in depths:
-        d = np.where(free, d, -np.inf)
+    for name, origin, depth, _ in _static_surfaces(builder):
+        d = np.where(free, depth(x), -np.inf)
         inside = d > tol
         if inside.any():
             i = int(np.argmax(d))
@@ -1170,6 +1167,84 @@ def _check_outside_colliders(builder) -> None:
                    f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, or the collider")
             # A scene file's: the collider's table, which plane0, sphere0, box0 do not name.
             builder._refuse(origin, why, why)
+
+
+def _static_surfaces(builder):
+    """``(name, origin, depth, surface)`` of each static collider, named as the reaction rows
+    name them (plane0, sphere0, box0): ``depth(x)`` how deep each point lies inside it
+    (``_tool_depth``, in its own frame), ``surface(x)`` the nearest point of its surface from
+    inside, where the contact kernels move a particle found inside (``sim/colliders.py``)."""
+    out = []
+    for k, p in enumerate(builder.planes):
+        n, o = np.asarray(p.normal, dtype=np.float64), float(p.offset)
+        out.append((f"plane{k}", ("plane", k), lambda x, n=n, o=o: _tool_depth("plane", n, x - o * n),
+                    lambda x, n=n, o=o: x + np.outer(o - x @ n, n)))
+    for k, s in enumerate(builder.spheres):
+        c, r = np.asarray(s.center, dtype=np.float64), float(s.radius)
+
+        def sphere_surface(x, c=c, r=r):
+            d = x - c
+            length = np.linalg.norm(d, axis=1, keepdims=True)
+            # At the centre itself no direction is nearer: straight up, as any would do.
+            d = np.where(length > 0.0, d / np.where(length > 0.0, length, 1.0), np.array([0.0, 1.0, 0.0]))
+            return c + r * d
+        out.append((f"sphere{k}", ("sphere", k), lambda x, c=c, r=r: _tool_depth("sphere", (r, 0.0, 0.0), x - c),
+                    sphere_surface))
+    for k, b in enumerate(builder.boxes):
+        c, h = np.asarray(b.center, dtype=np.float64), np.asarray(b.half_extents, dtype=np.float64)
+
+        def box_surface(x, c=c, h=h):
+            # Through the nearest face, the one collide_box moves it to (ties: the lower axis).
+            d = x - c
+            axis = np.argmax(np.abs(d) - h, axis=1)
+            rows = np.arange(len(x))
+            out_ = x.copy()
+            out_[rows, axis] = c[axis] + np.where(d[rows, axis] < 0.0, -1.0, 1.0) * h[axis]
+            return out_
+        out.append((f"box{k}", ("box", k), lambda x, c=c, h=h: _tool_depth("box", h, x - c), box_surface))
+    return out
+
+
+def _place_on_colliders(builder) -> np.ndarray:
+    """The builder's points with each free particle that starts inside a static collider
+    (no deeper than half a spacing: ``_check_outside_colliders`` refuses deeper) moved onto
+    its surface, as the model's initial and rest positions both, and a ``UserWarning`` for
+    each body and collider naming how many and how deep. Left inside, the first step moved
+    them there while the rest of the body stayed, a strain the material sent out at its wave
+    speed: a two-layer rubber star 0.1 / 0.4 spacings inside the ground reached 3.1 / 12 m/s
+    (exit 3 as diverged at 0.4; docs/errors.md). Placed with their rest positions they start
+    unstrained, the body a little thinner where it met the collider."""
+    x = np.concatenate(builder._points).astype(np.float64, copy=True)
+    if not (builder.planes or builder.spheres or builder.boxes):
+        return x
+    free = np.ones(len(x), dtype=bool)
+    for p in builder.pins:
+        free[np.asarray(p.indices, dtype=np.int64)] = False
+    starts = np.cumsum([0] + [b.count for b in builder._bodies])
+    # Deeper than the round-off of the coordinates is a start inside: a body built on the
+    # ground from sums of spacings may come out a unit in the last place below it.
+    sizes = [abs(p.offset) for p in builder.planes] + [np.abs(s.center).max() + s.radius for s in builder.spheres]
+    sizes += [np.abs(b.center).max() + np.abs(b.half_extents).max() for b in builder.boxes]
+    round_off = 8.0 * float(np.finfo(np.float64).eps) * (float(np.abs(x).max()) + max(sizes))
+    for name, origin, depth, surface in _static_surfaces(builder):
+        d = depth(x)
+        inside = free & (d > 0.0)
+        if not inside.any():
+            continue
+        x[inside] = surface(x[inside])
+        for k, body in enumerate(builder._bodies):
+            mine = inside[starts[k]:starts[k + 1]]
+            deepest = float(d[starts[k]:starts[k + 1]][mine].max()) if mine.any() else 0.0
+            if deepest > round_off:
+                # A scene file's: the file and the collider's table, as its refusals name them.
+                table = builder.origins.get(origin)
+                where = "" if builder.source is None else f"{builder.source}: {table}: " if table else f"{builder.source}: "
+                warnings.warn(f"{where}body {body.name!r}: {int(mine.sum())} of its particles start inside {name}, up to "
+                              f"{deepest:.3g} m deep ({deepest / builder.spacing:.3g} spacings); they are placed on its "
+                              "surface, their rest positions with them, so the body starts unstrained (left inside, the "
+                              "first step moved them out and the strain flung the body); start bodies on the surface",
+                              UserWarning, stacklevel=4)
+    return x
 
 
 def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
@@ -1356,7 +1431,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
         raise ValueError(f"device = {checks.shorten(device)!r} is not allowed: {checks.shorten_text(e)}") from None
     several = len(builders) > 1
-    points, velocities, mat_ids, body_ids, world_ids = [], [], [], [], []
+    velocities, mat_ids, body_ids, world_ids = [], [], [], []
     materials: list[Material] = []
     bodies: list[Body] = []
     fields = []
@@ -1365,7 +1440,6 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     same_fields = all(b.force_fields == first.force_fields for b in builders)
     for w, b in enumerate(builders):
         m0, b0 = len(materials), len(bodies)
-        points += b._points
         velocities += b._velocities
         mat_ids += [ids + m0 for ids in b._material_ids]
         for k, body in enumerate(b._bodies):
@@ -1389,10 +1463,12 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         _check_memory(count, first.max_neighbors, dev)
     except ValueError as e:
         first._refuse(("scene",), str(e), str(e))  # a scene file's: its spacing and bodies
+    placed = {}
     for b in {id(b): b for b in builders}.values():  # finalize(worlds=W) repeats one builder W times
         _check_outside_colliders(b)
+        placed[id(b)] = _place_on_colliders(b)
     model = Model(
-        positions=np.concatenate(points),
+        positions=np.concatenate([placed[id(b)] for b in builders]),
         velocities=np.concatenate(velocities),
         particle_material=np.concatenate(mat_ids),
         particle_body=np.concatenate(body_ids),
