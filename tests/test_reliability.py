@@ -1254,6 +1254,55 @@ def test_a_body_started_a_little_inside_a_static_collider_is_placed_on_it_and_st
     assert np.abs(height[bottom]).max() <= 2e-6 and np.allclose(x[~bottom, 1], dx - depth, atol=1e-6), height[bottom]
 
 
+_BOX_MESH = (np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float) * (0.2, 0.05, 0.2),
+             np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6],
+                       [0, 6, 4], [1, 5, 7], [1, 7, 3]]))
+_QUARTER_TURN_Z = (0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5))
+
+
+@pytest.mark.parametrize("shape, args, height", [
+    ("plane", {}, lambda x: x[:, 1]),
+    ("box", dict(half_extents=(0.05, 0.2, 0.2), position=(0.0, -0.05, 0.0), orientation=_QUARTER_TURN_Z), lambda x: x[:, 1]),
+    ("sphere", dict(radius=10.0, position=(0.0, -10.0, 0.0)), lambda x: np.linalg.norm(x - (0.0, -10.0, 0.0), axis=1) - 10.0),
+    ("capsule", dict(radius=10.0, half_height=1.0, position=(0.0, -10.0, 0.0), orientation=_QUARTER_TURN_Z),
+     lambda x: np.hypot(x[:, 1] + 10.0, x[:, 2]) - 10.0),
+    ("cylinder", dict(radius=0.2, half_height=0.05, position=(0.0, -0.05, 0.0)), lambda x: x[:, 1]),
+    ("cylinder", dict(radius=10.0, half_height=1.0, position=(0.0, -10.0, 0.0), orientation=_QUARTER_TURN_Z),
+     lambda x: np.hypot(x[:, 1] + 10.0, x[:, 2]) - 10.0),
+    ("mesh", dict(mesh=_BOX_MESH, position=(0.0, -0.05, 0.0)), lambda x: x[:, 1]),
+])
+def test_a_body_started_a_little_inside_a_tool_is_placed_on_it_and_stays_slow(shape, args, height):
+    """As for the static colliders: a two-layer rubber star 0.1 spacings inside a tool at its
+    first pose (each shape, turned where its frame is not the world's) reached 3.1 m/s within
+    the first steps. Now its bottom layer is placed where the tool's contact puts it, on the
+    surface (the contact's margin, a thousandth of a spacing, outside but a plane's), said
+    once, and the body stays below a tenth of the speed of a fall through one spacing."""
+    dx, depth = 0.01, 0.001
+    b = we.SceneBuilder(spacing=dx)
+    b.add_star((0.0, 0.5 * dx - depth, 0.0), outer_radius=0.05, inner_radius=0.025, thickness=2 * dx,
+               material=we.Material.preset("rubber"), name="plate")
+    b.add_tool(shape, name="under", friction=0.6, **args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu")
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    fastest = 0.0
+    for _ in range(30):
+        solver.step(a, c, 0.5 * model.stable_dt())
+        a, c = c, a
+        fastest = max(fastest, float(np.linalg.norm(a.v.numpy(), axis=1).max()))
+    assert fastest < 0.1 * math.sqrt(2.0 * 9.81 * dx), fastest
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    bottom = np.asarray(b._points[0])[:, 1] < 0.0
+    m = re.search(r"^body 'plate': (\d+) of its particles start inside tool 'under' at its first pose, up to ([0-9.e-]+) m "
+                  r"deep \(([0-9.]+) spacings\); they are placed on its surface", said[0]) if len(said) == 1 else None
+    assert m and int(m.group(1)) == int(bottom.sum()) and float(m.group(2)) == pytest.approx(depth, rel=0.01), said
+    gap = height(model.particle_x0.astype(np.float64))
+    margin = 0.0 if shape == "plane" else 1e-3 * dx
+    assert np.allclose(gap[bottom], margin, atol=2e-6) and np.allclose(model.particle_x0[~bottom, 1], dx - depth, atol=1e-6), gap
+
+
 def test_a_pinned_particle_inside_a_static_collider_is_not_placed_on_it():
     """A particle floor lies under the ground by design: finalize leaves it there, silently."""
     b = we.SceneBuilder(spacing=0.02)

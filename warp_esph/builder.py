@@ -1027,9 +1027,10 @@ class SceneBuilder:
         seeing another (they may overlap in space), all sharing the colliders and tools
         (each world reports its own tool reactions, ``tools.ToolSet``).
 
-        A body's particles that start inside a static collider are placed on its surface, as
-        their initial and rest positions both (a ``UserWarning`` names the body, the collider,
-        how many and how deep); more than half a spacing deep is refused (docs/errors.md)."""
+        A body's particles that start inside a static collider, or a tool at its first pose,
+        are placed on its surface, as their initial and rest positions both (a ``UserWarning``
+        names the body, the collider, how many and how deep); more than half a spacing deep is
+        refused (docs/errors.md)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
             raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be an integer >= 1")
         if worlds > MAX_WORLDS:  # 1e12 ended in a MemoryError building the list of copies
@@ -1222,20 +1223,21 @@ def _place_on_colliders(builder) -> np.ndarray:
         free[np.asarray(p.indices, dtype=np.int64)] = False
     starts = np.cumsum([0] + [b.count for b in builder._bodies])
     # Deeper than the round-off of the coordinates is a start inside: a body built on the
-    # ground from sums of spacings may come out a unit in the last place below it.
+    # ground from sums of spacings may come out a unit in the last place below it, and is
+    # left there, as the contact takes it.
     sizes = [abs(p.offset) for p in builder.planes] + [np.abs(s.center).max() + s.radius for s in builder.spheres]
     sizes += [np.abs(b.center).max() + np.abs(b.half_extents).max() for b in builder.boxes]
     round_off = 8.0 * float(np.finfo(np.float64).eps) * (float(np.abs(x).max()) + max(sizes))
     for name, origin, depth, surface in _static_surfaces(builder):
         d = depth(x)
-        inside = free & (d > 0.0)
+        inside = free & (d > round_off)
         if not inside.any():
             continue
         x[inside] = surface(x[inside])
         for k, body in enumerate(builder._bodies):
             mine = inside[starts[k]:starts[k + 1]]
-            deepest = float(d[starts[k]:starts[k + 1]][mine].max()) if mine.any() else 0.0
-            if deepest > round_off:
+            if mine.any():
+                deepest = float(d[starts[k]:starts[k + 1]][mine].max())
                 # A scene file's: the file and the collider's table, as its refusals name them.
                 table = builder.origins.get(origin)
                 where = "" if builder.source is None else f"{builder.source}: {table}: " if table else f"{builder.source}: "
@@ -1291,6 +1293,92 @@ def _check_outside_tools(model, builder) -> None:
                    f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
                    "move the body or the tool out")
             builder._refuse(("tool", tool.name), why, why)
+
+
+def _tool_surface(kind: str, param, xl: np.ndarray, margin: float) -> np.ndarray:
+    """Where the contact of a tool of ``kind`` (``tools.py``, ``shape_*``) puts each local
+    point ``xl`` found inside it: the nearest point of its surface, ``margin`` outward of it
+    (a plane's without one); a mesh's is ``_place_on_tools``'s."""
+    a, b, _ = (float(v) for v in param)
+    up = np.array([0.0, 1.0, 0.0])
+
+    def outward(d):
+        length = np.linalg.norm(d, axis=1, keepdims=True)
+        # At the centre (or on the axis) no direction is nearer: up, as any would do.
+        return np.where(length > 0.0, d / np.where(length > 0.0, length, 1.0), up)
+    if kind == "plane":
+        n = np.asarray(param, dtype=np.float64)
+        return xl - np.outer(xl @ n, n)
+    if kind == "sphere":
+        return (a + margin) * outward(xl)
+    if kind == "capsule":
+        axis = np.zeros_like(xl)
+        axis[:, 1] = np.clip(xl[:, 1], -b, b)
+        return axis + (a + margin) * outward(xl - axis)
+    out = xl.copy()
+    rows = np.arange(len(xl))
+    if kind == "box":
+        half = np.asarray(param, dtype=np.float64)
+        k = np.argmax(np.abs(xl) - half, axis=1)
+        out[rows, k] = np.where(xl[rows, k] < 0.0, -1.0, 1.0) * (half[k] + margin)
+        return out
+    # A cylinder: through its side where that is nearer than its ends (shape_cylinder).
+    rho = np.hypot(xl[:, 0], xl[:, 2])
+    side = (a - rho < b - np.abs(xl[:, 1])) & (rho > 0.0)
+    scale = (a + margin) / np.where(side, rho, 1.0)
+    out[side, 0] *= scale[side]
+    out[side, 2] *= scale[side]
+    out[~side, 1] = np.where(xl[~side, 1] < 0.0, -1.0, 1.0) * (b + margin)
+    return out
+
+
+def _place_on_tools(model, builder) -> None:
+    """Place each free particle that starts inside a tool at the tool's first pose (no deeper
+    than half a spacing: ``_check_outside_tools`` refuses deeper) where the tool's contact
+    would put it, as its initial and rest position both, and warn for each body and tool, as
+    ``_place_on_colliders`` does for the static ones: left inside, the first step moved them
+    out while the rest of the body stayed, and the strain flung it."""
+    ts = model.tools
+    x = np.asarray(model.particle_x0, dtype=np.float64).copy()
+    free = ts.pin.numpy() < 0
+    moved = np.zeros(len(x), dtype=bool)
+    for k, tool in enumerate(ts.colliders):
+        p, q = ts.pose_at(k, 0.0)
+        p = np.asarray(p, dtype=np.float64)
+        R = tools.quat_to_matrix(np.asarray(q, dtype=np.float64))
+        xl = (x - p) @ R
+        # The model's positions are in its precision, the mesh's queries in float32.
+        eps = float(np.finfo(np.float32 if tool.kind == "mesh" else model.types.np_dtype).eps)
+        if tool.kind == "mesh":
+            depth, near = ts.mesh_depth(k, xl, closest=True)
+        else:
+            depth = _tool_depth(tool.kind, tool.param, xl)
+        # Deeper than round-off: a tool put on a body's outer particles (the lab scenes')
+        # meets them within it, and the contact takes them as they are.
+        round_off = 8.0 * eps * (float(np.abs(xl).max()) + ts.reach(k))
+        inside = free & (depth > round_off)
+        if not inside.any():
+            continue
+        if tool.kind == "mesh":
+            d = near[inside] - xl[inside]
+            placed = near[inside] + ts.margin * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+        else:
+            placed = _tool_surface(tool.kind, tool.param, xl[inside], ts.margin)
+        x[inside] = p + placed @ R.T
+        moved |= inside
+        for body in model.bodies:
+            mine = inside[body.start:body.start + body.count]
+            if mine.any():
+                deepest = float(depth[body.start:body.start + body.count][mine].max())
+                table = builder.origins.get(("tool", tool.name))
+                where = "" if builder.source is None else f"{builder.source}: {table}: " if table else f"{builder.source}: "
+                warnings.warn(f"{where}body {body.name!r}: {int(mine.sum())} of its particles start inside tool {tool.name!r} "
+                              f"at its first pose, up to {deepest:.3g} m deep ({deepest / model.spacing:.3g} spacings); they "
+                              "are placed on its surface, their rest positions with them, so the body starts unstrained "
+                              "(left inside, the first step moved them out and the strain flung the body); start bodies "
+                              "outside the tools", UserWarning, stacklevel=4)
+    if moved.any():
+        model.particle_x0[moved] = x[moved]
 
 
 def _check_pins_at_rest(model, builder) -> None:
@@ -1494,6 +1582,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model, first)
+        _place_on_tools(model, first)
         _check_pins_at_rest(model, first)
     if not _guards_only:
         # _guards_only: scenes.unresolved_bodies, which reads the rest neighbourhoods' guards

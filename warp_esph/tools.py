@@ -1059,16 +1059,20 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 @functools.cache
 def _mesh_depth_kernel():
     @wp.kernel(module="unique")
-    def mesh_depth(mesh: wp.uint64, x: wp.array(dtype=wp.vec3f), far: wp.float32, depth: wp.array(dtype=wp.float32)):
+    def mesh_depth(mesh: wp.uint64, x: wp.array(dtype=wp.vec3f), far: wp.float32, depth: wp.array(dtype=wp.float32),
+                   closest: wp.array(dtype=wp.vec3f)):
         """How deep ``x[i]`` (in the mesh's frame) lies inside the closed mesh, as the
         contact's own query sees it (``shape_mesh``: inside by ``mesh_query_point``'s sign);
-        negative outside."""
+        negative outside; and the nearest point of the mesh (``x[i]`` where none is found)."""
         i = wp.tid()
         depth[i] = wp.float32(-1.0e30)
+        closest[i] = x[i]
         res = wp.mesh_query_point(mesh, x[i], far)
         if res.result:
-            d = wp.length(wp.mesh_eval_position(mesh, res.face, res.u, res.v) - x[i])
+            c = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
+            d = wp.length(c - x[i])
             depth[i] = wp.where(res.sign < wp.float32(0.0), d, -d)
+            closest[i] = c
 
     return mesh_depth
 
@@ -1241,19 +1245,22 @@ class ToolSet:
         self._pose_log = None
         self._reach_of = {}
 
-    def mesh_depth(self, k: int, xl: np.ndarray) -> np.ndarray:
+    def mesh_depth(self, k: int, xl: np.ndarray, closest: bool = False):
         """How deep each point ``xl`` (N, 3), in mesh tool ``k``'s own frame, lies inside it
-        (negative: outside; float32, as the contact's mesh queries)."""
+        (negative: outside; float32, as the contact's mesh queries); ``closest=True``: and the
+        nearest point of the mesh to each, ``(depth, points)``."""
         c = self.colliders[k]
         pts = np.asarray(c.mesh_points, dtype=np.float64)
         far = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
         if not len(xl):
-            return np.zeros(0)
+            return (np.zeros(0), np.zeros((0, 3))) if closest else np.zeros(0)
         dev = self.model.device
         out = wp.empty(len(xl), dtype=wp.float32, device=dev)
+        near = wp.empty(len(xl), dtype=wp.vec3f, device=dev)
         wp.launch(_mesh_depth_kernel(), len(xl), [wp.uint64(int(self.mesh_id.numpy()[k])),
-                  wp.array(np.asarray(xl, dtype=np.float32), dtype=wp.vec3f, device=dev), far], [out], device=dev)
-        return out.numpy().astype(np.float64)
+                  wp.array(np.asarray(xl, dtype=np.float32), dtype=wp.vec3f, device=dev), far], [out, near], device=dev)
+        depth = out.numpy().astype(np.float64)
+        return (depth, near.numpy().astype(np.float64)) if closest else depth
 
     def _owner(self, k: int) -> str:
         """Tool ``k`` as messages name it."""
