@@ -25,8 +25,8 @@ from warp_esph.scenes import Scene
 from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
 from run_files import run_script
 from pool_items import _dies_first, _dies_second, _exits_at
-from sweep_cases import (FRAMES, YIELD, _box, _extra_of_a_function, _extra_raising_what_pickle_cannot_rebuild,
-                         _extra_that_exits, _extra_that_fails, _rows)
+from sweep_cases import (FRAMES, SAMPLE_EXTRAS, YIELD, _box, _extra_by_sample, _extra_of_a_function,
+                         _extra_raising_what_pickle_cannot_rebuild, _extra_that_exits, _extra_that_fails, _rows)
 
 SCENE_TOML = """
 [scene]
@@ -1592,26 +1592,41 @@ def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_a
 
 
 # ------------------------------------------------------------------ a sample's own exception, wherever it runs
-def test_a_sample_s_exception_the_parent_cannot_rebuild_is_its_reason_with_workers_too():
+@pytest.fixture(scope="module")
+def failing_everywhere():
+    """``failing_everywhere(extra)``: the rows of a 2-sample sweep whose every sample fails
+    in ``extra`` (one of ``SAMPLE_EXTRAS``), in this process and with two worker processes.
+    One sweep of six samples, two per function, runs each way (one pool for the three tests);
+    a test reads its function's two rows, numbered as the samples of a sweep of its own."""
+    values = [10.0 * 2**k * f for k in range(len(SAMPLE_EXTRAS)) for f in (1.0, 10.0)]  # (a sweep takes each once)
+    runs = {w: sweep(_box(), {"yield_stress": values}, frames=1, workers=w, extra=_extra_by_sample) for w in (1, 2)}
+
+    def rows(extra):
+        k = SAMPLE_EXTRAS.index(extra)
+        return tuple([dict(r, sample=r["sample"] - 2 * k) for r in _rows(runs[w])[2 * k: 2 * k + 2]] for w in (1, 2))
+
+    return rows
+
+
+def test_a_sample_s_exception_the_parent_cannot_rebuild_is_its_reason_with_workers_too(failing_everywhere):
     """With worker processes, an exception that pickle cannot rebuild in the parent broke the
     pool: each sample ran again alone, broke it again, and its row said a worker process died
     'a crash in native code or out of memory', where the same sweep in one process said
     the exception. Each row now says the exception, as in one process."""
-    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_raising_what_pickle_cannot_rebuild)
-    assert [r["reason"] for r in here.rows] == ["_TwoPartError: extra: no column today"] * 2
-    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_raising_what_pickle_cannot_rebuild)
-    assert _rows(there) == _rows(here)
+    here, there = failing_everywhere(_extra_raising_what_pickle_cannot_rebuild)
+    assert [r["reason"] for r in here] == ["_TwoPartError: extra: no column today"] * 2
+    assert [r["sample"] for r in here] == [0, 1]
+    assert there == here
 
 
-def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on():
+def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on(failing_everywhere):
     """A sample whose code calls ``sys.exit`` (an ``extra`` function here) ended the whole sweep
     with SystemExit, in this process and with worker processes alike, and its samples finished
     were lost with it (on Ray it was a row saying the worker crashed). It is that sample's
     failed row, ``SystemExit: 4``, the same wherever it runs, and the other samples run."""
-    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_that_exits)
-    assert [(r["status"], r["reason"]) for r in here.rows] == [("failed", "SystemExit: 4")] * 2
-    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_that_exits)
-    assert _rows(there) == _rows(here)
+    here, there = failing_everywhere(_extra_that_exits)
+    assert [(r["status"], r["reason"]) for r in here] == [("failed", "SystemExit: 4")] * 2
+    assert there == here
 
 
 @pytest.mark.parametrize("workers", [1, 2])
@@ -1627,17 +1642,16 @@ def test_parallel_map_without_on_error_raises_an_item_s_sys_exit_as_an_item_erro
     assert parallel_map(_exits_at, [(0,), (1,)], workers=workers, on_error=lambda i, why: why) == [0, "SystemExit: 5"]
 
 
-def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_wherever_it_runs():
+def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_wherever_it_runs(failing_everywhere):
     """An ``extra`` value that is neither a number nor text (a function) was an ok row holding
     the object in one process (its CSV cell the object's repr) and a failed row with pickle's
     words in worker processes: two tables of one sweep. It is a failed row naming the column
     in both."""
-    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_of_a_function)
-    assert [r["status"] for r in here.rows] == ["failed"] * 2
-    assert here.rows[0]["reason"] == ("ValueError: extra returned how = a function: a column's value must be "
-                                       "a number, text or None"), here.rows[0]["reason"]
-    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_of_a_function)
-    assert _rows(there) == _rows(here)
+    here, there = failing_everywhere(_extra_of_a_function)
+    assert [r["status"] for r in here] == ["failed"] * 2
+    assert here[0]["reason"] == ("ValueError: extra returned how = a function: a column's value must be "
+                                 "a number, text or None"), here[0]["reason"]
+    assert there == here
 
 
 def test_a_parameter_of_every_material_leaves_an_elastic_particle_floor_as_built():
