@@ -171,15 +171,40 @@ def test_gradient_benchmark_times_the_kept_launch_records_off_and_on_and_puts_th
     assert Solver.step is step
 
 
-def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_path):
+@pytest.fixture(scope="module")
+def loss_only_bench(tmp_path_factory):
+    """``benchmarks.fit_bench --loss-only`` at a tiny size, run once for the two tests that
+    read it (each ran it alone): its rows, and per call of ``fit`` whether its runs were taped
+    and how many forward runs it made (counted by wrappers that call through unchanged)."""
+    from benchmarks import fit_bench
+    from warp_esph import fit as fit_module
+
+    forward, fit = fit_module._Run.forward, fit_module.fit
+    ran, per_fit = [0], []
+
+    def counted(self, *args, **kwargs):
+        ran[0] += 1
+        return forward(self, *args, **kwargs)
+
+    def counted_fit(*args, **kwargs):
+        ran[0] = 0
+        result = fit(*args, **kwargs)
+        per_fit.append((fit_module._Run.tape_values, ran[0]))
+        return result
+
+    out = tmp_path_factory.mktemp("fit_bench") / "fit_bench.json"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fit_module._Run, "forward", counted)
+        mp.setattr(fit_module, "fit", counted_fit)
+        assert fit_bench.main(["--loss-only", "--particles", "27", "--steps", "4", "--repeats", "1", "--json", str(out)]) == 0
+    return json.loads(out.read_text())["rows"], per_fit
+
+
+def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(loss_only_bench):
     """``benchmarks.fit_bench --loss-only`` at a tiny size: a Gauss-Newton fit (every run loss
     only) and an L-BFGS fit (its diagnostics' runs loss only), each timed with those runs
     untaped and taped, and the two histories equal."""
-    from benchmarks import fit_bench
-
-    out = tmp_path / "fit_bench.json"
-    assert fit_bench.main(["--loss-only", "--particles", "27", "--steps", "4", "--repeats", "1", "--json", str(out)]) == 0
-    rows = json.loads(out.read_text())["rows"]
+    rows, _ = loss_only_bench
     assert [r["optimizer"] for r in rows] == ["gauss-newton", "lbfgs"]
     assert all(r["same_history"] for r in rows)
     gauss, lbfgs = rows
@@ -230,46 +255,36 @@ def test_fit_benchmark_refuses_starts_it_does_not_run(argv, said, capsys):
     assert e.value.code == 2 and said in capsys.readouterr().err
 
 
-def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(tmp_path, monkeypatch):
+def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(loss_only_bench):
     """``forward_runs`` of ``fit_bench --loss-only`` is what its fit ran: it added two runs of
     the diagnostics at the fitted point to ``Diagnostics.evaluations``, which had come to
     count them itself (and then no longer made them)."""
-    from benchmarks import fit_bench
-    from warp_esph import fit as fit_module
-
-    forward, fit = fit_module._Run.forward, fit_module.fit
-    ran, per_fit = [0], []
-
-    def counted(self, *args, **kwargs):
-        ran[0] += 1
-        return forward(self, *args, **kwargs)
-
-    def counted_fit(*args, **kwargs):
-        ran[0] = 0
-        result = fit(*args, **kwargs)
-        per_fit.append((fit_module._Run.tape_values, ran[0]))
-        return result
-
-    monkeypatch.setattr(fit_module._Run, "forward", counted)
-    monkeypatch.setattr(fit_module, "fit", counted_fit)
-    out = tmp_path / "fit_bench.json"
-    assert fit_bench.main(["--loss-only", "--particles", "27", "--steps", "4", "--repeats", "1", "--json", str(out)]) == 0
-    rows = json.loads(out.read_text())["rows"]
+    rows, per_fit = loss_only_bench
     # Per optimizer: two warm-ups and one timed pair; the row's counts are the untaped fit's.
     untaped = [n for taped, n in per_fit if not taped]
     assert len(untaped) == 2 * len(rows)
     assert [r["forward_runs"] for r in rows] == untaped[1::2]
 
 
-def test_noise_estimate_benchmark_reads_the_variance_n_over_n_minus_p_above_the_rms(capsys):
+def test_noise_estimate_benchmark_reads_the_variance_n_over_n_minus_p_above_the_rms(capsys, monkeypatch):
     """``python -m benchmarks.noise_estimate`` (two draws here): the estimate the diagnostics
     use, sqrt(SSR / (N - P)), is the residuals' RMS times sqrt(N / (N - P)) in every draw,
-    so the mean variances it prints stand in that ratio; bad options are refused by name."""
+    so the mean variances it prints stand in that ratio; bad options are refused by name.
+    Both are read from one SSR, so the ratio holds wherever a fit stops: each draw's fit runs
+    one Gauss-Newton iteration here (of the benchmark's 15), its diagnostics as after 15."""
     import re
 
     from benchmarks import noise_estimate
 
+    fit, iterations = noise_estimate.fit, []
+
+    def one_iteration(*args, **kwargs):
+        iterations.append(kwargs["iterations"])
+        return fit(*args, **dict(kwargs, iterations=1))
+
+    monkeypatch.setattr(noise_estimate, "fit", one_iteration)
     noise_estimate.main(["--draws", "2"])
+    assert iterations == [15, 15]  # the benchmark's own fits, shortened here
     out = capsys.readouterr().out
     n, p = (int(v) for v in re.search(r"N = (\d+) residuals, P = (\d+)", out).groups())
     new, old = (float(v) for v in re.search(r"\(N-P\)\) ([\d.]+) \+- [\d.]+, RMS \(before\) ([\d.]+)", out).groups())
