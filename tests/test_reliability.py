@@ -1983,23 +1983,43 @@ def _lift_then_slide(t):
     return (max(t - 4.0, 0.0), -0.025 + min(t, 4.0), 0.0), (0.0, 0.0, 0.0, 1.0)
 
 
-@pytest.mark.filterwarnings("ignore:tools .'lift'. follow tools.Scripted motions:UserWarning")
-def test_a_body_a_scripted_tool_lifted_and_let_fall_passes_the_energy_check_at_every_frame():
+@pytest.fixture(scope="module")
+def lifted_and_let_fall():
+    """The run of the next two tests (each ran it alone): a scripted platform lifts a
+    2 x 2 x 2 putty block 4 m at 1 m/s and slides away (frictionless), 53 frames at 10 fps
+    with ``simulate``'s own step and its per-frame energy check; the frames its callback saw,
+    the state at frame 48 (in the block's fall) and at the end. Read-only."""
+    from warp_esph import tools  # noqa: PLC0415
+    from warp_esph.simulate import resolve_timestep  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("putty"), name="load")
+    b.add_tool("box", half_extents=(0.15, 0.025, 0.15), motion=tools.Scripted(_lift_then_slide), name="lift")
+    model = b.finalize()
+    frames, at_48 = [], {}
+
+    def seen(k, state):
+        frames.append(k)
+        if k == 48:
+            at_48.update(x=state.x.numpy().copy(), v=state.v.numpy().copy())
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "tools .'lift'. follow tools.Scripted motions", UserWarning)
+        end = we.simulate(model, 53, fps=10.0, progress=False, callback=seen)
+    n, dt = resolve_timestep(model, 10.0)  # the step simulate took (no solver given: no hourglass control)
+    return {"model": model, "frames": frames, "n": n, "dt": dt, "x48": at_48["x"], "v48": at_48["v"],
+            "end_v": end.v.numpy()}
+
+
+def test_a_body_a_scripted_tool_lifted_and_let_fall_passes_the_energy_check_at_every_frame(lifted_and_let_fall):
     """A scripted platform lifts a 2 x 2 x 2 putty block 4 m at 1 m/s and slides away
     (frictionless): the block falls back, trading the height the tool gave it for speed. The
     per-frame ``energy_growth`` counted the height a tool gives as its work only while the
     body stayed up, so the fall read as growth (about M g 2.8 m against a scale of M g 1.9 m)
     and the healthy run stopped as a blow-up in its fall."""
-    from warp_esph import tools  # noqa: PLC0415
-
-    b = we.SceneBuilder(spacing=0.05)
-    b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("putty"), name="load")
-    b.add_tool("box", half_extents=(0.15, 0.025, 0.15), motion=tools.Scripted(_lift_then_slide), name="lift")
-    frames = []
-    end = we.simulate(b.finalize(), 53, fps=10.0, progress=False, callback=lambda k, s: frames.append(k))
-    assert frames == list(range(54))
+    assert lifted_and_let_fall["frames"] == list(range(54))
     # It fell: faster than the 2 m of fall past which the check had flagged it.
-    assert np.abs(end.v.numpy()[:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)
+    assert np.abs(lifted_and_let_fall["end_v"][:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)
 
 
 def test_the_per_frame_energy_check_reads_the_start_once_not_each_frame(monkeypatch):
@@ -2025,25 +2045,19 @@ def test_the_per_frame_energy_check_reads_the_start_once_not_each_frame(monkeypa
     assert counts[0] == counts[1], counts
 
 
-@pytest.mark.filterwarnings("ignore:tools .'lift'. follow tools.Scripted motions:UserWarning")
-def test_the_end_of_run_energy_check_passes_a_body_a_scripted_tool_lifted_and_let_fall():
+def test_the_end_of_run_energy_check_passes_a_body_a_scripted_tool_lifted_and_let_fall(lifted_and_let_fall):
     """``energy_growth`` read at a run's end alone (a ``sweep`` sample's, a ``fit`` evaluation's,
     the torch bridge's) knows the height the bodies still hold, not the most a scripted tool gave
     them: the platform's block of the test above, read in its fall at frame 48, was a blow-up
     (28.1 J against 22.5 J). The tool can have lifted them at most to its highest pose's reach
     (and their size above it), read from the same poses; a blow-up beside it is still one."""
     from blowup_cases import BLOWN_MU, DT, STEPS, scripted_box_builder  # noqa: PLC0415
-    from warp_esph import tools  # noqa: PLC0415
-    from warp_esph.simulate import energy_growth, resolve_timestep  # noqa: PLC0415
+    from warp_esph.simulate import energy_growth  # noqa: PLC0415
 
-    b = we.SceneBuilder(spacing=0.05)
-    b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("putty"), name="load")
-    b.add_tool("box", half_extents=(0.15, 0.025, 0.15), motion=tools.Scripted(_lift_then_slide), name="lift")
-    model = b.finalize()
-    n, dt = resolve_timestep(model, 10.0)
-    end = we.simulate(model, 48, fps=10.0, dt=dt, progress=False)
-    assert np.abs(end.v.numpy()[:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)  # falling, 2 m and more below its top
-    assert energy_growth(model, model.particle_x0, model.particle_v0, end.x.numpy(), end.v.numpy(), dt=dt,
+    run = lifted_and_let_fall
+    model, n, dt = run["model"], run["n"], run["dt"]
+    assert np.abs(run["v48"][:, 1]).min() > np.sqrt(2 * 9.81 * 2.0)  # falling, 2 m and more below its top
+    assert energy_growth(model, model.particle_x0, model.particle_v0, run["x48"], run["v48"], dt=dt,
                          steps=48 * n) is None
     blown = scripted_box_builder(BLOWN_MU).finalize()
     with warnings.catch_warnings():
