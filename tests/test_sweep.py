@@ -576,15 +576,23 @@ def test_a_python_sweep_refuses_a_seed_a_grid_without_extra_never_reads():
     assert handed == [_sample_seed(0, 0), _sample_seed(3, 0)] and handed[0] != handed[1]
 
 
-def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
+@pytest.fixture(scope="module")
+def dying_worker_sweep():
+    """Six samples on two worker processes whose ``extra`` kills its worker in sample 0 and
+    raises in sample 1 (``_extra_that_fails``): one pool for the two tests that read it."""
+    return sweep(_box(), ["yield_stress=10,20,40,80,160,320"], frames=4, workers=2, extra=_extra_that_fails)
+
+
+def test_a_failing_sample_is_a_row_and_the_sweep_goes_on(dying_worker_sweep):
     # In this process: the exception of sample 1 is its row's reason; samples 0 and 2 run.
     table = sweep(_box(), ["yield_stress=10,100,1000"], frames=2, workers=1, extra=_extra_that_fails)
     assert [r["status"] for r in table.rows] == ["ok", "failed", "ok"]
     assert table.rows[1]["reason"] == "TypeError: a bug in extra"
     assert table.rows[0]["top_x"] > 0 and "top_x" in table.columns
     # A worker process that dies: its sample (and any other it took down) is a failed row.
-    table = sweep(_box(), ["yield_stress=10,100"], frames=2, workers=2, extra=_extra_that_fails)
-    assert [r["sample"] for r in table.rows] == [0, 1]
+    # (With workers, the sweep of the next test: its samples 0 and 1 are these two's.)
+    table = dying_worker_sweep
+    assert [r["sample"] for r in table.rows[:2]] == [0, 1]
     assert table.rows[0]["status"] == "failed" and "worker process died" in table.rows[0]["reason"]
     assert table.rows[0]["yield_stress"] == 10.0 and table.rows[1]["status"] == "failed"
 
@@ -1218,7 +1226,7 @@ def test_one_log_level_is_the_geometric_midpoint_of_any_range(lo, hi, mid):
     assert lo < y < hi and y == pytest.approx(mid, rel=1e-12)
 
 
-def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
+def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside(dying_worker_sweep):
     """A sample that kills its worker process (a crash in native code, out of memory) broke
     the pool, and every sample not finished then failed with it, the many never started too:
     one crash in a long sweep left its remaining rows 'a worker process died'. The samples not
@@ -1226,7 +1234,7 @@ def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
     the broken pool failed beside it (which one died cannot be told; a sample queued next to it
     failed too, whenever it was in flight at the crash, so which rows failed depended on timing)
     run again alone, and only the sample that dies alone fails."""
-    table = sweep(_box(), ["yield_stress=10,20,40,80,160,320"], frames=4, workers=2, extra=_extra_that_fails)
+    table = dying_worker_sweep
     status = [(r["status"], r["reason"]) for r in table.rows]
     assert status[0][0] == "failed" and "worker process died running this item alone" in status[0][1], status
     assert status[1] == ("failed", "TypeError: a bug in extra"), status
