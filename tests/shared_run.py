@@ -6,6 +6,7 @@ shared out between both workers, and a run that several of them read (a validati
 folder both workers see; a second caller waits on a lock for it instead of running it again.
 """
 
+import os
 import pickle
 
 try:
@@ -24,9 +25,19 @@ def shared_run(root, key: str, fn):
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             if path.is_file():
-                return pickle.loads(path.read_bytes())
+                try:
+                    return pickle.loads(path.read_bytes())
+                except (EOFError, pickle.UnpicklingError, ValueError, IndexError):
+                    pass  # a partial file is no result (the write below renames only whole ones in): run it again
             result = fn()
-            path.write_bytes(pickle.dumps(result))
+            # Written aside and renamed: a worker killed (or a disk filled) mid-write leaves no
+            # partial pickle under the name the others read.
+            part = path.with_name(f"{path.name}.{os.getpid()}.part")
+            try:
+                part.write_bytes(pickle.dumps(result))
+                os.replace(part, path)
+            finally:
+                part.unlink(missing_ok=True)
             return result
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)

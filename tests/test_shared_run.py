@@ -44,3 +44,34 @@ def test_the_run_holds_its_lock_while_it_computes_so_a_second_caller_waits_for_i
         first.join(30.0)
     assert probe == {"first": 1.0}
     assert shared_run(tmp_path, "case", lambda: 2.0) == 1.0
+
+
+def test_a_pickle_cut_short_by_a_killed_worker_is_run_again_not_read(tmp_path):
+    """A worker killed (or out of disk) while it wrote the result leaves a partial pickle; the
+    other worker, or the one xdist starts in its place, must run the case again, not fail every
+    test of the fixture on an unreadable file."""
+    import pickle
+
+    whole = pickle.dumps({"ratio": 1.07, "history": list(range(100))})
+    (tmp_path / "shared_run-case.pickle").write_bytes(whole[: len(whole) // 2])
+    assert shared_run(tmp_path, "case", lambda: {"ratio": 1.5}) == {"ratio": 1.5}
+    assert shared_run(tmp_path, "case", lambda: 2.0) == {"ratio": 1.5}  # its run replaced the partial one
+
+
+def test_the_result_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """The pickle appears under its name only once written in full: a write cut off (here: the
+    disk full after half of it) leaves nothing a later caller would take for the result."""
+    import pathlib
+
+    real = pathlib.Path.write_bytes
+
+    def half_then_full(self, data):
+        real(self, data[: len(data) // 2])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", half_then_full)
+    with pytest.raises(OSError, match="No space"):
+        shared_run(tmp_path, "case", lambda: {"ratio": 1.07, "history": list(range(100))})
+    monkeypatch.undo()
+    assert not (tmp_path / "shared_run-case.pickle").exists()
+    assert shared_run(tmp_path, "case", lambda: 2.0) == 2.0
