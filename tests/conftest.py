@@ -130,12 +130,12 @@ def run_once(request, tmp_path_factory):
     """``run_once(key, fn)``: ``fn()``'s result, computed once per test session, for the
     module fixtures of long runs (``shared_run``: under xdist the workers share it). Without
     workers it just calls ``fn``."""
-    from shared_run import shared_run
+    from shared_run import session_root, shared_run
 
-    if getattr(request.config, "workerinput", None) is None:
+    worker = getattr(request.config, "workerinput", None)
+    root = None if worker is None else session_root(tmp_path_factory.getbasetemp(), worker["workerid"])
+    if root is None:
         return lambda key, fn: fn()
-    # Each worker's basetemp is <the session's>/popen-gwN: the parent is the session's own.
-    root = tmp_path_factory.getbasetemp().parent
     return lambda key, fn: shared_run(root, key, fn)
 
 

@@ -15,6 +15,17 @@ except ImportError:  # no POSIX locks (Windows): each caller runs its own
     fcntl = None
 
 
+def session_root(basetemp, worker_id: str):
+    """The folder of this test session that every xdist worker sees, from a worker's own
+    ``basetemp``: xdist gives a local (popen) worker ``<the session's basetemp>/popen-<id>``.
+    None where the basetemp is not of that form (a remote gateway's worker makes its own
+    numbered folder, whose parent holds every session's and would hand a result of an earlier
+    session to this one): there each worker runs its own."""
+    if basetemp.name != f"popen-{worker_id}":
+        return None
+    return basetemp.parent
+
+
 def shared_run(root, key: str, fn):
     """``fn()``'s result, computed by the first caller with this ``key`` under ``root`` and
     read back by the others; a caller that comes while it is computed waits for it."""

@@ -75,3 +75,16 @@ def test_the_result_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert not (tmp_path / "shared_run-case.pickle").exists()
     assert shared_run(tmp_path, "case", lambda: 2.0) == 2.0
+
+
+def test_the_shared_folder_is_the_sessions_own_or_none(tmp_path):
+    """A local worker's basetemp is ``<session>/popen-<id>``: the session's folder is shared.
+    Any other (a remote gateway's worker, which makes its own numbered folder under the
+    user's pytest folder) has no such parent of its own: sharing its parent would read a
+    pickle an earlier session left there."""
+    from shared_run import session_root
+
+    session = tmp_path / "pytest-7"
+    assert session_root(session / "popen-gw1", "gw1") == session
+    assert session_root(session, "gw1") is None
+    assert session_root(session / "popen-gw0", "gw1") is None
