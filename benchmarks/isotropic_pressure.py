@@ -8,7 +8,8 @@ own: the step of a model built ``isotropic``, bit for bit).
     python -m benchmarks.isotropic_pressure column --resolution 4 --periods 60
     python -m benchmarks.isotropic_pressure column --resolution 6 --periods 72 --every 12
     python -m benchmarks.isotropic_pressure slump --S 0.2 --resolution 8 --duration 8
-    (--baseline: the same run with the default pair force, unfused)
+    (--baseline: the same run with the default pair force, unfused; --fit-weight biweight: the
+    incremental fit's weight, ``validation``'s ``fit_weight``, refused there by name if unknown)
 """
 
 import argparse
@@ -129,6 +130,8 @@ def main(argv=None):
     ap.add_argument("--S", type=float, default=0.2)
     ap.add_argument("--duration", type=float, default=8.0)
     ap.add_argument("--baseline", action="store_true")
+    # Not argparse choices: validation refuses an unknown weight with the allowed ones named.
+    ap.add_argument("--fit-weight", default="poly6", help="the incremental fit's weight (validation's fit_weight)")
     ap.add_argument("--every", type=float, default=0.0,
                     help="column: print its state every this many axial periods (0: the end only)")
     a = ap.parse_args(argv)
@@ -140,9 +143,9 @@ def main(argv=None):
     with isotropic_pressure(not a.baseline), history as rows:
         if a.case == "column":
             row = validation.near_yield_column(resolution=a.resolution, width=0.04, floor="slip_ghost_particles",
-                                               periods=a.periods)
+                                               periods=a.periods, fit_weight=a.fit_weight)
         else:
-            row = validation.slump(a.S, resolution=a.resolution, duration=a.duration)
+            row = validation.slump(a.S, resolution=a.resolution, duration=a.duration, fit_weight=a.fit_weight)
     out = {k: v for k, v in row.items() if not isinstance(v, list)}
     out["isotropic_pressure"] = not a.baseline
     out["wall_s"] = time.time() - t

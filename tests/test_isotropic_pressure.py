@@ -590,3 +590,24 @@ def test_a_taped_step_and_its_backward_count_the_regularised_particles_once():
     rollout = Rollout(model, 2, 1.0e-7, frames=[2])
     rollout.forward(start.x.numpy())
     assert rollout.guard_counts()["pressure_regularised"] == 2 * 2
+@pytest.mark.parametrize("case", ["column", "slump"])
+def test_the_benchmark_passes_its_fit_weight_to_the_run_and_refuses_an_unknown_one(monkeypatch, capsys, case):
+    """``benchmarks/isotropic_pressure.py --fit-weight``: the weight reaches the validation run
+    (the column's and the slump's rows are compared poly6 against biweight, docs/physics.md),
+    poly6 without it, and an unknown one is refused by name with the allowed ones."""
+    from benchmarks import isotropic_pressure, validation
+
+    seen = []
+
+    def record(*args, **kwargs):
+        seen.append(kwargs.get("fit_weight"))
+        return {"fit_weight": kwargs.get("fit_weight")}
+
+    monkeypatch.setattr(validation, "near_yield_column" if case == "column" else "slump", record)
+    isotropic_pressure.main([case, "--fit-weight", "biweight", "--baseline"])
+    isotropic_pressure.main([case, "--baseline"])
+    assert seen == ["biweight", "poly6"]
+    assert '"fit_weight": "biweight"' in capsys.readouterr().out
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=r"^fit_weight = 'gauss' is not allowed: must be one of 'poly6', 'biweight'"):
+        isotropic_pressure.main([case, "--fit-weight", "gauss", "--baseline"])
