@@ -817,6 +817,15 @@ def test_near_yield_column_passes_its_fit_weight_to_the_column_and_its_elastic_r
     assert built == ["biweight", "biweight"] and r["fit_weight"] == "biweight", (built, r.get("fit_weight"))
 
 
+@pytest.mark.parametrize("fit_weight", ["gauss", "Biweight", None])
+def test_near_yield_column_refuses_an_unknown_fit_weight_by_name(fit_weight):
+    """A weight that is not one of the fit's is refused by name, with the allowed ones, before
+    the column runs (a misspelt one must not fall back to a default and record its row)."""
+    with pytest.raises(ValueError, match=rf"^fit_weight = {fit_weight!r} is not allowed: must be one of 'poly6', 'biweight'"):
+        validation.near_yield_column(resolution=4, width=0.04, floor="slip_ghost_particles", ramp=0.5, periods=0.5,
+                                     elastic_periods=0.05, fit_weight=fit_weight)
+
+
 def test_the_fixed_width_near_yield_study_stays_short_of_buckling_at_every_resolution():
     """The plan's fixed-width near-yield runs: one column (``NEAR_YIELD_WIDTH`` wide, 5 x as
     tall) at 4, 6 and 8 across on both floors, its height 0.79 of the buckling length (closed
