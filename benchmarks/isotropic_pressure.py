@@ -10,6 +10,8 @@ own: the step of a model built ``isotropic``, bit for bit).
     python -m benchmarks.isotropic_pressure slump --S 0.2 --resolution 8 --duration 8
     (--baseline: the same run with the default pair force, unfused; --fit-weight biweight: the
     incremental fit's weight, ``validation``'s ``fit_weight``, refused there by name if unknown)
+    python -m benchmarks.isotropic_pressure slump --S 0.3 --resolution 12 --duration 8 --save iso_S0.3.npz
+    (--save: the slump's final particles, for comparing the two piles' shapes afterwards)
 """
 
 import argparse
@@ -98,6 +100,40 @@ def column_history(every: float, resolution: int, periods: float, out=print):
 
 
 @contextlib.contextmanager
+def final_slump_state(path: str):
+    """Inside the block, ``validation.slump``'s run writes its final particles to the .npz
+    ``path`` (the row keeps only summaries, and the two piles' shapes are compared afterwards,
+    e.g. each particle's Voronoi volume against its det F): every particle's ``x0``, ``x``,
+    ``F``, ``alpha`` and ``volume`` (rest), the mask ``free`` of the non-floor ones, and the
+    scene's ``spacing``, ``mu`` and ``Y``. The run itself is left as it was."""
+    import numpy as np
+
+    from benchmarks import validation as v
+
+    seen = {}
+    slump_model, swap_run = v.slump_model, v._swap_run
+
+    def capture(*args, **kw):
+        r = slump_model(*args, **kw)
+        seen.update(model=r[0], free=r[1], mu=r[2], Y=r[3])
+        return r
+
+    def run(model, solver, a, c, dt, steps, after=None):
+        a, c = swap_run(model, solver, a, c, dt, steps, after)
+        if model is seen.get("model"):
+            np.savez_compressed(path, x0=model.particle_x0, x=a.x.numpy(), F=a.F.numpy(), alpha=a.alpha.numpy(),
+                                volume=model.particle_volume.numpy(), free=seen["free"], spacing=model.spacing,
+                                mu=seen["mu"], Y=seen["Y"])
+        return a, c
+
+    v.slump_model, v._swap_run = capture, run
+    try:
+        yield
+    finally:
+        v.slump_model, v._swap_run = slump_model, swap_run
+
+
+@contextlib.contextmanager
 def isotropic_pressure(on: bool = True):
     """Every ``warp_esph.Solver`` made in the block runs unfused (the isotropic force's path)
     and, with ``on``, on a model whose every material is ``pressure_force = "isotropic"``
@@ -123,6 +159,8 @@ def isotropic_pressure(on: bool = True):
 
 
 def main(argv=None):
+    from benchmarks import _cli
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case", choices=("column", "slump"))
     ap.add_argument("--resolution", type=int, default=4)
@@ -134,13 +172,18 @@ def main(argv=None):
     ap.add_argument("--fit-weight", default="poly6", help="the incremental fit's weight (validation's fit_weight)")
     ap.add_argument("--every", type=float, default=0.0,
                     help="column: print its state every this many axial periods (0: the end only)")
+    ap.add_argument("--save", type=lambda t: _cli.check_output_file(t, "--save"),
+                    help="slump: write the final particles (x0, x, F, alpha, ...) to this .npz")
     a = ap.parse_args(argv)
+    if a.save and a.case != "slump":
+        ap.error(f"--save = {a.save!r} is not allowed with the {a.case} case: it saves the slump's final particles")
     from benchmarks import validation
 
     t = time.time()
     history = column_history(a.every, a.resolution, a.periods, lambda r: print(json.dumps(r), flush=True)) \
         if a.case == "column" and a.every > 0 else contextlib.nullcontext([])
-    with isotropic_pressure(not a.baseline), history as rows:
+    saving = final_slump_state(a.save) if a.save else contextlib.nullcontext()
+    with isotropic_pressure(not a.baseline), history as rows, saving:
         if a.case == "column":
             row = validation.near_yield_column(resolution=a.resolution, width=0.04, floor="slip_ghost_particles",
                                                periods=a.periods, fit_weight=a.fit_weight)

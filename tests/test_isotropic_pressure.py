@@ -611,3 +611,34 @@ def test_the_benchmark_passes_its_fit_weight_to_the_run_and_refuses_an_unknown_o
     monkeypatch.undo()
     with pytest.raises(ValueError, match=r"^fit_weight = 'gauss' is not allowed: must be one of 'poly6', 'biweight'"):
         isotropic_pressure.main([case, "--fit-weight", "gauss", "--baseline"])
+def test_the_benchmarks_slump_save_writes_the_final_particles_without_changing_the_run(tmp_path, capsys):
+    """``benchmarks/isotropic_pressure.py slump --save``: the .npz holds the slump's final
+    particles (its free ones are the ones the row measured: their top and the axis layers'
+    heights agree), their F and alpha as the run left them, and saving leaves the run as it
+    was, bit for bit; a save path in no folder, or with the column case, is refused naming it."""
+    from benchmarks import validation
+    from benchmarks.isotropic_pressure import final_slump_state, main
+
+    kw = dict(resolution=4, duration=0.02, samples=2)
+    plain = validation.slump(0.3, **kw)
+    path = tmp_path / "pile.npz"
+    with final_slump_state(str(path)):
+        row = validation.slump(0.3, **kw)
+    assert validation.slump_model.__name__ == "slump_model" and validation._swap_run.__name__ == "_swap_run"
+    assert row["h_over_H0"] == plain["h_over_H0"] and row["thickness_over_H0"] == plain["thickness_over_H0"]
+    d = np.load(path)
+    free, dx = d["free"], float(d["spacing"])
+    assert free.sum() == row["particles"] and d["x"].shape == d["x0"].shape == (len(free), 3)
+    assert d["F"].shape == (len(free), 3, 3) and d["alpha"].shape == d["volume"].shape == (len(free),)
+    x = d["x"].astype(np.float64)[free]
+    assert (x[:, 1].max() + 0.5 * dx) / 0.1 == pytest.approx(row["top_max_over_H0"], rel=1e-12)
+    # The release has moved the pile: its F is no longer the identity everywhere.
+    assert np.abs(d["F"][free] - np.eye(3)).max() > 1e-6
+    x0 = d["x0"].astype(np.float64)[free]
+    depth0 = x0[:, 1].max() + 0.5 * dx - x0[:, 1]
+    _, layers = validation.pile_profile(x0, x, depth0, np.zeros(len(x)), np.zeros(len(x)), 0.05, dx, 0.1)
+    assert [L["y_over_H0"] for L in layers] == pytest.approx([L["y_over_H0"] for L in row["axis_layers"]], rel=1e-12)
+    for argv in (["slump", "--save", str(tmp_path / "none" / "p.npz")], ["column", "--save", str(path)]):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "--save = " in capsys.readouterr().err
