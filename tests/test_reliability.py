@@ -21,6 +21,7 @@ from pxr import Sdf, Usd
 
 import warp_esph as we
 from run_files import box_on_ground, frames_in, refused_run
+from warp_esph.builder import _tool_depth
 from warp_esph.checkpoint import read_checkpoint, save_state
 from warp_esph.cli import main
 from warp_esph.rollout import Rollout
@@ -1301,6 +1302,38 @@ def test_a_body_started_a_little_inside_a_tool_is_placed_on_it_and_stays_slow(sh
     gap = height(model.particle_x0.astype(np.float64))
     margin = 0.0 if shape == "plane" else 1e-3 * dx
     assert np.allclose(gap[bottom], margin, atol=2e-6) and np.allclose(model.particle_x0[~bottom, 1], dx - depth, atol=1e-6), gap
+
+
+@pytest.mark.parametrize("shape", ["capsule", "cylinder"])
+def test_a_thin_tool_through_a_row_of_particles_places_them_beside_it(shape):
+    """A rod thinner than a spacing (0.4 spacings) through a body along a row of its
+    particles: those on the rod's axis lie 0.4 spacings inside its side, the nearest surface.
+    The capsule's were moved along its axis (its "up") and left inside it, the cylinder's to
+    its end caps, 5 spacings away, all onto one point. Each is now placed where its depth
+    says, beside the rod, no further than its depth (plus the contact's margin), and none
+    is left inside."""
+    dx, radius = 0.01, 0.004
+    b = we.SceneBuilder(spacing=dx)
+    b.add_box((0.0, 0.0, 0.0), (0.05, 0.05, 0.05), we.Material.preset("rubber"), name="blk")
+    built = np.concatenate(b._points).astype(np.float64)
+    c = built[np.argmin(np.linalg.norm(built, axis=1))]
+    b.add_tool(shape, name="rod", position=tuple(c), radius=radius, half_height=0.1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", dtype=wp.float64)
+    assert any("start inside tool 'rod'" in str(w.message) for w in caught)
+    x = model.particle_x0.astype(np.float64)
+    on_axis = np.hypot(built[:, 0] - c[0], built[:, 2] - c[2]) < 1e-9
+    assert on_axis.sum() >= 5
+    moved = np.linalg.norm(x - built, axis=1)
+    assert np.all(moved[on_axis] <= radius + 2e-3 * dx), moved[on_axis] / dx
+    assert np.all(moved[~on_axis] == 0.0)
+    # As deep as the contact sees it (the shape's own test, the cylinder's ends included).
+    left = _tool_depth(shape, (radius, 0.1, 0.0), x - c)
+    assert left.max() <= 0.0, left.max() / dx
+    apart = np.linalg.norm(x[on_axis, None] - x[None], axis=2)
+    apart[np.arange(on_axis.sum()), np.flatnonzero(on_axis)] = np.inf
+    assert apart.min() > 0.5 * dx, apart.min() / dx
 
 
 def test_a_pinned_particle_inside_a_static_collider_is_not_placed_on_it():

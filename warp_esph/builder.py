@@ -1300,21 +1300,23 @@ def _tool_surface(kind: str, param, xl: np.ndarray, margin: float) -> np.ndarray
     point ``xl`` found inside it: the nearest point of its surface, ``margin`` outward of it
     (a plane's without one); a mesh's is ``_place_on_tools``'s."""
     a, b, _ = (float(v) for v in param)
-    up = np.array([0.0, 1.0, 0.0])
 
-    def outward(d):
+    def outward(d, side):
         length = np.linalg.norm(d, axis=1, keepdims=True)
-        # At the centre (or on the axis) no direction is nearer: up, as any would do.
-        return np.where(length > 0.0, d / np.where(length > 0.0, length, 1.0), up)
+        # At the centre (or on the axis) no direction is nearer: any does for a sphere, any
+        # across the axis (local y) for a capsule. Along it (the sphere's "up", once taken for
+        # both), a rod thinner than a spacing through a row of particles left them inside it.
+        return np.where(length > 0.0, d / np.where(length > 0.0, length, 1.0), side)
+    across = np.array([1.0, 0.0, 0.0])
     if kind == "plane":
         n = np.asarray(param, dtype=np.float64)
         return xl - np.outer(xl @ n, n)
     if kind == "sphere":
-        return (a + margin) * outward(xl)
+        return (a + margin) * outward(xl, np.array([0.0, 1.0, 0.0]))
     if kind == "capsule":
         axis = np.zeros_like(xl)
         axis[:, 1] = np.clip(xl[:, 1], -b, b)
-        return axis + (a + margin) * outward(xl - axis)
+        return axis + (a + margin) * outward(xl - axis, across)
     out = xl.copy()
     rows = np.arange(len(xl))
     if kind == "box":
@@ -1322,12 +1324,17 @@ def _tool_surface(kind: str, param, xl: np.ndarray, margin: float) -> np.ndarray
         k = np.argmax(np.abs(xl) - half, axis=1)
         out[rows, k] = np.where(xl[rows, k] < 0.0, -1.0, 1.0) * (half[k] + margin)
         return out
-    # A cylinder: through its side where that is nearer than its ends (shape_cylinder).
+    # A cylinder: through its side where that is nearer than its ends (shape_cylinder), on
+    # the axis across it as the capsule's. The contact sends a point on the axis to an end
+    # (it has no direction across): placed there, the axis' row of particles of a rod thinner
+    # than a spacing went 5 spacings out of the body, onto one point at each end.
     rho = np.hypot(xl[:, 0], xl[:, 2])
-    side = (a - rho < b - np.abs(xl[:, 1])) & (rho > 0.0)
-    scale = (a + margin) / np.where(side, rho, 1.0)
+    side = a - rho < b - np.abs(xl[:, 1])
+    axial = side & (rho == 0.0)
+    scale = (a + margin) / np.where(side & ~axial, rho, 1.0)
     out[side, 0] *= scale[side]
     out[side, 2] *= scale[side]
+    out[axial, 0] = a + margin
     out[~side, 1] = np.where(xl[~side, 1] < 0.0, -1.0, 1.0) * (b + margin)
     return out
 
