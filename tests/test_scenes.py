@@ -297,6 +297,26 @@ def test_scene_file_body_started_a_little_inside_a_collider_is_placed_on_it_nami
     assert float(model.particle_x0[:, 1].min()) == pytest.approx(low + 0.005, abs=1e-7)
 
 
+def test_scene_loaded_a_little_inside_a_collider_is_warned_of_once_by_its_finalize(tmp_path):
+    """``load_scene`` (the command's way in) builds the model once to check the bodies'
+    resolution: that build warned of the start inside as well, so the same warning came twice,
+    the first from inside the check. The scene's own ``finalize`` warns, once."""
+    import warnings  # noqa: PLC0415
+
+    path = tmp_path / "low.toml"
+    path.write_text(BASE)
+    low = float(np.concatenate(load_scene_file(path).builder._points)[:, 1].min())
+    path.write_text(BASE.replace("offset = 0.0", f"offset = {low + 0.005!r}"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load_scene(path)
+        at_load = [str(w.message) for w in caught if "start inside" in str(w.message)]
+        model = scene.builder.finalize()
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert at_load == [] and len(said) == 1, said
+    assert float(model.particle_x0[:, 1].min()) == pytest.approx(low + 0.005, abs=1e-7)
+
+
 def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
     """``floor_margin`` / ``floor_layers`` / ``floor_elastic`` on a body are
     ``SceneBuilder.add_particle_floor``: the same particles, velocities, bodies, materials

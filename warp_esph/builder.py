@@ -1206,7 +1206,7 @@ def _static_surfaces(builder):
     return out
 
 
-def _place_on_colliders(builder) -> np.ndarray:
+def _place_on_colliders(builder, warn: bool = True) -> np.ndarray:
     """The builder's points with each free particle that starts inside a static collider
     (no deeper than half a spacing: ``_check_outside_colliders`` refuses deeper) moved onto
     its surface, as the model's initial and rest positions both, and a ``UserWarning`` for
@@ -1214,7 +1214,8 @@ def _place_on_colliders(builder) -> np.ndarray:
     them there while the rest of the body stayed, a strain the material sent out at its wave
     speed: a two-layer rubber star 0.1 / 0.4 spacings inside the ground reached 3.1 / 12 m/s
     (exit 3 as diverged at 0.4; docs/errors.md). Placed with their rest positions they start
-    unstrained, the body a little thinner where it met the collider."""
+    unstrained, the body a little thinner where it met the collider. ``warn=False``: placed
+    without a word (the resolution check's build, ``scenes.unresolved_bodies``)."""
     x = np.concatenate(builder._points).astype(np.float64, copy=True)
     if not (builder.planes or builder.spheres or builder.boxes):
         return x
@@ -1234,7 +1235,7 @@ def _place_on_colliders(builder) -> np.ndarray:
         if not inside.any():
             continue
         x[inside] = surface(x[inside])
-        for k, body in enumerate(builder._bodies):
+        for k, body in enumerate(builder._bodies if warn else ()):
             mine = inside[starts[k]:starts[k + 1]]
             if mine.any():
                 deepest = float(d[starts[k]:starts[k + 1]][mine].max())
@@ -1339,12 +1340,12 @@ def _tool_surface(kind: str, param, xl: np.ndarray, margin: float) -> np.ndarray
     return out
 
 
-def _place_on_tools(model, builder) -> None:
+def _place_on_tools(model, builder, warn: bool = True) -> None:
     """Place each free particle that starts inside a tool at the tool's first pose (no deeper
     than half a spacing: ``_check_outside_tools`` refuses deeper) where the tool's contact
     would put it, as its initial and rest position both, and warn for each body and tool, as
     ``_place_on_colliders`` does for the static ones: left inside, the first step moved them
-    out while the rest of the body stayed, and the strain flung it."""
+    out while the rest of the body stayed, and the strain flung it. ``warn``: as theirs."""
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64).copy()
     free = ts.pin.numpy() < 0
@@ -1373,7 +1374,7 @@ def _place_on_tools(model, builder) -> None:
             placed = _tool_surface(tool.kind, tool.param, xl[inside], ts.margin)
         x[inside] = p + placed @ R.T
         moved |= inside
-        for body in model.bodies:
+        for body in model.bodies if warn else ():
             mine = inside[body.start:body.start + body.count]
             if mine.any():
                 deepest = float(depth[body.start:body.start + body.count][mine].max())
@@ -1561,7 +1562,9 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     placed = {}
     for b in {id(b): b for b in builders}.values():  # finalize(worlds=W) repeats one builder W times
         _check_outside_colliders(b)
-        placed[id(b)] = _place_on_colliders(b)
+        # The resolution check's build (_guards_only) places as finalize does, silently: the
+        # scene's own finalize warns, and a load_scene warned twice, once from inside the check.
+        placed[id(b)] = _place_on_colliders(b, warn=not _guards_only)
     model = Model(
         positions=np.concatenate([placed[id(b)] for b in builders]),
         velocities=np.concatenate(velocities),
@@ -1589,7 +1592,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model, first)
-        _place_on_tools(model, first)
+        _place_on_tools(model, first, warn=not _guards_only)
         _check_pins_at_rest(model, first)
     if not _guards_only:
         # _guards_only: scenes.unresolved_bodies, which reads the rest neighbourhoods' guards
