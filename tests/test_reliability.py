@@ -1336,6 +1336,29 @@ def test_a_thin_tool_through_a_row_of_particles_places_them_beside_it(shape):
     assert apart.min() > 0.5 * dx, apart.min() / dx
 
 
+@pytest.mark.parametrize("where", ["ground", "tool"])
+def test_a_start_inside_whose_placing_would_put_two_particles_at_one_place_is_refused(where):
+    """``add_particles`` refuses two particles at one place (they never separate), but two
+    distinct ones on one normal of the ground, 0.1 and 0.3 spacings under it, were both placed
+    on the same surface point by finalize, and the model built. Now that start is refused,
+    naming the body and the collider, as a deeper start is."""
+    dx = 0.01
+    b = we.SceneBuilder(spacing=dx)
+    column = [(0.0, -0.1 * dx, 0.0), (0.0, -0.3 * dx, 0.0)]
+    lattice = [(i * dx, j * dx, k * dx) for i in range(-2, 3) for j in range(1, 4) for k in range(-2, 3)]
+    b.add_particles(column + lattice, we.Material.preset("rubber"), name="cloud")
+    if where == "ground":
+        b.add_ground(0.0)
+        named = "plane0"
+    else:
+        b.add_tool("box", name="slab", half_extents=(0.1, 0.05, 0.1), position=(0.0, -0.05, 0.0))
+        named = "tool 'slab'"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ValueError, match=rf"body 'cloud' is not allowed where it is: .*inside {named}.* on one place"):
+            b.finalize(device="cpu")
+
+
 def test_a_pinned_particle_inside_a_static_collider_is_not_placed_on_it():
     """A particle floor lies under the ground by design: finalize leaves it there, silently."""
     b = we.SceneBuilder(spacing=0.02)

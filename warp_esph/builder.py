@@ -1235,6 +1235,9 @@ def _place_on_colliders(builder, warn: bool = True) -> np.ndarray:
         if not inside.any():
             continue
         x[inside] = surface(x[inside])
+        for k, body in enumerate(builder._bodies):
+            _refuse_stacked(builder, origin, name, body.name, x[starts[k]:starts[k + 1]],
+                            inside[starts[k]:starts[k + 1]])
         for k, body in enumerate(builder._bodies if warn else ()):
             mine = inside[starts[k]:starts[k + 1]]
             if mine.any():
@@ -1248,6 +1251,21 @@ def _place_on_colliders(builder, warn: bool = True) -> np.ndarray:
                               "first step moved them out and the strain flung the body); start bodies on the surface",
                               UserWarning, stacklevel=4)
     return x
+
+
+def _refuse_stacked(builder, origin, name: str, body: str, x: np.ndarray, placed: np.ndarray) -> None:
+    """Refuse a body whose particles ``placed`` on collider ``name``'s surface put two of its
+    particles ``x`` at one place (``checks.coincident_points``, as ``add_particles`` refuses
+    them: they never separate). Two given 0.1 and 0.3 spacings under the ground on one normal
+    were both placed on the same surface point, and the model built."""
+    if not placed.any():
+        return
+    count, i = checks.coincident_points(x, builder.spacing)
+    if count:
+        why = (f"body {body!r} is not allowed where it is: its particles that start inside {name} (no deeper than half a "
+               f"spacing), placed on its surface, put {count} of them on one place with another (first at "
+               f"{np.round(x[i], 6).tolist()}); move the body out, or give its particles a spacing apart")
+        builder._refuse(origin, why, why)
 
 
 def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
@@ -1374,6 +1392,9 @@ def _place_on_tools(model, builder, warn: bool = True) -> None:
             placed = _tool_surface(tool.kind, tool.param, xl[inside], ts.margin)
         x[inside] = p + placed @ R.T
         moved |= inside
+        for body in model.bodies:
+            _refuse_stacked(builder, ("tool", tool.name), f"tool {tool.name!r}", body.name,
+                            x[body.start:body.start + body.count], inside[body.start:body.start + body.count])
         for body in model.bodies if warn else ():
             mine = inside[body.start:body.start + body.count]
             if mine.any():
