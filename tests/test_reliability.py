@@ -1359,6 +1359,31 @@ def test_a_start_inside_whose_placing_would_put_two_particles_at_one_place_is_re
             b.finalize(device="cpu")
 
 
+def test_a_particle_started_in_the_corner_of_two_colliders_is_placed_outside_both():
+    """A particle 0.1 spacings inside both planes of a 60-degree trough: placed on the first,
+    it lay deeper in the second (0.15 spacings), and placed on that, 0.075 spacings back inside
+    the first, where the first step's contact moved it. Now it is placed until it is inside
+    neither, and the particles beside it stay where built."""
+    dx = 0.01
+    s, c = math.sin(math.radians(60.0)), math.cos(math.radians(60.0))
+    b = we.SceneBuilder(spacing=dx)
+    corner = (0.0, -0.2 * dx, 0.0)
+    # Within the trough: its sides rise at 60 degrees.
+    above = [(i * dx, j * dx, k * dx) for i in (-1, 0, 1) for j in (1, 2, 3) for k in (-1, 0, 1) if j > 1 or i == 0]
+    b.add_particles([corner] + above, we.Material.preset("rubber"), name="wedge")
+    b.add_plane((s, c, 0.0), 0.0)
+    b.add_plane((-s, c, 0.0), 0.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", dtype=wp.float64)
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 2 and all("body 'wedge': 1 of its particles" in m for m in said), said
+    x = model.particle_x0
+    depth = [-(x @ np.array(n)) for n in ((s, c, 0.0), (-s, c, 0.0))]
+    assert max(d.max() for d in depth) <= 1e-12, [d[0] / dx for d in depth]
+    assert np.array_equal(x[1:], np.array(above))
+
+
 def test_a_pinned_particle_inside_a_static_collider_is_not_placed_on_it():
     """A particle floor lies under the ground by design: finalize leaves it there, silently."""
     b = we.SceneBuilder(spacing=0.02)
