@@ -106,6 +106,14 @@ def read_number(text: str) -> float:
 
 def number(name: str, value, *, allow_inf: bool = False) -> float:
     """A real number (bools, strings and NaN rejected); ``inf`` only when ``allow_inf``."""
+    if type(value) is float:
+        # The common case, asked several times a step (dt, the time, a scripted pose): a
+        # plain float is none of what the checks below look for, only NaN or inf may be refused.
+        if value - value == 0.0:
+            return value
+        if math.isnan(value) or not allow_inf:
+            _fail(name, value, "must be a finite number")
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         _fail(name, value, "must be a number")
     dtype = getattr(value, "dtype", None)
