@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import functools
 import math
 import time
 import warnings
@@ -76,15 +77,30 @@ def tape_recording() -> bool:
     return recording_tape() is not None
 
 
+@functools.cache
+def _float_info(scalar) -> tuple[float, float, float]:
+    """``(tiny, max, eps)`` of ``scalar`` as Python floats: ``np.finfo`` at every step cost
+    more than the checks that read it."""
+    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
+    return float(info.tiny), float(info.max), float(info.eps)
+
+
+@functools.lru_cache(maxsize=16)
+def _length(vector: tuple) -> float:
+    """The Euclidean length of a few floats (the model's gravity, which a caller may set
+    between steps: kept by value)."""
+    return float(np.linalg.norm(np.asarray(vector, dtype=np.float64)))
+
+
 def representable_dt(scalar, dt) -> float:
     """``dt`` as a float, refused (ValueError) unless positive and representable in ``scalar``
     (``wp.float32`` or ``wp.float64``): ``Solver.check_dt`` without its stability warning."""
     dt = checks.positive("dt", dt)
-    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
-    if not float(info.tiny) <= dt <= float(info.max):
+    tiny, big, _ = _float_info(scalar)
+    if not tiny <= dt <= big:
         # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
         raise ValueError(f"dt = {dt!r} is not allowed in {scalar.__name__}: must be in "
-                         f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
+                         f"[{tiny:.3g}, {big:.3g}] s")
     return dt
 
 
@@ -97,8 +113,8 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
     at rest, finite and inside every divergence bound. The bound reads no parameter, so a fit
     meets it at its start or never. ``name``, ``stable``: how the refusal names ``dt`` and the
     stable step (the CLI's ``--dt``)."""
-    g = float(np.linalg.norm(np.asarray(model.gravity, dtype=np.float64)))
-    eps = float(np.finfo(np.float32 if model.scalar is wp.float32 else np.float64).eps)
+    g = _length(tuple(model.gravity))
+    eps = _float_info(model.scalar)[2]
     fall = g * dt * dt
     if eps * fall > model.spacing:
         longest = math.sqrt(model.spacing / (eps * g))
@@ -423,6 +439,7 @@ class Solver:
         self._tape_seen = None  # (the recording tape, the states its steps wrote): _check_taped_step
         self._warned_tape = False
         self._warned_cut = False
+        self._cut_view = None  # (scratch.counters, a view of its memory) on the CPU, for _warn_cut
         self._warned_non_finite = False
         self._caller_checking = 0  # caller_checks() depth
         self._warned_worlds_kept = False
@@ -788,8 +805,16 @@ class Solver:
             "(simulate.DivergenceMonitor, or np.isfinite(state.x.numpy()))", RuntimeWarning, stacklevel=4)
 
     def _warn_cut(self):
-        # One small read per step until the first cut (the Verlet check reads too).
-        if int(self.scratch.counters.numpy()[COUNT_NEIGHBORS_CUT]) > 0:
+        # One small read per step until the first cut (the Verlet check reads too); on the CPU
+        # through a view kept while the counters are the same array (a view a step cost more
+        # than the read).
+        counters = self.scratch.counters
+        held = self._cut_view
+        if held is None or held[0] is not counters:
+            held = (counters, counters.numpy())
+            if counters.device.is_cpu:
+                self._cut_view = held
+        if int(held[1][COUNT_NEIGHBORS_CUT]) > 0:
             self._warned_cut = True
             m = self.model
             warnings.warn(
