@@ -1235,6 +1235,7 @@ class ToolSet:
         self._warned_scripted = False
         self._held_samples = None
         self._checked_times = None  # (keyframe_times' bytes, motions) that _times_now last found valid
+        self._times_view = None  # (keyframe_times, a view of its memory) on the CPU, for _times_now
         self._checked_arrays = None  # the bytes of the other arrays check_arrays last found valid
         self._array_stage = None  # check_arrays' one buffer on a GPU (allocated on first use)
         self._array_views = None  # check_arrays' views of the arrays on the CPU, with the arrays
@@ -1284,7 +1285,15 @@ class ToolSet:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
         if not any(isinstance(mo, Keyframes) for mo in self.motions):
             return np.zeros(0)
-        raw = self.keyframe_times.numpy()
+        arr = self.keyframe_times
+        held = self._times_view
+        if held is not None and held[0] is arr:
+            raw = held[1]
+        else:
+            raw = arr.numpy()
+            # On the CPU a view of the array's memory, kept while it is the same array: a view
+            # made at each of the step's two calls cost more than the checks it keys.
+            self._times_view = (arr, raw) if arr.device.is_cpu else None
         kt = raw.astype(np.float64)
         # Every step asks: the checks below ran on these very values at an earlier call.
         key = (raw.tobytes(), tuple(self.motions))
@@ -1409,7 +1418,8 @@ class ToolSet:
         ts = np.zeros(2 * n)
         direct = np.zeros(2 * n, dtype=np.int32)
         sp = np.zeros((2 * n, 3))
-        sq = np.tile(np.array(IDENTITY), (2 * n, 1))
+        sq = np.zeros((2 * n, 4))
+        sq[:] = IDENTITY
         sdp = np.zeros((2 * n, 3))
         sdr = np.zeros((2 * n, 3))
         kt = self._times_now()
@@ -1426,9 +1436,12 @@ class ToolSet:
                 else:
                     direct[s] = 1
                     sp[s], sq[s] = self._scripted_pose(k, t)
-            # A Scripted step's displacement and rotation, differenced in float64 here (pose_dp).
-            sdp[2 * k + 1] = sp[2 * k + 1] - sp[2 * k]
-            sdr[2 * k + 1] = _np_log(_np_mul(_np_conj(sq[2 * k]), sq[2 * k + 1]))
+            if direct[2 * k]:
+                # A Scripted step's displacement and rotation, differenced in float64 here
+                # (pose_dp); another motion's rows hold the origin and the identity, whose
+                # difference is the zeros they were made with.
+                sdp[2 * k + 1] = sp[2 * k + 1] - sp[2 * k]
+                sdr[2 * k + 1] = _np_log(_np_mul(_np_conj(sq[2 * k]), sq[2 * k + 1]))
         if self._scripted:
             self._scripted_last = (t0, sp, sq)
         return i0, i1, w, ts, direct, sp, sq, sdp, sdr
@@ -1440,9 +1453,9 @@ class ToolSet:
         m = self.model
         T = m.types
         dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat, T.vec3, T.vec3)
-        host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
         if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
-            return _Samples(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
+            return _Samples(wp.array(h if d is wp.int32 else h.astype(T.np_dtype), dtype=d, device=m.device)
+                            for h, d in zip(host, dtypes))
         views = None
         if held[0].device.is_cpu:
             # Views of the arrays' memory, kept with them, the untaped set's and each taped
@@ -1451,11 +1464,12 @@ class ToolSet:
             views = held.views
             if views is None:
                 views = held.views = [a.numpy() for a in held]
-        for k, (a, h) in enumerate(zip(held, host)):
+        for k, (a, h, d) in enumerate(zip(held, host, dtypes)):
             if views is not None:
+                # Assigning the float64 samples casts them as astype would, without its copy.
                 views[k][...] = h
             else:
-                a.assign(h)
+                a.assign(h if d is wp.int32 else h.astype(T.np_dtype))
         return held
 
     def integrate(self, solver, state_in, state_out, dt: float):
