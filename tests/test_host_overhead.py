@@ -137,3 +137,28 @@ def test_a_scripted_tools_step_motion_beside_a_keyframed_one():
     np.testing.assert_allclose(dr[1], 0.0, atol=1e-15)
     np.testing.assert_allclose(dp[3], (0.0, 2.0 * dt, 0.0), rtol=1e-9)
     np.testing.assert_allclose(dr[3], (0.0, 0.0, 2.0 * turn * dt / 2.0e-4), rtol=1e-9)
+
+
+def test_keyframe_sampling_of_a_list_finds_the_segment_searchsorted_finds():
+    """The step samples its keyframe times as a list (bisect) where other readers pass arrays
+    (searchsorted): the same segment and weight, at a keyframe's own time the one it starts."""
+    ts = [0.0, 0.1, 0.3, 0.7]
+    for t in (-1.0, 0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 2.0, np.nextafter(0.3, 0.0), np.nextafter(0.3, 1.0)):
+        got = tools.sample_times(ts, float(t))
+        want = tools.sample_times(np.array(ts), float(t))
+        assert got[:2] == want[:2] and float(got[2]) == float(want[2]), (t, got, want)
+    assert tools.sample_times(ts, 0.1)[:2] == (1, 2)
+
+
+def test_the_host_quaternion_arithmetic_keeps_numpys_norm():
+    """The scripted pose's checks and step rotation take ``np.linalg.norm``'s formula directly:
+    bit for bit what the norm gives, over quaternions of every scale."""
+    rng = np.random.default_rng(7)
+    for scale in (1.0e-150, 1.0e-5, 1.0, 3.0e7, 1.0e150):
+        for q in rng.normal(size=(200, 4)) * scale:
+            v = np.array(q) / float(np.abs(q).max())
+            assert checks.unit_vector("q", q, 4) == tuple(float(c) for c in v / np.linalg.norm(v))
+            u = np.asarray(q) / np.linalg.norm(q)
+            assert np.array_equal(tools._np_conj(q), np.array([-u[0], -u[1], -u[2], u[3]]))
+            sv = float(np.linalg.norm(u[:3]))
+            assert np.array_equal(tools._np_log(q), u[:3] * (2.0 * math.atan2(sv, u[3]) / sv))

@@ -281,12 +281,14 @@ def unit_vector(name: str, value, length: int = 3, what: str = "vector") -> tupl
     """``value`` (``length`` finite numbers, not all zero) scaled to length 1; scaled by its
     largest component first, so that components near the float range do not overflow its
     norm (which would read as a zero vector, or divide by infinity)."""
-    v = np.array(vector(name, value, length))
-    big = float(np.abs(v).max())
+    c = vector(name, value, length)
+    big = max(abs(x) for x in c)
     if big == 0.0:
         _fail(name, value, f"must be a non-zero {what}")
-    v = v / big
-    return tuple(float(c) for c in v / np.linalg.norm(v))
+    v = np.array(c) / big
+    # np.linalg.norm's own formula for a vector, without its dispatch (a scripted tool's
+    # quaternion is checked here twice a step): the same bits.
+    return tuple(float(x) for x in v / math.sqrt(v.dot(v)))
 
 
 def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:

@@ -45,6 +45,7 @@ The torque is taken about the tool's position ``p(t1)``. The force the material 
 the tool is minus these.
 """
 
+import bisect
 import dataclasses
 import functools
 import math
@@ -190,7 +191,9 @@ def sample_times(ts, t: float) -> tuple[int, int, float]:
         return 0, 0, 0.0
     if t >= ts[-1]:
         return len(ts) - 1, len(ts) - 1, 0.0
-    k = int(np.searchsorted(ts, t, side="right")) - 1
+    # A list (the step's own samples): bisect finds the index searchsorted would, without
+    # converting the list to an array.
+    k = (bisect.bisect_right(ts, t) if isinstance(ts, list) else int(np.searchsorted(ts, t, side="right"))) - 1
     return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
 
 
@@ -1272,7 +1275,7 @@ class ToolSet:
         pose at 1e39 m in float32 wrote NaN poses and the run went on)."""
         owner = self._owner(k)
         p, q = self.motions[k].pose(t, owner)
-        far = math.sqrt(float(np.finfo(self.model.types.np_dtype).max))
+        far = _far(self.model.types.np_dtype)
         if max(abs(c) for c in p) > far:
             prec = np.dtype(self.model.types.np_dtype).name
             raise ValueError(f"{owner}: its scripted motion at t = {t:g} is not allowed in {prec}: it returned position = "
@@ -1422,7 +1425,7 @@ class ToolSet:
         sq[:] = IDENTITY
         sdp = np.zeros((2 * n, 3))
         sdr = np.zeros((2 * n, 3))
-        kt = self._times_now()
+        kt = self._times_now().tolist()
         for k, motion in enumerate(self.motions):
             for j, t in enumerate((t0, t1)):
                 s = 2 * k + j
@@ -1483,6 +1486,7 @@ class ToolSet:
         # earlier tape recorded into it anyway); untaped steps share one set.
         held = getattr(state_out, "tool_samples", None) if taping else self._held_samples
         samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), held)
+        step = S(dt)
         if taping:
             if samples is not held:  # setting a State attribute makes the next step check it again
                 state_out.tool_samples = samples
@@ -1492,7 +1496,7 @@ class ToolSet:
         self.model.launches(
             self.kernels.poses, 2 * n,
             [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples,
-             S(dt)],
+             step],
             [state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, state_out.tool_pose_dr], device=dev,
         )
         state_out.reaction_force.zero_()
@@ -1508,7 +1512,7 @@ class ToolSet:
                 self.kernels.integrate,
                 m.particle_count,
                 [
-                    state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
+                    state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), step,
                     static_collider_struct(m),
                     state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, state_out.tool_pose_dr, self.param, self.static_friction, self.friction,
                     self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs,
@@ -1519,12 +1523,12 @@ class ToolSet:
                 device=dev,
             )
         acc = getattr(solver, "tool_impulse", None)
-        if acc is not None and not _taping():
+        if acc is not None and not taping:
             rows = n * self.world_count
-            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
-            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_force, step], [acc[0]], device=dev)
+            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_torque, step], [acc[1]], device=dev)
         work = getattr(solver, "tool_work", None)
-        if work is not None and not _taping():
+        if work is not None and not taping:
             self.model.launches(self.kernels.work, n * self.world_count,
                                 [state_out.reaction_force, state_out.reaction_torque, state_out.tool_pose_q,
                                  state_out.tool_pose_dp, state_out.tool_pose_dr, int(n)], [work], device=dev)
@@ -1677,6 +1681,13 @@ class ToolSet:
         return p, q
 
 
+@functools.cache
+def _far(np_dtype) -> float:
+    """The farthest position a scripted pose may take in ``np_dtype`` (the square root of its
+    largest number); asked twice a step."""
+    return math.sqrt(float(np.finfo(np_dtype).max))
+
+
 def _taping() -> bool:
     from .sim.solver import tape_recording  # noqa: PLC0415 (solver imports this module)
 
@@ -1702,15 +1713,23 @@ def _np_mul(a, b):
     ])
 
 
+def _norm(v) -> float:
+    """``np.linalg.norm`` of a float64 vector by its own formula, without its dispatch (asked
+    several times a step of a scripted tool): the same bits."""
+    return math.sqrt(v.dot(v))
+
+
 def _np_conj(q):
-    q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    q = np.asarray(q, dtype=np.float64)
+    q = q / _norm(q)
     return np.array([-q[0], -q[1], -q[2], q[3]])
 
 
 def _np_log(q):
     """Rotation vector of the (normalised) quaternion ``q``, as ``quat_log`` in the pose kernel."""
-    q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    sv = float(np.linalg.norm(q[:3]))
+    q = np.asarray(q, dtype=np.float64)
+    q = q / _norm(q)
+    sv = _norm(q[:3])
     return q[:3] * (2.0 * math.atan2(sv, q[3]) / sv if sv > 1e-12 else 2.0 / q[3])
 
 
