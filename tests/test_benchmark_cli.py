@@ -26,6 +26,7 @@ ENTRY_POINTS = {
     "fit_bench": ("measure", "measure_loss_only", "measure_rejected", "block_model"),
     "floors": ("_forward", "_taped"),
     "gradient_bench": ("measure", "block_model", "star_model"),
+    "host_step": ("measure",),
     "launches": ("measure", "measure_taped"),
     "mpm_slump": ("slump", "column", "squeeze", "table"),
     "splishsplash": ("worker",),
@@ -193,6 +194,12 @@ def test_gradient_bench_measures_a_round_off_gradient_against_the_loss(monkeypat
     err = json.loads(out.read_text())[0]["float32_relative_error"]
     assert err["mu"] < 1e-6 and err["yield_stress"] == pytest.approx(1e-2) and err["flow_rate"] == 0.0, err
     assert "mu 3.2e-08, yield_stress 1.0e-02, flow_rate 0.0e+00, v0 0.0e+00" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv,option", [(["--scenes", "ground,bogus"], "'bogus' is not one"), (["--side", "0"], "--side = 0"),
+                                         (["--taped-steps", "0"], "--taped-steps = 0"), (["--blocks", "-1"], "--blocks = -1")])
+def test_host_step(refused, argv, option):
+    refused("host_step", argv, option)
 
 
 @pytest.mark.parametrize("argv,option", [(["--sizes", "abc"], "--sizes = 'abc'"), (["--steps", "0"], "--steps = 0"),
