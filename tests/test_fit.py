@@ -784,20 +784,19 @@ def young_heap():
     Everything the test builds, its model included, is made after the freeze, so each
     collection still sees every object and cycle it made. Not for a test of a peak: with fewer
     long-lived objects the automatic full collections come sooner, and cyclic garbage that
-    would pile up between them in a user's process would be freed before it showed."""
+    would pile up between them in a user's process would be freed before it showed (those take
+    ``thawed_heap``). Left frozen afterwards: there is one permanent generation, and thawing it
+    would thaw the suite's own freeze (tests/conftest.py) with it."""
     import gc
 
     gc.collect()
     gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
+    yield
 
 
 @pytest.mark.parametrize("checkpoint_every,taped", [(None, True), (4, True), (None, False)],
                          ids=["full_tape", "checkpointed", "untaped"])
-def test_the_rollout_memory_estimate_bounds_what_a_run_holds(monkeypatch, checkpoint_every, taped):
+def test_the_rollout_memory_estimate_bounds_what_a_run_holds(monkeypatch, checkpoint_every, taped, thawed_heap):
     """What a rollout's forward and a loss's backward (value, untaped) allocate, measured (the
     CPU allocator's bytes at their peak; the Python objects' with ``tracemalloc``), against
     the estimate its refusal weighs: the Warp arrays within 20 % above, the total above. The
@@ -948,7 +947,7 @@ def test_a_taped_steps_host_memory_is_bounded_by_its_overhead(kind, young_heap):
     assert 0.8 * taken < per_step <= taken, (per_step / 1024, taken / 1024)
 
 
-def test_a_checkpointed_runs_python_objects_are_within_the_estimate():
+def test_a_checkpointed_runs_python_objects_are_within_the_estimate(thawed_heap):
     """The Python objects' peak of a checkpointed rollout over two forwards and backwards
     (``tracemalloc``) is within the estimate's, which takes no share for cyclic garbage: each
     segment's dropped tape had been a reference cycle left to the collector (its recorded
