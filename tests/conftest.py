@@ -155,6 +155,17 @@ def pytest_collection_finish(session):
     gc.freeze()
 
 
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    """Freeze again at the end of each test file, its module fixtures torn down: the kernels
+    its tests loaded and what they cached stay for the process, and the automatic full
+    collections of the next file's tests would traverse them all again."""
+    yield
+    if nextitem is None or nextitem.path != item.path:
+        gc.collect()
+        gc.freeze()
+
+
 @pytest.fixture
 def thawed_heap():
     """The heap as in a user's process for a test of a peak: the frozen objects back in the
