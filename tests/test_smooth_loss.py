@@ -432,13 +432,15 @@ def _assert_smooth(ratios, grads):
     assert np.abs(grads - 1.0).max() < 0.25, np.round(grads, 3)
 
 
-def _scan_against_trapezoid(name, taped_base, images=False):
-    """The landing loss at 11 values over +-1 % of ``name``: each interval's increment over
-    the mean of the tape's gradients at its ends, and the gradients over the centre's. The
-    centre, ``PARAMS`` itself, is the landing's shared taped run."""
+def _scan_against_trapezoid(name, taped_base, images=False, points=range(11)):
+    """The landing loss at 11 values over +-1 % of ``name`` (those of them ``points`` picks,
+    in order): each interval's increment over the mean of the tape's gradients at its ends,
+    and the gradients over the centre's. The centre, ``PARAMS`` itself (point 5, which
+    ``points`` must hold), is the landing's shared taped run."""
     base = PARAMS[name]
-    values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))
-    assert values[5] == base
+    points = list(points)
+    values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))[points]
+    assert 5 in points and values[points.index(5)] == base
 
     def at(v):
         if v == base:
@@ -448,11 +450,11 @@ def _scan_against_trapezoid(name, taped_base, images=False):
 
     losses, grads = np.array([at(v) for v in values]).T
     secants = np.diff(losses) / np.diff(values)
-    return secants / (0.5 * (grads[1:] + grads[:-1])), grads / grads[5]
+    return secants / (0.5 * (grads[1:] + grads[:-1])), grads / grads[points.index(5)]
 
 
 @pytest.mark.xfail(strict=True, reason="the imaged landing's loss bends steeply: its gradient moves by up to 13.9 % "
-                   "of the centre's between neighbours 0.2 % apart (bound 8 %; worst interval 1.8 % off the trapezoid, "
+                   "of the centre's between neighbours 0.2 % apart (bound 8 %; worst interval 1.75 % off the trapezoid, "
                    "bound 2 %). Ten times finer it is C1 (within 0.65 %): the bends are the rounded lift-off of "
                    "bottom-layer particles the touchdown left inside the plane and the images push back up, over a "
                    "band d0 / dt of 1e-3 to 2e-2 m/s; a wider band spreads them over more of the layer and does not "
@@ -470,8 +472,17 @@ def test_no_jump_in_the_loss_through_the_imaged_ground(taped_base):
     is where the scan now bends: where the loss's second derivative is large, nearly all of it
     is added by bottom-layer particles lifting off from inside the plane (measured: -2.83 of
     -2.94 at the centre, one particle -1.82 of it; docs/physics.md, "The imaged landing's
-    bends")."""
-    _assert_smooth(*_scan_against_trapezoid("viscosity", taped_base, images=True))
+    bends").
+
+    The scan runs the four of its 11 values where the gradient bends most, -0.4 % to +0.2 %
+    (three taped runs and the shared centre instead of ten and the centre): measured at all 11,
+    gradients 1.09, 1.19, 1.19, 1.22, 1.14, 1.00, 0.92, 0.91, 0.90, 0.86, 0.88 of the
+    centre's, so the steps of 8.3 % and 13.9 % into and out of -0.2 % lie in it (the only other
+    step past 8 %, 9.4 % between -1 % and -0.8 %, outside); increments 1.75 % off the
+    trapezoid at most there (1.83 % at +0.2 % to +0.4 %). Over the same four values the plain
+    ground's scan passes (``test_no_jump_in_the_loss_through_ground_contact``'s landing), so a
+    mend of the steepest bend reads as an unexpected pass here."""
+    _assert_smooth(*_scan_against_trapezoid("viscosity", taped_base, images=True, points=range(3, 7)))
 
 
 def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside(taped_base):
