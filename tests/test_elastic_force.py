@@ -818,23 +818,33 @@ def _image_fits(model, x, y, F, rows, fit="linear"):
     g = x.copy()
     g[:, 1] = image_heights(x[:, 1], model.spacing)
     Fg = np.tile(np.eye(3), (len(x), 1, 1))
-    for i in np.flatnonzero(x[:, 1] < h):
-        A, B, C, D, E = (np.zeros((3, 3)) for _ in range(5))
-        for pts, ends, pair in ((x, y, x - g[i]), (g[rows[i]], g[rows[i]], x[rows[i]] - x[i])):
-            d = pts - g[i]
-            r2 = (pair * pair).sum(1)  # an image pair weighs as its particles' pair
-            w = c6 * np.clip(h * h - r2, 0.0, None) ** power
-            q = np.stack([d[:, 0] * d[:, 1], d[:, 0] * d[:, 2], d[:, 1] * d[:, 2]], axis=1) / h
-            A += np.einsum("n,ni,nj->ij", w, d, d)
-            B += np.einsum("n,ni,nj->ij", w, ends - g[i], d)
-            C += np.einsum("n,ni,nj->ij", w, d, q)
-            D += np.einsum("n,ni,nj->ij", w, q, q)
-            E += np.einsum("n,ni,nj->ij", w, ends - g[i], q)
-        if fit == "curvature_corrected":
-            K = np.linalg.inv(D + 1e-4 * np.trace(A) / 3.0 * np.eye(3)) @ C.T
-            if np.linalg.det(A - C @ K) > 0.1 * np.linalg.det(A):
-                A, B = A - C @ K, B - E @ K
-        Fg[i] = B @ np.linalg.inv(A) @ F[i]
+    near = np.flatnonzero(x[:, 1] < h)
+    # Every near image at once (the central differences call this hundreds of times): its
+    # points are all particles, then its row's images padded to the longest row (weight 0).
+    width = max(len(rows[i]) for i in near)
+    row = np.zeros((len(near), width), dtype=int)
+    live = np.zeros((len(near), width), dtype=bool)
+    for k, i in enumerate(near):
+        row[k, : len(rows[i])], live[k, : len(rows[i])] = rows[i], True
+    gi = g[near][:, None, :]
+    pts = np.concatenate([np.broadcast_to(x, (len(near), *x.shape)), g[row]], axis=1)
+    ends = np.concatenate([np.broadcast_to(y, (len(near), *y.shape)), g[row]], axis=1)
+    pair = np.concatenate([x[None, :, :] - gi, x[row] - x[near][:, None, :]], axis=1)  # an image pair weighs as its particles' pair
+    mask = np.concatenate([np.ones((len(near), len(x)), dtype=bool), live], axis=1)
+    d, e = pts - gi, ends - gi
+    w = np.where(mask, c6 * np.clip(h * h - (pair * pair).sum(2), 0.0, None) ** power, 0.0)
+    q = np.stack([d[..., 0] * d[..., 1], d[..., 0] * d[..., 2], d[..., 1] * d[..., 2]], axis=2) / h
+    A = np.einsum("mn,mni,mnj->mij", w, d, d)
+    B = np.einsum("mn,mni,mnj->mij", w, e, d)
+    if fit == "curvature_corrected":
+        C = np.einsum("mn,mni,mnj->mij", w, d, q)
+        D = np.einsum("mn,mni,mnj->mij", w, q, q)
+        E = np.einsum("mn,mni,mnj->mij", w, e, q)
+        K = np.linalg.inv(D + 1e-4 * np.trace(A, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)) @ C.transpose(0, 2, 1)
+        At = A - C @ K
+        keep = (np.linalg.det(At) > 0.1 * np.linalg.det(A))[:, None, None]
+        A, B = np.where(keep, At, A), np.where(keep, B - E @ K, B)
+    Fg[near] = B @ np.linalg.inv(A) @ F[near]
     return Fg, x[:, 1] < h
 
 
