@@ -7,6 +7,13 @@ import pathlib
 # Must be set before warp is imported anywhere: every test run and every subprocess
 # (CLI tests) then load kernels compiled once instead of compiling them again.
 os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().parent.parent / ".warp_cache"))
+# One OpenBLAS thread per test process: the workers (`-n 2`) already fill the cores, and a
+# BLAS pool per worker on top of them spins against the other worker. Measured on the shared
+# 2-core machine: the 192 x 192 eigenproblems of test_elastic_force's linear-stiffness test
+# took 6.7 s of CPU with the pool and 2.6 s without. OpenBLAS reads it when it loads, which
+# in this process has already happened (a plugin imports numpy first): it takes effect in
+# the xdist workers and the subprocesses the tests start.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
 
