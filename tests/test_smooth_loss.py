@@ -532,9 +532,12 @@ def test_the_instant_contact_law_jumps_and_is_not_the_default():
     model = _landing_model(force, contact_ramp=0.0)
     assert model.contact_ramp == 0.0 and _model(2.0).contact_ramp == CONTINUOUS_CONTACT_RAMP
     assert model.materials[0].pressure_stiffness == pytest.approx(0.46 * (1.5e3 + 2.0e3 / 3.0) / 1000.0)
-    _, grad, _, _ = _landing_loss(model, grad_of=name)
+    centre, grad, _, _ = _landing_loss(model, grad_of=name)
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))  # the values of the scan above
-    losses = np.array([_landing_loss(_landing_model(dict(force, **{name: v}), contact_ramp=0.0))[0] for v in values])
+    # The centre's loss is the taped run's (the same model to the bit; the tape does not change
+    # the forward run), so its run is not made twice.
+    losses = np.array([centre if v == base else _landing_loss(_landing_model(dict(force, **{name: v}), contact_ramp=0.0))[0]
+                       for v in values])
     slopes = np.diff(losses) / np.diff(values) / grad
     assert np.abs(slopes - 1.0).max() > 0.2, np.round(slopes, 3)
     assert np.abs(np.diff(slopes)).max() > 0.2, np.round(slopes, 3)
