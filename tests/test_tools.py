@@ -520,11 +520,13 @@ STEPS, DT = 8, 1e-3
 def _grad_model(friction=0.3, press_v=-0.5, key_y=0.0, E=5e3):
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(E, viscosity=1.0), name="block", velocity=(0.4, 0.0, 0.1))
-    b.add_tool("plane", position=(0, 0.0102, 0), friction=friction, name="floor")
+    # The floor on the base layer's centres and the pusher touching the block: a start inside
+    # a tool is placed on its surface at finalize, a block thinned where it met it.
+    b.add_tool("plane", position=(0, 0.01, 0), friction=friction, name="floor")
     b.add_tool("box", half_extents=(0.1, 0.01, 0.1), friction=0.2,
                motion=tools.Velocity((0, press_v, 0), position=(0, 0.0602, 0)), name="press")
     b.add_tool("sphere", radius=0.03, friction=0.1,
-               motion=tools.Keyframes([0.0, 0.01], [(-0.045, 0.03, 0.0), (-0.03 + key_y, 0.03, 0.0)]), name="pusher")
+               motion=tools.Keyframes([0.0, 0.01], [(-0.05, 0.03, 0.0), (-0.035 + key_y, 0.03, 0.0)]), name="pusher")
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
     return m
@@ -645,7 +647,7 @@ def _mesh_keyframe_model(crossing=False):
     one."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(5e3, viscosity=1.0), name="block", velocity=(0.4, 0.0, 0.1))
-    b.add_tool("plane", position=(0, 0.0102, 0), friction=0.3, name="floor")
+    b.add_tool("plane", position=(0, 0.01, 0), friction=0.3, name="floor")
     b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), friction=0.2,
                motion=tools.Velocity((0.2, -0.5, 0.0), position=(0, 0.0602, 0)), name="press")
     turn = (0.0, np.sin(0.1), 0.0, np.cos(0.1))
@@ -688,10 +690,12 @@ def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_c
     t = model.tools
     grads = {name: getattr(t, arr).grad.numpy()[_row(t, arr, tool, off)] for name, (arr, tool, off, _c, _h) in _TOOL_PARAMS.items()}
     for name, (arr, tool, off, comp, h) in _TOOL_PARAMS.items():
-        if crossing and arr.startswith("keyframe"):
+        if arr.startswith("keyframe"):
             # A contact starts within 1e-6 m of the crossed keyframe's position (one-sided
             # differences there: -4.59 and +2.85, the tape's -4.5887), which central
-            # differences reach to 1e-7 from 1e-7 m down.
+            # differences reach to 1e-7 from 1e-7 m down. Without the crossing one starts
+            # within 1e-6 m below keyframe 1's x (one-sided at 1e-6: -1.877 and -14.12; at
+            # 1e-7 and 1e-8 both within 6e-4 and 6e-5 of the tape's -1.8717).
             h = 1e-8
         g = grads[name] if comp is None else grads[name][comp]
         vals = []
@@ -751,7 +755,7 @@ def _swept_model(shape):
     axis) that descends onto its top layer while it turns about z."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(5e3, viscosity=1.0), name="block", velocity=(0.1, 0.0, 0.05))
-    b.add_tool("plane", position=(0, 0.0102, 0), friction=0.3, name="floor")
+    b.add_tool("plane", position=(0, 0.01, 0), friction=0.3, name="floor")
     # The tool's lowest point starts 1 mm above the top layer's centres.
     low = 0.051 + 0.03 + 0.05 if shape == "capsule" else 0.051 + 0.05
     b.add_tool(shape, radius=0.03, half_height=0.05, friction=0.3, name="roller",
@@ -1510,6 +1514,12 @@ def test_block_on_a_slope_slides_with_coulomb_acceleration_or_sticks(mu_k, mu_s)
 
 
 # ------------------------------------------------------------------------------ worlds
+#: The press's height at which it touches the bar's top layer (the centres at x = 0.02 and
+#: 0.04, y = 0.055, 1.5e-5 m off its surface): pressing from the first step of a short taped
+#: run, as a start inside it would, which finalize places on its surface.
+PRESSING = 0.0833
+
+
 def _world_builder(material, press_y=0.085):
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.035, 0.0), (0.1, 0.06, 0.06), material, name="bar", velocity=(0.0, -0.3, 0.0))
@@ -1579,13 +1589,13 @@ def test_gradient_of_a_shared_tool_parameter_in_worlds_is_the_sum_over_the_world
         k = t.index("press")
         return np.array([t.velocity.grad.numpy()[k][1], t.friction.grad.numpy()[k]])
 
-    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model = _world_builder(soft, PRESSING).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
     model.set_material(0, stiff, world=1)
     rows = [model.tools.row_names.index(f"w{w}/press") for w in range(2)]
     g = grads(model, rows)
     alone = []
     for mat in (soft, stiff):
-        m = _world_builder(mat, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+        m = _world_builder(mat, PRESSING).finalize(dtype=wp.float64, requires_grad=True)
         alone.append(grads(m, [m.tools.index("press")]))
     print(g, alone)
     assert np.abs(alone[0] - alone[1]).max() > 1e-3 * np.abs(alone[1]).max()  # the worlds differ
@@ -1600,13 +1610,13 @@ def test_reaction_force_loss_on_one_world_of_a_rollout():
     from warp_esph.rollout import Rollout
 
     soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
-    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model = _world_builder(soft, PRESSING).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
     model.set_material(0, stiff, world=1)
     r = Rollout(model, 8, 5e-4, frames=[8], checkpoint_every=4)
     r.forward()
     assert r.step_forces().shape == (8, 6, 3)
     value, g = r.backward(ReactionForceLoss(np.zeros((1, 1)), "w1/press", [8], window=4, components="y"))
-    alone = _world_builder(stiff, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+    alone = _world_builder(stiff, PRESSING).finalize(dtype=wp.float64, requires_grad=True)
     r1 = Rollout(alone, 8, 5e-4, frames=[8], checkpoint_every=4)
     r1.forward()
     value1, g1 = r1.backward(ReactionForceLoss(np.zeros((1, 1)), "press", [8], window=4, components="y"))
@@ -1626,8 +1636,8 @@ def test_a_scripted_motion_has_no_gradient_and_says_so_while_keyframes_and_veloc
     b.add_box((0.05, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e4), name="right")
     b.add_tool("plane", position=(0, 0.01, 0), name="floor")
     b.add_tool("sphere", radius=0.02, name="scripted",
-               motion=tools.Scripted(lambda t: ((-0.05, 0.069 - 0.5 * t, 0.0), tools.IDENTITY)))
-    b.add_tool("sphere", radius=0.02, name="pressed", motion=tools.Velocity((0.0, -0.5, 0.0), position=(0.05, 0.069, 0.0)))
+               motion=tools.Scripted(lambda t: ((-0.05, 0.07 - 0.5 * t, 0.0), tools.IDENTITY)))
+    b.add_tool("sphere", radius=0.02, name="pressed", motion=tools.Velocity((0.0, -0.5, 0.0), position=(0.05, 0.07, 0.0)))
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     s = we.Solver(m)
     states = [m.state() for _ in range(6)]
@@ -1901,7 +1911,11 @@ def test_a_block_pressed_into_a_curved_held_tool_has_a_loss_without_round_off_ju
         else:  # its axis along z: the block lies across its side
             b.add_tool("cylinder", radius=radius, half_height=0.2, position=(0.0, top - radius, 0.0),
                        orientation=(math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4)), friction=0.5, name="t")
-        m = b.finalize(dtype=wp.float64, requires_grad=True)
+        # The premise is the start inside, which finalize places on the surface: put it back.
+        with pytest.warns(UserWarning, match="start inside tool 't'.*placed on its surface"):
+            m = b.finalize(dtype=wp.float64, requires_grad=True)
+        m.particle_x0[:] = np.concatenate(b._points)
+        m.compute_rest_density()
         m.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=m.particle_x0.shape)
         states = [m.state() for _ in range(9)]
         value, tape = taped_rollout_loss(we.Solver(m), states, 1e-3, w)
