@@ -88,6 +88,27 @@ def test_keyframe_times_swapped_for_another_array_are_read():
     assert p[1, 1] == pytest.approx(0.2 - 0.2 * float(a.time), rel=1e-5)
 
 
+def test_keyframe_times_written_in_place_are_read():
+    """The kept view is of the array's memory, not a copy of its values: times written into
+    the same array between steps (``assign``, or through ``numpy()``, as an optimiser's
+    in-place update does) are the ones checked and sampled at the next step."""
+    model = _block(_keyframed)
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    dt = 0.5 * model.stable_dt()
+    solver.step(a, b, dt)
+    kt = model.tools.keyframe_times
+    kt.assign(np.array([1.0, 0.0]))
+    with pytest.raises(ValueError, match=r"keyframe_times of tool 'press' = \[1.0, 0.0\] is not allowed"):
+        solver.step(b, a, dt)
+    kt.assign(np.array([0.0, 0.5]))
+    solver.step(b, a, dt)
+    assert a.tool_pose_p.numpy()[1, 1] == pytest.approx(0.2 - 0.2 * float(a.time), rel=1e-5)
+    kt.numpy()[1] = 0.25
+    solver.step(a, b, dt)
+    assert b.tool_pose_p.numpy()[1, 1] == pytest.approx(0.2 - 0.4 * float(b.time), rel=1e-5)
+
+
 def test_a_cut_row_counted_after_the_first_step_warns():
     """The cut-row warning reads the counters through a view kept with their array: a count
     that appears at a later step (here written in place, then in an array put in their place)
