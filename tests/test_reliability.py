@@ -1360,6 +1360,49 @@ def test_a_start_inside_whose_placing_would_put_two_particles_at_one_place_is_re
             b.finalize(device="cpu")
 
 
+def _row_under_a_plate(gap):
+    """Five particles a spacing apart in a row 0.1 spacings above the ground, inside a plate
+    tool whose underside is ``gap`` spacings above the ground (below it where negative)."""
+    dx = 0.01
+    b = we.SceneBuilder(spacing=dx)
+    b.add_particles([(i * dx, 0.1 * dx, 0.0) for i in range(-2, 3)], we.Material.preset("rubber"), name="row")
+    b.add_ground(0.0)
+    b.add_tool("box", name="plate", half_extents=(0.1, 0.05, 0.1), position=(0.0, 0.05 + gap * dx, 0.0))
+    return b, dx
+
+
+def test_particles_placed_out_of_a_tool_are_not_left_inside_a_static_collider():
+    """A plate tool's first pose a twentieth of its contact margin above the ground, a row of
+    particles 0.1 spacings above the ground inside it: placed out through the plate's
+    underside, the margin below it, they went 9.5e-4 spacings into the ground, which was not
+    looked at again. Now the placing goes on until they are inside neither: on the ground,
+    under the plate, each where built but for its height."""
+    b, dx = _row_under_a_plate(5e-5)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", dtype=wp.float64)
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("body 'row': 5 of its particles start inside tool 'plate'"), said
+    x = model.particle_x0
+    assert x[:, 1].min() >= 0.0, x[:, 1] / dx  # inside the ground: below 0
+    plate = _tool_depth("box", (0.1, 0.05, 0.1), x - (0.0, 0.05 + 5e-5 * dx, 0.0))
+    assert plate.max() <= 0.0, plate / dx
+    assert np.array_equal(x[:, [0, 2]], np.asarray(b._points[0])[:, [0, 2]])
+
+
+def test_particles_with_no_place_outside_a_tool_and_a_static_collider_are_refused():
+    """The plate's first pose 0.2 spacings into the ground, the row between: placed out of
+    the plate (through its underside, the nearest face) the particles lay 0.2 spacings inside
+    the ground, and the model built with them there. No place outside both is near: refused,
+    naming the body, the tool and the collider."""
+    b, _ = _row_under_a_plate(-0.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the placing's own warnings, before the refusal
+        with pytest.raises(ValueError, match=r"^body 'row' is not allowed where it is: 5 of its particles start inside tool "
+                                             r"'plate' at its first pose, and no place outside both it and plane0 was found "):
+            b.finalize(device="cpu")
+
+
 def test_a_particle_started_in_the_corner_of_two_colliders_is_placed_outside_both():
     """A particle 0.1 spacings inside both planes of a 60-degree trough: placed on the first,
     it lay deeper in the second (0.15 spacings), and placed on that, 0.075 spacings back inside

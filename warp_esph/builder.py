@@ -1378,56 +1378,121 @@ def _tool_surface(kind: str, param, xl: np.ndarray, margin: float) -> np.ndarray
     return out
 
 
-def _place_on_tools(model, builder, warn: bool = True) -> None:
-    """Place each free particle that starts inside a tool at the tool's first pose (no deeper
-    than half a spacing: ``_check_outside_tools`` refuses deeper) where the tool's contact
-    would put it, as its initial and rest position both, and warn for each body and tool, as
-    ``_place_on_colliders`` does for the static ones: left inside, the first step moved them
-    out while the rest of the body stayed, and the strain flung it. ``warn``: as theirs."""
+def _tool_shapes(model, x: np.ndarray) -> list:
+    """``(name, origin, depth, place, round_off)`` of each tool at its first pose, as
+    ``_static_surfaces`` gives the static colliders': ``depth(x)`` how deep each point lies
+    inside it, ``place(x)`` where its contact puts a point found inside (the nearest point of
+    its surface, the contact's margin outward; ``_tool_surface``), ``round_off`` the depth
+    below which a point of ``x`` counts as on it."""
     ts = model.tools
-    x = np.asarray(model.particle_x0, dtype=np.float64).copy()
-    free = ts.pin.numpy() < 0
-    moved = np.zeros(len(x), dtype=bool)
+    out = []
     for k, tool in enumerate(ts.colliders):
         p, q = ts.pose_at(k, 0.0)
         p = np.asarray(p, dtype=np.float64)
         R = tools.quat_to_matrix(np.asarray(q, dtype=np.float64))
-        xl = (x - p) @ R
-        # The model's positions are in its precision, the mesh's queries in float32.
+
+        def depth(y, k=k, tool=tool, p=p, R=R):
+            yl = (y - p) @ R
+            return ts.mesh_depth(k, yl) if tool.kind == "mesh" else _tool_depth(tool.kind, tool.param, yl)
+
+        def place(y, k=k, tool=tool, p=p, R=R):
+            yl = (y - p) @ R
+            if tool.kind == "mesh":
+                _, near = ts.mesh_depth(k, yl, closest=True)
+                d = near - yl
+                placed = near + ts.margin * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+            else:
+                placed = _tool_surface(tool.kind, tool.param, yl, ts.margin)
+            return p + placed @ R.T
+        # The model's positions are in its precision, the mesh's queries in float32. Deeper
+        # than round-off: a tool put on a body's outer particles (the lab scenes') meets them
+        # within it, and the contact takes them as they are.
         eps = float(np.finfo(np.float32 if tool.kind == "mesh" else model.types.np_dtype).eps)
-        if tool.kind == "mesh":
-            depth, near = ts.mesh_depth(k, xl, closest=True)
-        else:
-            depth = _tool_depth(tool.kind, tool.param, xl)
-        # Deeper than round-off: a tool put on a body's outer particles (the lab scenes')
-        # meets them within it, and the contact takes them as they are.
-        round_off = 8.0 * eps * (float(np.abs(xl).max()) + ts.reach(k))
-        inside = free & (depth > round_off)
-        if not inside.any():
-            continue
-        if tool.kind == "mesh":
-            d = near[inside] - xl[inside]
-            placed = near[inside] + ts.margin * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
-        else:
-            placed = _tool_surface(tool.kind, tool.param, xl[inside], ts.margin)
-        x[inside] = p + placed @ R.T
-        moved |= inside
-        for body in model.bodies:
-            _refuse_stacked(builder, ("tool", tool.name), f"tool {tool.name!r}", body.name,
-                            x[body.start:body.start + body.count], inside[body.start:body.start + body.count])
-        for body in model.bodies if warn else ():
-            mine = inside[body.start:body.start + body.count]
+        round_off = 8.0 * eps * (float(np.abs((x - p) @ R).max()) + ts.reach(k))
+        out.append((f"tool {tool.name!r}", ("tool", tool.name), depth, place, round_off))
+    return out
+
+
+def _named(names: list) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, warn: bool = True) -> np.ndarray:
+    """Place each free particle of ``x`` (one world's positions, placed out of the static
+    colliders already) that starts inside a tool at the tool's first pose (no deeper than
+    half a spacing: ``_check_outside_tools`` refuses deeper) where the tool's contact would
+    put it, and warn for each of ``bodies`` (``(name, start, count)``) and tool, as
+    ``_place_on_colliders`` does for the static ones: left inside, the first step moved them
+    out while the rest of the body stayed, and the strain flung it. Those placed are then
+    placed out of the static colliders and the tools again, pass after pass, until they are
+    inside none: a plate tool's underside a twentieth of its margin above the ground put
+    them 9.5e-4 spacings into the ground. One still inside after ``PLACING_PASSES`` (a tool
+    into a collider, the particle between) is refused. ``x`` is placed in place; returns
+    which moved. ``warn``: as theirs."""
+    eps = float(np.finfo(model.types.np_dtype).eps)
+    shapes = _tool_shapes(model, x)
+    statics = []
+    if builder.planes or builder.spheres or builder.boxes:
+        sizes = [abs(p.offset) for p in builder.planes] + [np.abs(s.center).max() + s.radius for s in builder.spheres]
+        sizes += [np.abs(b.center).max() + np.abs(b.half_extents).max() for b in builder.boxes]
+        round_off = 8.0 * eps * (float(np.abs(x).max()) + max(sizes))
+        statics = [(name, origin, depth, surface, round_off) for name, origin, depth, surface in _static_surfaces(builder)]
+    everything = shapes + statics
+    moved = np.zeros(len(x), dtype=bool)
+    started = [(np.zeros(len(x), dtype=bool), np.zeros(len(x))) for _ in shapes]
+    again = [np.zeros(len(x), dtype=bool) for _ in everything]
+    # The first pass places the starts inside a tool; the next ones, what that placing put
+    # inside a static collider or another tool (a particle between a plate tool and the
+    # ground, placed on one, lay in the other).
+    for pass_ in range(PLACING_PASSES):
+        busy = False
+        for j, (name, origin, depth, place, round_off) in enumerate(shapes if pass_ == 0 else everything):
+            d = depth(x)
+            inside = (free if pass_ == 0 else moved) & (d > round_off)
+            if not inside.any():
+                continue
+            busy = True
+            x[inside] = place(x[inside])
+            moved |= inside
+            if pass_ == 0:
+                started[j] = (inside, d)
+            else:
+                again[j] |= inside
+            for body, start, count in bodies:
+                _refuse_stacked(builder, origin, name, body, x[start:start + count], inside[start:start + count])
+        if not busy:
+            break
+    else:
+        depths = np.stack([np.where(moved, depth(x) - round_off, -np.inf) for _, _, depth, _, round_off in everything])
+        left = depths.max(axis=0) > 0.0
+        if left.any():
+            i = int(np.argmax(np.where(left, depths.max(axis=0), -np.inf)))
+            body, start, count = next(b for b in bodies if b[1] <= i < b[1] + b[2])
+            j = next(j for j, (mask, _) in enumerate(started) if mask[i])
+            others = [everything[k][0] for k in range(len(everything)) if k != j and again[k][i]]
+            deepest = int(np.argmax(depths[:, i]))
+            why = (f"body {body!r} is not allowed where it is: {int(left[start:start + count].sum())} of its particles start "
+                   f"inside {shapes[j][0]} at its first pose, and no place outside both it and {_named(others)} was found "
+                   f"(one at {np.round(x[i], 6).tolist()} still {depths[deepest, i] / model.spacing:.2g} spacings inside "
+                   f"{everything[deepest][0]} after {PLACING_PASSES} passes, each placing it out of one into the other); "
+                   "move the body, the tool or the collider apart")
+            builder._refuse(shapes[j][1], why, why)
+    for (name, origin, _, _, _), (inside, depth) in zip(shapes, started):
+        for body, start, count in bodies if warn else ():
+            mine = inside[start:start + count]
             if mine.any():
-                deepest = float(depth[body.start:body.start + body.count][mine].max())
-                table = builder.origins.get(("tool", tool.name))
+                deepest = float(depth[start:start + count][mine].max())
+                later = [everything[k][0] for k in range(len(everything)) if (again[k][start:start + count] & mine).any()]
+                then = int((np.any(again, axis=0)[start:start + count] & mine).sum()) if later else 0
+                table = builder.origins.get(origin)
                 where = "" if builder.source is None else f"{builder.source}: {table}: " if table else f"{builder.source}: "
-                warnings.warn(f"{where}body {body.name!r}: {int(mine.sum())} of its particles start inside tool {tool.name!r} "
+                warnings.warn(f"{where}body {body!r}: {int(mine.sum())} of its particles start inside {name} "
                               f"at its first pose, up to {deepest:.3g} m deep ({deepest / model.spacing:.3g} spacings); they "
-                              "are placed on its surface, their rest positions with them, so the body starts unstrained "
-                              "(left inside, the first step moved them out and the strain flung the body); start bodies "
-                              "outside the tools", UserWarning, stacklevel=4)
-    if moved.any():
-        model.particle_x0[moved] = x[moved]
+                              "are placed on its surface, their rest positions with them"
+                              + (f" ({then} of them, which that put inside {_named(later)}, then out of it in turn)" if then else "")
+                              + ", so the body starts unstrained (left inside, the first step moved them out and the strain "
+                              "flung the body); start bodies outside the tools", UserWarning, stacklevel=4)
+    return moved
 
 
 def _check_pins_at_rest(model, builder) -> None:
@@ -1633,7 +1698,11 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model, first)
-        _place_on_tools(model, first, warn=not _guards_only)
+        x = np.asarray(model.particle_x0, dtype=np.float64).copy()
+        moved = _place_on_tools(model, first, x, model.tools.pin.numpy() < 0,
+                                [(b.name, b.start, b.count) for b in model.bodies], warn=not _guards_only)
+        if moved.any():
+            model.particle_x0[moved] = x[moved]
         _check_pins_at_rest(model, first)
     if not _guards_only:
         # _guards_only: scenes.unresolved_bodies, which reads the rest neighbourhoods' guards
