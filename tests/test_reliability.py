@@ -1403,6 +1403,25 @@ def test_particles_with_no_place_outside_a_tool_and_a_static_collider_are_refuse
             b.finalize(device="cpu")
 
 
+def test_a_tool_placing_with_worlds_warns_once_per_body_of_the_scene():
+    """With ``finalize(worlds=2)`` a static collider's placing warned once, naming the body,
+    but a tool's warned once per world copy, naming 'w0/plate' and 'w1/plate'. Now each warns
+    once per body and collider of the scene, by the scene's name, and places both copies alike."""
+    dx, depth = 0.01, 0.001
+    b = we.SceneBuilder(spacing=dx)
+    b.add_star((0.0, 0.5 * dx - depth, 0.0), outer_radius=0.05, inner_radius=0.025, thickness=2 * dx,
+               material=we.Material.preset("rubber"), name="plate")
+    b.add_tool("box", name="under", half_extents=(0.2, 0.05, 0.2), position=(0.0, -0.05, 0.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", worlds=2)
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("body 'plate': "), said
+    x = model.particle_x0
+    assert np.array_equal(x[model.world_particles(0)], x[model.world_particles(1)])
+    assert x[:, 1].min() > 0.0
+
+
 def test_a_particle_started_in_the_corner_of_two_colliders_is_placed_outside_both():
     """A particle 0.1 spacings inside both planes of a 60-degree trough: placed on the first,
     it lay deeper in the second (0.15 spacings), and placed on that, 0.075 spacings back inside

@@ -1698,11 +1698,19 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model, first)
-        x = np.asarray(model.particle_x0, dtype=np.float64).copy()
-        moved = _place_on_tools(model, first, x, model.tools.pin.numpy() < 0,
-                                [(b.name, b.start, b.count) for b in model.bodies], warn=not _guards_only)
-        if moved.any():
-            model.particle_x0[moved] = x[moved]
+        # Once per scene, as the static colliders' placing: finalize(worlds=W) repeats one
+        # builder W times, and each copy warned by its own name ('w0/plate', 'w1/plate').
+        free = model.tools.pin.numpy() < 0
+        done = {}
+        for w, b in enumerate(builders):
+            at = model.world_particles(w)
+            if id(b) not in done:
+                x = np.asarray(model.particle_x0[at], dtype=np.float64).copy()
+                starts = np.cumsum([0] + [body.count for body in b._bodies])
+                bodies = [(body.name, int(start), body.count) for body, start in zip(b._bodies, starts)]
+                done[id(b)] = x, _place_on_tools(model, b, x, free[at], bodies, warn=not _guards_only)
+            x, moved = done[id(b)]
+            model.particle_x0[at][moved] = x[moved]
         _check_pins_at_rest(model, first)
     if not _guards_only:
         # _guards_only: scenes.unresolved_bodies, which reads the rest neighbourhoods' guards
