@@ -69,8 +69,12 @@ def column_history(every: float, resolution: int, periods: float, out=print):
         def watch(state, k):
             if k % 10 == 0:
                 np.maximum(peak, v._deviatoric_norm(state.F.numpy(), mat.mu) / mat.yield_stress, out=peak)
-            report = k % stride == 0 or k == steps
-            if k % stride > stride - 0.1 * stride or report:
+            # A report within a tenth of the interval of the end is left to the end's, and the
+            # end samples its own last tenth: a run ending a step after a report printed that
+            # state twice, the second with one sample and a NaN rate.
+            near_end = steps - k < 0.1 * stride
+            report = k == steps or (k % stride == 0 and not near_end)
+            if k % stride > stride - 0.1 * stride or report or near_end:
                 x = state.x.numpy().astype(np.float64)
                 hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean())))
             if report:

@@ -292,6 +292,26 @@ def test_the_benchmarks_context_runs_the_isotropic_option_unfused():
     assert we.Solver(default).fused
 
 
+def test_the_column_history_reports_the_end_once_with_its_rate():
+    """``column_history`` (``isotropic_pressure.py column --every``): a run whose end came just
+    after a report (101 steps, a report every 50) printed its state at step 100 and again at
+    101, the second with a NaN rate (one sample since the report). Now a report within a tenth
+    of the interval of the end is left to the end's, which reports once, its rate fitted over
+    the last tenth of the interval as every other report's."""
+    from benchmarks import validation as v
+    from benchmarks.isotropic_pressure import column_history
+
+    mat = we.Material.from_young(1.5e5, 0.3, density=v.RHO, yield_stress=1.0e3)
+    printed = []
+    with column_history(1.0, 2, 2.0, printed.append) as rows:
+        model = v._free_column(we, mat, 2, 2, 0.01)[0]
+        solver = we.Solver(model)
+        v._swap_run(model, solver, model.state(), model.state(), 0.5 * model.stable_dt(), 101)
+    per = 101 / 2.0  # steps per period: a report every round(per) = 50 steps
+    assert [r["period"] for r in printed] == pytest.approx([50 / per, 101 / per]), printed
+    assert rows == printed and all(np.isfinite(r["rate_pct_per_s"]) for r in printed), printed
+
+
 def _sheet(offset):
     """A one-particle-thick 5 x 5 sheet of ``isotropic`` material compressed in its plane to
     0.85 of its spacing, its middle particle ``i`` moved ``offset`` spacings out of the plane,
