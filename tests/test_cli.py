@@ -446,6 +446,20 @@ BAD_TOML = {
                               ['[materials."a\\nb"] is not allowed', "one line of text"]),
     "description_newline": (GOOD_TOML.replace('name = "tiny"', 'name = "tiny"\ndescription = """two\nlines"""'),
                             ["[scene] description = 'two\\nlines' is not allowed", "one line of text"]),
+    # A bidirectional control (U+202E, right-to-left override; U+2066-U+2069 isolates) or any
+    # other invisible format character (Unicode Cf: a zero-width space, joiner) was taken and
+    # printed: 'evil\u202etxt.exe' shows as 'evilexe.txt', a name spoofing another.
+    "body_name_bidi": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\nname = "evil\\u202etxt.exe"'),
+                       ["[[bodies]] #1 (shape 'box'): name = 'evil\\u202etxt.exe' is not allowed",
+                        "no invisible format characters"]),
+    "tool_name_isolate": (GOOD_TOML + '[[tools]]\nshape = "sphere"\nradius = 0.05\nposition = [2, 2, 2]\nname = "t\\u2066"\n',
+                          ["[[tools]] #1 (shape 'sphere'): name = 't\\u2066' is not allowed", "no invisible format characters"]),
+    "pin_name_zero_width": (GOOD_TOML + '[[pins]]\nbody = "box0"\nname = "p\\u200b"\n',
+                            ["[[pins]] #1: name = 'p\\u200b' is not allowed", "no invisible format characters"]),
+    "material_name_bidi": (GOOD_TOML + '[materials."a\\u202Eb"]\npreset = "clay"\n',
+                           ["[materials.\"a\\u202eb\"] is not allowed", "no invisible format characters"]),
+    "scene_name_bidi": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\u202any"'),
+                        ["[scene] name = 'ti\\u202any' is not allowed", "no invisible format characters"]),
     # A tool named like a body's floor (its pinned set, '<body>_floor') was refused as 'must be a
     # new non-empty string', naming no clash with a set the file never named.
     "tool_name_taken_by_floor": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\nfloor_margin = 0.0')

@@ -520,6 +520,10 @@ def test_a_mesh_file_name_with_a_newline_gives_a_one_line_default_name(tmp_path)
     assert b._bodies[k].name == "pa_rt_"
     with pytest.raises(ValueError, match=r"^name = 'pa\\nrt' is not allowed: .*one line of text"):
         b.add_mesh(str(tmp_path / "pa\nrt\x1b.obj"), dough, translation=(1.0, 0.0, 0.0), name="pa\nrt")
+    # So are its invisible format characters (a right-to-left override), which a name refuses.
+    meshes.write_mesh(tmp_path / "ev\u202eil.obj", *cube((0.0, 0.0, 0.0), (0.1, 0.1, 0.1)))
+    k = b.add_mesh(str(tmp_path / "ev\u202eil.obj"), dough, translation=(2.0, 0.0, 0.0))
+    assert b._bodies[k].name == "ev_il"
 
 
 def test_mesh_name():

@@ -88,6 +88,14 @@ def test_material_accepts_inf_yield_and_converts_young():
          r"^name = 't\\x1b\[31m' is not allowed: it names the tool or pinned set .*one line of text"),
         (lambda: _one_box().pin(body=0, name="p\x00"), r"^name = 'p\\x00' is not allowed: .*one line of text"),
         (lambda: _one_box().add_particle_floor(0, margin=0.0, name="f\u2028"), r"^name = 'f\\u2028' is not allowed: .*one line"),
+        # As a bidirectional control or another invisible format character (Unicode Cf): taken,
+        # and printed in messages, where 'evil\u202etxt.exe' shows as 'evilexe.txt'.
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="evil\u202etxt.exe"),
+         r"^name = 'evil\\u202etxt\.exe' is not allowed: it names the body .*no invisible format characters \(Unicode "
+         r"category Cf"),
+        (lambda: _one_box().add_tool("sphere", radius=0.05, position=(2, 2, 2), name="t\u2067"),
+         r"^name = 't\\u2067' is not allowed: it names the tool or pinned set .*no invisible format characters"),
+        (lambda: _one_box().pin(body=0, name="p\ufeff"), r"^name = 'p\\ufeff' is not allowed: .*no invisible format"),
         # Said only 'must be a new non-empty string', naming no clash.
         (lambda: _two_tools_named("t"), r"^name = 't' is not allowed: a tool of that name exists already; tools and pinned "
                                         r"sets share one set of names"),

@@ -454,19 +454,42 @@ def breaks_line(text: str) -> bool:
     return any(unicodedata.category(c) in LINE_BREAKING for c in text)
 
 
+#: Invisible format characters (Unicode category Cf): the bidirectional controls (U+202A-U+202E,
+#: U+2066-U+2069) reorder the text shown around them, so a name holding one shows as another
+#: ('evil\u202etxt.exe' as 'evilexe.txt'); the zero-width ones hide in it.
+HIDDEN = ("Cf",)
+
+#: What ``one_line`` allows, for its refusals.
+ONE_LINE = ("one line of text (no control characters, no line breaks, no invisible format characters (Unicode "
+            "category Cf, such as the bidirectional controls U+202A-U+202E and U+2066-U+2069))")
+
+
+def hides_text(text: str) -> bool:
+    """Whether ``text`` holds a character of ``HIDDEN``."""
+    return any(unicodedata.category(c) in HIDDEN for c in text)
+
+
+def escaped(text: str) -> str:
+    """``text`` with each character of ``HIDDEN`` written as its ``\\uXXXX`` escape, for a
+    message that shows a name outside ``repr`` (which escapes them itself)."""
+    return "".join(f"\\u{ord(c):04x}" if unicodedata.category(c) in HIDDEN else c for c in text)
+
+
 def one_line(name: str, value: str, role: str) -> str:
     """``value``, a name that goes into one-line messages, log rows and file metadata
-    (``role`` says where), refused when it is not one line of text: a newline in a body's
-    name split every message naming it, a NUL went into the USD file's custom data."""
-    if breaks_line(value):
-        _fail(name, value, f"{role}, so it must be one line of text (no control characters, no line breaks)")
+    (``role`` says where), refused when it is not one line of visible text: a newline in a
+    body's name split every message naming it, a NUL went into the USD file's custom data,
+    a right-to-left override made it show as another name."""
+    if breaks_line(value) or hides_text(value):
+        _fail(name, value, f"{role}, so it must be {ONE_LINE}")
     return value
 
 
 def one_line_label(text: str) -> str:
-    """``text`` with each character of ``LINE_BREAKING`` replaced by ``_``: for a name made
-    from something the user did not write as a name (a mesh file's name), which only labels."""
-    return "".join("_" if unicodedata.category(c) in LINE_BREAKING else c for c in text)
+    """``text`` with each character of ``LINE_BREAKING`` or ``HIDDEN`` replaced by ``_``: for a
+    name made from something the user did not write as a name (a mesh file's name), which
+    only labels."""
+    return "".join("_" if unicodedata.category(c) in LINE_BREAKING + HIDDEN else c for c in text)
 
 
 # ---------------------------------------------------------------- files that cannot be read

@@ -248,16 +248,17 @@ def _choice(file: str, where: str, key: str, value: str, allowed) -> str:
 def _table_key(name: str) -> str:
     """``name`` as a TOML key: bare where TOML allows, else quoted with TOML's escapes (JSON's
     are TOML's), so a table named in a message is the one the file holds, on one line."""
-    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else json.dumps(name, ensure_ascii=False)
+    # Escaped, as repr does, where a name is refused for holding them (a bidirectional control
+    # reordered the message around it).
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else checks.escaped(json.dumps(name, ensure_ascii=False))
 
 
 def _material(file: str, name: str, table: dict) -> Material:
     where = f"[materials.{_table_key(name)}]"
-    if checks.breaks_line(name):
+    if checks.breaks_line(name) or checks.hides_text(name):
         # Every message about the material names its table: a newline split them in two.
         raise ValueError(f"{file}: {where} is not allowed: the name {name!r} names the material in one-line messages "
-                         "and in the bodies' material keys, so it must be one line of text (no control characters, "
-                         "no line breaks)")
+                         f"and in the bodies' material keys, so it must be {checks.ONE_LINE}")
     _check_table(file, where, table, MATERIAL_KEYS)
     fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu")}
     if ("E" in table) != ("nu" in table):
