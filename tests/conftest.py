@@ -10,9 +10,13 @@ os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().pa
 # One OpenBLAS thread per test process: the workers (`-n 2`) already fill the cores, and a
 # BLAS pool per worker on top of them spins against the other worker. Measured on the shared
 # 2-core machine: the 192 x 192 eigenproblems of test_elastic_force's linear-stiffness test
-# took 6.7 s of CPU with the pool and 2.6 s without. OpenBLAS reads it when it loads, which
-# in this process has already happened (a plugin imports numpy first): it takes effect in
-# the xdist workers and the subprocesses the tests start.
+# took 6.7 s of CPU with the pool and 2.6 s without. OpenBLAS reads it when it loads, with
+# numpy's first import: here, in init_warp below (Warp imports numpy), after this line, since
+# the installed pytest plugins (xdist, hypothesis, platformdirs) import no numpy. So it holds
+# in a plain `pytest` run as in the xdist workers and the subprocesses the tests start:
+# scipy-openblas reported 1 thread in each (2, the core count, without it). A plugin that
+# imported numpy before this file would leave this process's pool at its default; a value
+# already in the environment is kept.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
