@@ -1403,6 +1403,34 @@ def test_particles_with_no_place_outside_a_tool_and_a_static_collider_are_refuse
             b.finalize(device="cpu")
 
 
+def test_a_particle_between_a_tool_and_the_ground_crossing_at_an_angle_is_placed_toward_the_crossing():
+    """A box tool's underside crossing the ground at 10 degrees, a particle 0.3 spacings
+    before the crossing, 0.05 above the ground, inside the tool (0.1 spacings deep): placed
+    out of one into the other, it gets out at cos(10 degrees)^2 a pass toward the crossing,
+    where the wedge between them begins, and 64 passes left 0.0065 spacings of the 0.05 the
+    first placing put it into the ground. That was refused as no place outside both found,
+    where the same trough of two static colliders is left a little inside, for the contact.
+    Refused is only one the passes do not get out (the plate into the ground above)."""
+    dx, a = 0.01, math.radians(10.0)
+    b = we.SceneBuilder(spacing=dx)
+    b.add_particles([(-0.3 * dx, 0.05 * dx, 0.0)], we.Material.preset("rubber"), name="p")
+    b.add_ground(0.0)
+    h = (0.2, 0.05, 0.1)
+    centre = (-h[1] * math.sin(a), h[1] * math.cos(a), 0.0)  # its underside through the origin, rising to +x
+    b.add_tool("box", name="blade", half_extents=h, position=centre, orientation=(0.0, 0.0, math.sin(a / 2), math.cos(a / 2)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = b.finalize(device="cpu", dtype=wp.float64)
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("body 'p': 1 of its particles start inside tool 'blade'"), said
+    x = model.particle_x0
+    c, s = math.cos(a), math.sin(a)
+    local = (x - centre) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    blade = _tool_depth("box", h, local)[0] / dx
+    assert x[0, 1] >= 0.0 and 0.0 < blade < 0.01, (x / dx, blade)  # started 0.1 spacings inside the blade
+    assert -0.3 * dx < x[0, 0] < 0.0, x / dx  # toward the crossing, not past it
+
+
 def test_a_tool_placing_with_worlds_warns_once_per_body_of_the_scene():
     """With ``finalize(worlds=2)`` a static collider's placing warned once, naming the body,
     but a tool's warned once per world copy, naming 'w0/plate' and 'w1/plate'. Now each warns
