@@ -460,6 +460,8 @@ BAD_TOML = {
                            ["[materials.\"a\\u202eb\"] is not allowed", "no invisible format characters"]),
     "scene_name_bidi": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\u202any"'),
                         ["[scene] name = 'ti\\u202any' is not allowed", "no invisible format characters"]),
+    "description_bidi": (GOOD_TOML.replace('name = "tiny"', 'name = "tiny"\ndescription = "a \\u202eb"'),
+                         ["[scene] description = 'a \\u202eb' is not allowed", "no bidirectional embeddings, overrides"]),
     # A tool named like a body's floor (its pinned set, '<body>_floor') was refused as 'must be a
     # new non-empty string', naming no clash with a set the file never named.
     "tool_name_taken_by_floor": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\nfloor_margin = 0.0')
@@ -487,6 +489,19 @@ BAD_TOML = {
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
                         ["[scene] dt = 0.007 is not allowed", "whole number of steps", "use e.g. dt = 0.00666667 or 0.00833333, or leave dt out"]),
 }
+
+
+def test_a_scene_description_keeps_its_joining_format_characters(tmp_path):
+    """``[scene] description`` is free text, not a name: an emoji ZWJ sequence (U+200D) or a
+    Persian word's zero-width non-joiner (U+200C) was refused with the names' invisible format
+    characters, though the description is never a name. Taken as written; only the
+    bidirectional controls, which reorder the text after them, are refused (BAD_TOML)."""
+    from warp_esph.scenes import load_scene_file
+
+    text = "drop test \U0001f469\u200d\U0001f52c, \u0645\u06cc\u200c\u062e\u0648\u0627\u0647\u0645"
+    scene = tmp_path / "described.toml"
+    scene.write_text(GOOD_TOML.replace('name = "tiny"', f'name = "tiny"\ndescription = "{text}"'), encoding="utf-8")
+    assert load_scene_file(str(scene)).description == text
 
 
 @pytest.mark.parametrize("case", sorted(BAD_TOML))

@@ -485,6 +485,22 @@ def one_line(name: str, value: str, role: str) -> str:
     return value
 
 
+#: The bidirectional embeddings, overrides and isolates: unlike the other format characters
+#: (a zero-width joiner inside an emoji sequence, a zero-width non-joiner inside a Persian
+#: word) they reorder the text shown after them, past the end of the text that holds them.
+BIDI_CONTROLS = frozenset(chr(c) for c in [*range(0x202A, 0x202F), *range(0x2066, 0x206A)])
+
+
+def one_line_text(name: str, value: str, role: str) -> str:
+    """``value``, free text (not a name) that a caller may print on a line, refused when it is
+    not one line or holds a character of ``BIDI_CONTROLS``. Its other format characters are
+    text: '\U0001f469\u200d\U0001f52c' (an emoji sequence) was refused as a name is."""
+    if breaks_line(value) or any(c in BIDI_CONTROLS for c in value):
+        _fail(name, value, f"{role}, so it must be one line of text (no control characters, no line breaks, no "
+                           "bidirectional embeddings, overrides or isolates, U+202A-U+202E and U+2066-U+2069)")
+    return value
+
+
 def one_line_label(text: str) -> str:
     """``text`` with each character of ``LINE_BREAKING`` or ``HIDDEN`` replaced by ``_``: for a
     name made from something the user did not write as a name (a mesh file's name), which

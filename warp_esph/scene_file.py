@@ -567,7 +567,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             # message naming the scene; a tab or an escape sequence read as terminal control.
             checks.one_line("[scene] name", name, "it names the default output file and the scene in one-line messages")
         if "description" in scene:
-            checks.one_line("[scene] description", scene["description"], "it is the scene's one-line description (Scene.description)")
+            # Free text, not a name: a format character that only joins (an emoji sequence's,
+            # a Persian word's) is its text; one that reorders what follows it is not.
+            checks.one_line_text("[scene] description", scene["description"],
+                                 "it is the scene's one-line description (Scene.description)")
     except ValueError as e:
         raise ValueError(f"{file}: {e}") from None
     name = name or os.path.splitext(os.path.basename(file))[0]
