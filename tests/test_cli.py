@@ -504,6 +504,20 @@ def test_a_scene_description_keeps_its_joining_format_characters(tmp_path):
     assert load_scene_file(str(scene)).description == text
 
 
+def test_a_scene_named_by_its_file_gets_a_one_line_name(tmp_path):
+    """A scene file with no ``[scene] name`` is named by its file: 'ev\u202eil.toml' named it
+    'ev\u202eil', unchecked where ``[scene] name`` refuses the same, and 'warp-esph run'
+    printed it as it was ('ev<right-to-left override>il: 48 particles, ...' reordered the line)
+    and wrote 'ev\u202eil.usdc'. As a mesh file's default name, it only labels: its control and
+    invisible format characters become '_'."""
+    from warp_esph.scenes import load_scene_file
+
+    for stem, name in (("ev\u202eil", "ev_il"), ("ti\nny", "ti_ny")):
+        scene = tmp_path / f"{stem}.toml"
+        scene.write_text(GOOD_TOML.replace('name = "tiny"\n', ""))
+        assert load_scene_file(str(scene)).name == name
+
+
 @pytest.mark.parametrize("case", sorted(BAD_TOML))
 def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
     text, needles = BAD_TOML[case]

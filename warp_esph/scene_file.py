@@ -573,7 +573,9 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
                                  "it is the scene's one-line description (Scene.description)")
     except ValueError as e:
         raise ValueError(f"{file}: {e}") from None
-    name = name or os.path.splitext(os.path.basename(file))[0]
+    # Named by its file, the name only labels, as a mesh file's default: cleaned, not refused
+    # ('ev\u202eil.toml' was printed as it was in 'run's one-line report, reordering it).
+    name = name or checks.one_line_label(os.path.splitext(os.path.basename(file))[0])
     description = scene.get("description") or f"scene file {file}"
     # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
     # bunny.usdc had its mesh replaced by the run, and could not be run again.
