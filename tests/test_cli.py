@@ -460,6 +460,16 @@ BAD_TOML = {
                            ["[materials.\"a\\u202eb\"] is not allowed", "no invisible format characters"]),
     "scene_name_bidi": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\u202any"'),
                         ["[scene] name = 'ti\\u202any' is not allowed", "no invisible format characters"]),
+    # JSON's escapes, which name the table, leave a line separator (U+2028) or a C1 control
+    # (U+0085, a next-line) as they are: the table was named '[materials."a<U+2028>b"]', a
+    # line break in the Python message, a space in the CLI's line.
+    "material_name_line_separator": (GOOD_TOML + '[materials."a\\u2028b"]\npreset = "clay"\n',
+                                     ['[materials."a\\u2028b"] is not allowed', "one line of text"]),
+    "material_name_next_line": (GOOD_TOML + '[materials."a\\u0085b"]\npreset = "clay"\n',
+                                ['[materials."a\\u0085b"] is not allowed', "one line of text"]),
+    # Past U+FFFF, a tag character (Cf) was named '\ue0020', which TOML reads as U+E002 and a '0'.
+    "material_name_tag": (GOOD_TOML + '[materials."a\\U000E0020b"]\npreset = "clay"\n',
+                          ['[materials."a\\U000e0020b"] is not allowed', "no invisible format characters"]),
     "description_bidi": (GOOD_TOML.replace('name = "tiny"', 'name = "tiny"\ndescription = "a \\u202eb"'),
                          ["[scene] description = 'a \\u202eb' is not allowed", "no bidirectional embeddings, overrides"]),
     # A tool named like a body's floor (its pinned set, '<body>_floor') was refused as 'must be a

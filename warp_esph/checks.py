@@ -470,9 +470,13 @@ def hides_text(text: str) -> bool:
 
 
 def escaped(text: str) -> str:
-    """``text`` with each character of ``HIDDEN`` written as its ``\\uXXXX`` escape, for a
-    message that shows a name outside ``repr`` (which escapes them itself)."""
-    return "".join(f"\\u{ord(c):04x}" if unicodedata.category(c) in HIDDEN else c for c in text)
+    """``text`` with each character of ``LINE_BREAKING`` or ``HIDDEN`` written as its
+    ``\\uXXXX`` escape, for a message that shows a name outside ``repr`` (which escapes them
+    itself): JSON's escapes leave a line separator (U+2028) and a C1 control (U+0085) as
+    they are. Past U+FFFF as ``\\UXXXXXXXX`` (a tag character, U+E0020, was '\\ue0020', which
+    TOML and Python read as U+E002 and a '0')."""
+    return "".join((f"\\u{ord(c):04x}" if ord(c) <= 0xFFFF else f"\\U{ord(c):08x}")
+                   if unicodedata.category(c) in LINE_BREAKING + HIDDEN else c for c in text)
 
 
 def one_line(name: str, value: str, role: str) -> str:
