@@ -1569,6 +1569,11 @@ def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path)
                                         r"of Experiment$"),
         (lambda: fit([Experiment(model, PositionLoss({3: x[1]}), steps=3, dt=1e-3), model], None, ["mu"]),
          r"^model\[1\] = Model\(243 particles, .* is not allowed: a list of experiments holds only Experiment"),
+        # An experiment's name labels it in the fit's messages, as a body's name does its body:
+        # taken, a newline split them and a right-to-left override reordered them.
+        (lambda: fit([Experiment(model, PositionLoss({3: x[1]}), steps=3, dt=1e-3, name="evil\u202etxt")], None, ["mu"]),
+         r"^model\[0\]\.name = 'evil\\u202etxt' is not allowed: it names the experiment in the fit's messages and its "
+         r"history rows, so it must be one line of text .*no invisible format characters"),
     ]
     for call, message in cases:
         with pytest.raises(ValueError, match=message):

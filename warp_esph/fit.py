@@ -2105,6 +2105,13 @@ def fit(
             raise ValueError("target is required (or give a list of Experiment)")
         exps = [Experiment(model, target, steps=steps, dt=dt, frames=frames, materials=materials, initial=initial,
                            checkpoint_every=checkpoint_every, noise=noise)]
+    for k, e in enumerate(exps):
+        # It names the experiment where a body's name does, and a newline or a right-to-left
+        # override in it split or reordered those lines, as in a body's.
+        if e.name is not None and not isinstance(e.name, str):
+            raise ValueError(f"model[{k}].name = {checks.shorten(e.name)!r} is not allowed: must be a string")
+        if e.name:
+            checks.one_line(f"model[{k}].name", e.name, "it names the experiment in the fit's messages and its history rows")
     # Gauss-Newton takes no gradient: its Jacobian is forward differences and its diagnostics
     # (every loss has residuals) too, so none of its runs records a tape.
     runs = [_Run(e, dtype, memory_limit, e.name or (f"experiment {k}" if len(exps) > 1 else "the experiment"),
