@@ -1445,6 +1445,7 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
         statics = [(name, origin, depth, surface, round_off) for name, origin, depth, surface in _static_surfaces(builder)]
     everything = shapes + statics
     moved = np.zeros(len(x), dtype=bool)
+    kept = np.zeros(len(x))  # how deep one the passes were still getting out is left
     started = [(np.zeros(len(x), dtype=bool), np.zeros(len(x))) for _ in shapes]
     again = [np.zeros(len(x), dtype=bool) for _ in everything]
     # The first pass places the starts inside a tool; the next ones, what that placing put
@@ -1480,7 +1481,9 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
         # still getting out is left a little inside, for the contact, as _place_on_colliders
         # leaves one in a narrow trough (refused, a tool's underside crossing the ground at 10
         # degrees left no particle before the crossing, where the wedge between them is near).
-        left = (depths.max(axis=0) > 0.0) & (_deepest(everything, x, moved) > 0.5 * begun)
+        deep, inside = _deepest(everything, x, moved), depths.max(axis=0) > 0.0
+        left = inside & (deep > 0.5 * begun)
+        kept = np.where(inside & ~left, deep, 0.0)
         if left.any():
             i = int(np.argmax(np.where(left, depths.max(axis=0), -np.inf)))
             body, start, count = next(b for b in bodies if b[1] <= i < b[1] + b[2])
@@ -1493,19 +1496,26 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
                    f"{everything[deepest][0]} after {PLACING_PASSES} passes, each placing it out of one into the other); "
                    "move the body, the tool or the collider apart")
             builder._refuse(shapes[j][1], why, why)
-    for (name, origin, _, _, _), (inside, depth) in zip(shapes, started):
+    for j, ((name, origin, _, _, _), (inside, depth)) in enumerate(zip(shapes, started)):
         for body, start, count in bodies if warn else ():
             mine = inside[start:start + count]
             if mine.any():
                 deepest = float(depth[start:start + count][mine].max())
-                later = [everything[k][0] for k in range(len(everything)) if (again[k][start:start + count] & mine).any()]
+                # Those it put them in, not itself (it was named among them, 'which that put
+                # inside tool 'wedge' and plane0', where plane0's placing put them back in it).
+                later = [everything[k][0] for k in range(len(everything))
+                         if k != j and (again[k][start:start + count] & mine).any()]
                 then = int((np.any(again, axis=0)[start:start + count] & mine).sum()) if later else 0
+                still = kept[start:start + count][mine]
+                left = (f"; {int((still > 0.0).sum())} left up to {still.max() / model.spacing:.2g} spacings inside, for the "
+                        "contact, where the passes were still getting them out" if (still > 0.0).any() else "")
                 table = builder.origins.get(origin)
                 where = "" if builder.source is None else f"{builder.source}: {table}: " if table else f"{builder.source}: "
                 warnings.warn(f"{where}body {body!r}: {int(mine.sum())} of its particles start inside {name} "
                               f"at its first pose, up to {deepest:.3g} m deep ({deepest / model.spacing:.3g} spacings); they "
                               "are placed on its surface, their rest positions with them"
-                              + (f" ({then} of them, which that put inside {_named(later)}, then out of it in turn)" if then else "")
+                              + (f" ({then} of them, which that put inside {_named(later)}, then out of "
+                                 f"{'it' if len(later) == 1 else 'each'} in turn{left})" if then else "")
                               + ", so the body starts unstrained (left inside, the first step moved them out and the strain "
                               "flung the body); start bodies outside the tools", UserWarning, stacklevel=4)
     return moved
