@@ -1445,7 +1445,7 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
         statics = [(name, origin, depth, surface, round_off) for name, origin, depth, surface in _static_surfaces(builder)]
     everything = shapes + statics
     moved = np.zeros(len(x), dtype=bool)
-    kept = np.zeros(len(x))  # how deep one the passes were still getting out is left
+    kept = np.zeros(len(x))  # how deep the passes left one they were still getting out
     started = [(np.zeros(len(x), dtype=bool), np.zeros(len(x))) for _ in shapes]
     again = [np.zeros(len(x), dtype=bool) for _ in everything]
     # The first pass places the starts inside a tool; the next ones, what that placing put
@@ -1456,7 +1456,7 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
         if pass_ == 1:
             # How deep the first placing left each particle in another: what the passes take
             # out. One between a tool and a collider crossing at a narrow angle gets out at
-            # cos(a)^2 a pass (10 degrees: 0.97), and 64 passes left 0.0065 spacings of 0.09.
+            # cos(a)^2 a pass (10 degrees: 0.97), and 64 passes left 0.0065 spacings of 0.05.
             begun = _deepest(everything, x, moved)
         for j, (name, origin, depth, place, round_off) in enumerate(shapes if pass_ == 0 else everything):
             d = depth(x)
@@ -1479,8 +1479,8 @@ def _place_on_tools(model, builder, x: np.ndarray, free: np.ndarray, bodies, war
         # Refused where the passes did not take out half of it, each placing putting it out
         # of one into the other as deep (a tool into a collider, the particle between); one
         # still getting out is left a little inside, for the contact, as _place_on_colliders
-        # leaves one in a narrow trough (refused, a tool's underside crossing the ground at 10
-        # degrees left no particle before the crossing, where the wedge between them is near).
+        # leaves one in a narrow trough (one 0.3 spacings before a tool's underside crosses the
+        # ground at 10 degrees, 0.0065 of 0.05 spacings left, was refused, the wedge that near).
         deep, inside = _deepest(everything, x, moved), depths.max(axis=0) > 0.0
         left = inside & (deep > 0.5 * begun)
         kept = np.where(inside & ~left, deep, 0.0)
