@@ -10,6 +10,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import textwrap
 import warnings
@@ -1402,6 +1403,18 @@ def test_a_terminated_cli_sweep_resumed_gives_the_table_of_one_run_straight_thro
     assert record["resumed"] == {"kept": 1, "retry_failed": False} and record["sweep"]["frames"] == 1
 
 
+@pytest.fixture(scope="module")
+def three_sample_sweep(tmp_path_factory):
+    """The output folder of one finished 3-sample sweep of ``SCENE_TOML``, which each case
+    below copies: the table a resume is asked of (the scene file is recorded by its digest)."""
+    folder = tmp_path_factory.mktemp("three_sample_sweep")
+    path = folder / "box.toml"
+    path.write_text(SCENE_TOML)
+    assert cli.main(["sweep", str(path), "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(folder / "sw"), "--no-progress"]) == 0
+    return folder / "sw"
+
+
 @pytest.mark.parametrize("change, words", [
     (["--frames", "2"], "--resume of --output = '{out}' is not allowed: its table is of another sweep: frames = 1 there, "
                         "2 here; resume it with the settings it was run with, or run this sweep anew without resuming"),
@@ -1416,12 +1429,12 @@ def test_a_terminated_cli_sweep_resumed_gives_the_table_of_one_run_straight_thro
     (["--no-resume", "--retry-failed"], "--retry-failed is not allowed without --resume"),
 ])
 def test_the_command_refuses_to_resume_a_table_of_another_sweep_before_any_sample(scene_file, tmp_path, monkeypatch,
-                                                                                   capsys, change, words):
+                                                                                   capsys, change, words,
+                                                                                   three_sample_sweep):
     from warp_esph import sweep as sweep_module
 
     out = tmp_path / "sw"
-    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
-                     "-o", str(out), "--no-progress"]) == 0
+    shutil.copytree(three_sample_sweep, out)
     before = (out / "sweep.csv").read_bytes()
     capsys.readouterr()
     monkeypatch.setattr(sweep_module, "_run_sample", lambda *a: pytest.fail("a sample ran"))
