@@ -1789,15 +1789,15 @@ def _rise(t):
 def test_a_sample_whose_scripted_tool_lifts_the_body_is_no_blow_up():
     """The lift of ``test_a_sample_whose_tool_lifts_the_body_is_no_blow_up`` by a slow scripted
     floor (0.4 m/s for 3 s): the 1.2 m of height it gives is its work, not growth (counted as
-    growth, 11.8 J/kg against 10 x the scale's 0.95 J/kg)."""
+    growth, 11.8 J/kg against 10 x the scale's 0.95 J/kg). One sample: a second of another
+    yield stress ran the same check on the same path."""
     from warp_esph import tools
 
     b = SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), Material.preset("clay"), name="blob")
     b.add_tool("plane", friction=0.5, motion=tools.Scripted(_rise), name="lift")
-    table = sweep(Scene("lift", "a blob a scripted floor lifts", b, frames=90, fps=30.0), ["yield_stress=1e3,1e4"],
-                  workers=1)
-    assert [r["status"] for r in table.rows] == ["ok", "ok"], [r["reason"] for r in table.rows]
+    table = sweep(Scene("lift", "a blob a scripted floor lifts", b, frames=90, fps=30.0), ["yield_stress=1e3"], workers=1)
+    assert [r["status"] for r in table.rows] == ["ok"], [r["reason"] for r in table.rows]
     assert (table.column("centroid_height") > 1.2).all() and (table.column("centroid_height") < 1.3).all()
 
 
