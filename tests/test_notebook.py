@@ -59,7 +59,7 @@ def test_fit_notebook_executes(tmp_path, monkeypatch):
     """The notebook's wiring, at a size that cannot fit: its size variables reach the example's
     functions it calls, and every cell runs (the target, the fit, the curves, the USD and the
     3-D view). That those functions recover the three parameters from the factor-2 guess at
-    the CI size (142 particles, frames 2..9, 21 evaluations) is tests/test_fit_dough_star.py,
+    the CI size (142 particles, frames 2..6, 21 evaluations) is tests/test_fit_dough_star.py,
     which runs the same ``fit_star`` through the example's ``main``; the committed outputs
     (checked above) are the fit at the notebook's default size."""
     pytest.importorskip("matplotlib")
