@@ -76,18 +76,20 @@ def test_coulomb_floor_decelerates_a_sliding_block_at_friction_times_g():
 
 
 def test_near_yield_column_spreads_its_base_as_the_1d_analysis():
-    """The particle suite's near-yield column in the continuum (4 cells, 8 particles across, on
+    """The particle suite's near-yield column in the continuum (3 cells, 6 particles across, on
     a slip floor, the same flow rule, ramp and relaxation; 36 axial periods): its yielded base
-    spreads as the 1-D analysis's freely spreading layers, measured 1.03 x (0.96 / 0.99 at 6 /
-    9 cells), with only the bottom quarter yielding and the column upright. So the 1-D
-    analysis is the right target for the particle column (docs/validation.md, "The continuum's
-    column"), whose collider-held base spreads less.
+    spreads as the 1-D analysis's freely spreading layers, measured 1.07 x (1.03 / 0.96 / 0.99
+    at 4 / 6 / 9 cells; front 0.717 L deep, 0.7375 at 4), with only the bottom quarter
+    yielding and the column upright. So the 1-D analysis is the right target for the particle
+    column (docs/validation.md, "The continuum's column"), whose collider-held base spreads
+    less. 3 cells, not 4, for the suite's time (a third of the CPU): a continuum yield stress
+    2 % low (the return mapping onto 0.98 Y) reads 1.23 x and fails it.
 
     Run at twice the benchmark's step (``cfl`` 0.6 for 0.3: half the steps): the column is
     relaxed to rest, so the step does not enter what is read (measured at 0.3 / 0.45 / 0.6:
     elastic 0.9958 / 0.9962 / 0.9963, plastic 1.0313 / 1.0311 / 1.0308 x the theory, front
     0.7375 at all three, tilt 2e-4 / 1e-4 / 8e-5 of the width)."""
-    r = mpm_slump.near_yield_column(res=4, cfl=0.6)
+    r = mpm_slump.near_yield_column(res=3, cfl=0.6)
     assert r["elastic_over_theory"] == pytest.approx(1.0, abs=0.02), r
     assert r["plastic_over_theory"] == pytest.approx(1.0, abs=0.1), r
     assert 0.7 < r["front_depth"] < 0.8, r  # the 1-D front at 0.8 L, the spreading base drags a little above
