@@ -151,7 +151,7 @@ def run_once(request, tmp_path_factory):
     return lambda key, fn: shared_run(root, key, fn)
 
 
-# The thin spread pile (a 5 s run shared by two tests through one module fixture, about a
+# The thin spread pile (a 4 s run shared by two tests through one module fixture, about a
 # minute) goes first: with two workers (`-n 2 --dist worksteal`) it then runs beside the rest
 # instead of near the end of one worker's half, where the other worker would wait for it.
 FIRST = ("test_spread_pile_holds_the_theory_volume_and_slows_to_a_creep", "test_spread_radius_within_10_percent_of_roussel_coussot")
