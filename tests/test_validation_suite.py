@@ -351,18 +351,20 @@ SLUMP_FLOOR = {"floor": "particles", "floor_radius": 2.4}
 
 @pytest.fixture(scope="module")
 def slumped(run_once):
-    """S = 0.2, 8 particles across H0, variational force, 5 s (50 x sqrt(H0/g)): on the
+    """S = 0.2, 8 particles across H0, variational force, 4.5 s (45 x sqrt(H0/g)): on the
     particle floor the pile flows longer than on the ground collider (at 3 s its top still
-    sinks 0.95 % H0/s)."""
-    return run_once("validation-slumped", lambda: validation.slump(0.2, resolution=8, elastic_force="variational", duration=5.0,
+    sinks 0.95 % H0/s; at 4 s 0.12 % H0/s, not yet at rest)."""
+    return run_once("validation-slumped", lambda: validation.slump(0.2, resolution=8, elastic_force="variational", duration=4.5,
                                                                     **SLUMP_FLOOR))
 
 
 def test_slumped_cylinder_comes_to_rest(slumped):
     """Measured on the particle floor with the energy pressure force and the fit guard 20
-    (the defaults): the top sinks 0.022 % H0/s at the end, kinetic energy 2.8e-11 M g H0 at
-    5 s, 1.2e-9 at most over the last quarter (measured at 2054fca; an older tree read 0.030 %
-    H0/s and 7.3e-10; spiky force, old guard: 0.060 % H0/s, 1.1e-9; at 3 s 0.95 % H0/s). On the ground collider
+    (the defaults): at 4.5 s the top sinks 0.049 % H0/s, kinetic energy 8.2e-11 M g H0,
+    5.3e-9 at most over the last quarter (bound 1e-8); at 5 s 0.022 % H0/s, 2.8e-11 and 1.2e-9
+    (measured at 2054fca; an older tree read 0.030 % H0/s and 7.3e-10; spiky force, old guard:
+    0.060 % H0/s, 1.1e-9; at 3 s 0.95 % H0/s). With the yield surface at 0.9 Y the top still
+    sinks 0.48 % H0/s at 4.5 s. On the ground collider
     (docs/physics.md, the slump creep): 0.08 % H0/s at 2 s (before the friction fix 2.8)."""
     assert slumped["finite"]
     assert abs(slumped["top_rate_pct_H0_per_s"]) < 0.1, slumped["top_rate_pct_H0_per_s"]
@@ -443,8 +445,9 @@ def test_s01_pile_centre_thickness_within_3_percent_of_the_1d_height_at_12_acros
 
 
 def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
-    """Measured on the particle floor: h/H0 0.504 against the 1-D 0.522 (-3.4 %) at 8 across
-    with the defaults (spiky force and old fit guard 0.476, -8.9 %; on the ground collider
+    """Measured on the particle floor: h/H0 0.507 against the 1-D 0.522 (-2.8 %) at 8 across
+    with the defaults, at 4.5 s and at 5 s (0.504 when first measured; 0.458 with the yield
+    surface at 0.9 Y) (spiky force and old fit guard 0.476, -8.9 %; on the ground collider
     0.545, +4.4 %)."""
     assert slumped["h_over_H0"] == pytest.approx(slumped["theory_h_over_H0"], rel=0.10)
 
@@ -452,9 +455,9 @@ def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
 def test_slump_on_an_elastic_particle_floor_rests_higher_than_on_the_plastic_one(slumped):
     """The floor's plasticity (docs/physics.md, "The floor's plasticity"): on a floor the
     material sticks to (``floor="elastic_particles"``) the S = 0.2 pile at 8 across comes to
-    rest 0.061 H0 higher than on the suite's plastic particle floor (5 s). Measured: thickness
+    rest 0.061 H0 higher than on the suite's plastic particle floor (4.5 s). Measured: thickness
     0.5432 H0 (+4.1 % of the 1-D 0.5219) at 3 s (top 0.005 % H0/s, KE over the last quarter
-    4e-10 M g H0) and at 5 s (R 1.64 R0); plastic floor 0.4826 (-7.5 %). At 12 / 16 across:
+    4e-10 M g H0) and at 5 s (R 1.64 R0); plastic floor 0.4827 (-7.5 %; 0.4826 at 5 s). At 12 / 16 across:
     -0.1 / -0.3 % (plastic floor -15.6 / -14.5 %); the thin S = 0.1 pile +28.8 % at 16."""
     held = validation.slump(0.2, resolution=8, elastic_force="variational", duration=3.0,
                             **{**SLUMP_FLOOR, "floor": "elastic_particles"})
