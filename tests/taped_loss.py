@@ -30,6 +30,21 @@ def taped_rollout_loss(solver, states, dt: float, weights: wp.array):
     return loss, tape
 
 
+def untaped_rollout_loss(solver, state, dt: float, steps: int, weights: wp.array) -> float:
+    """``taped_rollout_loss``'s loss without the tape, for the central differences: ``steps``
+    steps of ``dt`` from ``state`` (changed by them) and one more state in turn, made without
+    gradient arrays. A taped rollout needs a state per step and their gradient arrays, which a
+    central difference never reads; the step runs the same kernels with and without the tape,
+    so its loss is the taped one to the bit (``test_gradient_coverage.py`` asserts it)."""
+    a, b = state, solver.model.state(requires_grad=False)
+    for _ in range(steps):
+        solver.step(a, b, dt)
+        a, b = b, a
+    loss = wp.zeros(1, dtype=wp.float64)
+    wp.launch(dot_loss, len(weights), [a.x, weights], [loss])
+    return float(loss.numpy()[0])
+
+
 def taped_gradients(model, states, loss, tape, names) -> dict:
     """Runs ``tape.backward(loss)`` and returns the gradients of ``names``, each a copy keyed by
     name: ``"v0"`` the first state's velocities, any other name the model's array of it."""

@@ -32,7 +32,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_gradients, taped_rollout_loss
+from taped_loss import random_weights, taped_gradients, taped_rollout_loss, untaped_rollout_loss
 from warp_esph import tools
 
 DT = 1.0e-3
@@ -131,6 +131,8 @@ def _model(case, scene, params=None, worlds=1, world1=None):
 def _loss(case, model, w, grad_of=None, hand_adjoints=True):
     solver = we.Solver(model, **CASES[case][1])
     solver.hand_adjoints = hand_adjoints
+    if grad_of is None:  # a central difference's run: no tape
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, STEPS, w)
     states = [model.state() for _ in range(STEPS + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, w)
     if grad_of is None:
@@ -173,9 +175,13 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         # with the same parameter.)
         assert grads[name].sum() == pytest.approx(fd, rel=1e-4), (name, rel)
     i = int(np.argmin(model.particle_x0[:36, 1]))
+    # One model for the velocity's runs (a run from a model another run left is a new one's to
+    # the bit), its initial velocities set before each.
+    m = _model(case, scene)
+    v0 = m.particle_v0.copy()
     for eps in (1e-4, 1e-6):
         def loss_with(delta):
-            m = _model(case, scene)
+            m.particle_v0 = v0.copy()
             m.particle_v0[i, 0] += delta
             return _loss(case, m, w)
 
@@ -285,6 +291,30 @@ def test_every_kernel_of_a_taped_step_is_in_the_coverage_table():
         source = root / "sim" / f"{stem}.py"
         source = source if source.exists() else root / f"{stem}.py"
         assert f"def {function}(" in source.read_text(), name
+
+
+def test_the_central_differences_untaped_runs_are_the_taped_runs_to_the_bit():
+    """The central differences here and in the other gradient tests run their rollouts without
+    a tape (``taped_loss.untaped_rollout_loss``: two states in turn, no gradient arrays), so
+    the loss they difference must be the taped rollout's, the function the tape's gradient is
+    of: to the bit, thrown, on each of ``_TABLE_SCENES`` (whose taped steps together launch
+    every kernel of docs/method.md's coverage table but the rest model's hand-over), from a
+    pressure stiffness of 0 (``isotropic_pressure``: under a tape the SPH terms run there
+    too) and with two worlds."""
+    runs = [(case, options, solver_options, {}, 1) for case, options, solver_options, _hand in _TABLE_SCENES]
+    runs += [("isotropic_pressure", None, None, {"pressure_stiffness": 0.0}, 1), ("hourglass_paper", None, None, {}, 2)]
+    for case, options, solver_options, params, worlds in runs:
+        values = []
+        for taped in (True, False):
+            model = _model(case, "thrown", {**(options or {}), **params}, worlds=worlds,
+                           world1={"mu": 1.4e3} if worlds > 1 else None)
+            solver = we.Solver(model, **(CASES[case][1] if solver_options is None else solver_options))
+            w = random_weights(model.particle_count, 2)
+            if taped:
+                values.append(taped_rollout_loss(solver, [model.state() for _ in range(STEPS + 1)], DT, w)[0].numpy()[0])
+            else:
+                values.append(untaped_rollout_loss(solver, model.state(requires_grad=False), DT, STEPS, w))
+        assert values[0] == values[1], (case, params, worlds, values)
 
 
 #: Step paths the worlds' other gradient tests (``test_worlds.py``: the fused linear fit on the

@@ -16,7 +16,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_rollout_loss
+from taped_loss import random_weights, taped_rollout_loss, untaped_rollout_loss
 from warp_esph import tools
 
 DX = 0.02
@@ -61,13 +61,13 @@ def _loss(model, w, edit=None, taped=False):
     ``edit(model, state)`` changes the model or the first state before the run. ``taped``:
     also the solver and the states, after the backward pass."""
     solver = we.Solver(model)
-    states = [model.state() for _ in range(STEPS + 1)]
+    states = [model.state() for _ in range(STEPS + 1)] if taped else [model.state(requires_grad=False)]
     states[0].alpha.fill_(ALPHA0)
     if edit is not None:
         edit(model, states[0])
+    if not taped:  # a central difference's run: no tape
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, w)
     loss, tape = taped_rollout_loss(solver, states, DT, w)
-    if not taped:
-        return loss.numpy()[0]
     tape.backward(loss)
     return solver, states
 
@@ -82,7 +82,15 @@ def _nudge(owner, array, index, delta):
 
 
 def _central(make, w, owner, array, index, h):
-    return (_loss(make(), w, _nudge(owner, array, index, h)) - _loss(make(), w, _nudge(owner, array, index, -h))) / (2 * h)
+    # One model for both runs (a run from a model left by another is that of a new one, to the
+    # bit), the tools' nudged array put back before the second.
+    model = make()
+    tools_array = getattr(model.tools, array) if owner == "tools" else None
+    original = tools_array.numpy().copy() if owner == "tools" else None
+    plus = _loss(model, w, _nudge(owner, array, index, h))
+    if tools_array is not None:
+        tools_array.assign(original)
+    return (plus - _loss(model, w, _nudge(owner, array, index, -h))) / (2 * h)
 
 
 #: (scene, floor) pairs; not at rest on the floor images, whose mirrored neighbourhoods keep
