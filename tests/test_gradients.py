@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_gradients, taped_rollout_loss
+from taped_loss import random_weights, taped_gradients, taped_rollout_loss, untaped_rollout_loss
 from warp_esph.sim.guards import COUNT_FADE
 from warp_esph.sim.neighbors import MIN_NEIGHBORS
 
@@ -53,9 +53,12 @@ def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, 
                   fused=True):
     solver = we.Solver(model, fit=fit, hourglass=hourglass, min_neighbors=min_neighbors, fused=fused)
     solver.hand_adjoints = hand_adjoints
-    states = [model.state() for _ in range(STEPS + 1)]
+    untaped = not grad_of and hand_adjoints  # a central difference's run: no tape
+    states = [model.state(requires_grad=False)] if untaped else [model.state() for _ in range(STEPS + 1)]
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
     states[0].alpha.fill_(ALPHA0)
+    if untaped:
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights), solver
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if not grad_of:
         return loss.numpy()[0], solver
@@ -73,43 +76,46 @@ def weights():
     return random_weights(n, 0)
 
 
-@pytest.mark.parametrize("name,rel_step", [("mu", 1e-5), ("yield_stress", 1e-5), ("lam", 1e-5),
-                                            ("flow_rate", 1e-5), ("hardening", 1e-5),
-                                            ("pressure_stiffness", 1e-5), ("viscosity", 1e-5)])
-def test_material_gradient_matches_central_differences(weights, name, rel_step):
+def test_material_gradient_matches_central_differences(weights):
+    """The tape's gradient in each material parameter (one taped run's) against its float64
+    central difference at a relative step of 1e-5."""
     model = _model()
-    _, grads = _rollout_loss(model, weights, grad_of=(name,))
-    base = getattr(model.materials[0], name)
-    eps = rel_step * abs(base)
-    fd = (_rollout_loss(_model({name: base + eps}), weights)[0] - _rollout_loss(_model({name: base - eps}), weights)[0]) / (2 * eps)
-    # Central-difference noise here is ~1e-13; a loss that did not reach the parameter
-    # would give exactly 0 or noise.
-    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    names = ("mu", "yield_stress", "lam", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
+    _, grads = _rollout_loss(model, weights, grad_of=names)
+    for name in names:
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * abs(base)
+        fd = (_rollout_loss(_model({name: base + eps}), weights)[0] - _rollout_loss(_model({name: base - eps}), weights)[0]) / (2 * eps)
+        # Central-difference noise here is ~1e-13; a loss that did not reach the parameter
+        # would give exactly 0 or noise.
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 @pytest.mark.parametrize("deformation", ["rest", "additive", "rest_variational", "rest_variational_corrected"])
-@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate", "hardening"])
-def test_comparison_models_gradients_match_central_differences(weights, deformation, name):
+def test_comparison_models_gradients_match_central_differences(weights, deformation):
     """The Fig. 8 comparison kernels (``comparison.py``; the additive model's flow its own,
     hardening included) are differentiable too, and so is the
     rest model's variational force (``rest_variational``: its hand-written adjoint), also
-    with the curvature-corrected total fit (``..._corrected``): at a relative step of 1e-5
+    with the curvature-corrected total fit (``..._corrected``): the gradients in ``mu``, the
+    yield stress, the flow rate and the hardening (one taped run's) at a relative step of 1e-5
     and at ``LARGE_STEP``."""
     p = {"deformation": deformation}
     if deformation.startswith("rest_variational"):
         p = {"deformation": "rest", "elastic_force": "variational"}
     fit = "curvature_corrected" if deformation.endswith("corrected") else "linear"
     model = _model(p)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
-    base = getattr(model.materials[0], name)
-    for rel, tol in ((1e-5, 1e-4), LARGE_STEP):
-        eps = rel * abs(base)
-        plus = _rollout_loss(_model({name: base + eps, **p}), weights, fit=fit)[0]
-        minus = _rollout_loss(_model({name: base - eps, **p}), weights, fit=fit)[0]
-        fd = (plus - minus) / (2 * eps)
-        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=tol), rel
+    names = ("mu", "yield_stress", "flow_rate", "hardening")
+    _, grads = _rollout_loss(model, weights, grad_of=names, fit=fit)
+    for name in names:
+        base = getattr(model.materials[0], name)
+        for rel, tol in ((1e-5, 1e-4), LARGE_STEP):
+            eps = rel * abs(base)
+            plus = _rollout_loss(_model({name: base + eps, **p}), weights, fit=fit)[0]
+            minus = _rollout_loss(_model({name: base - eps, **p}), weights, fit=fit)[0]
+            fd = (plus - minus) / (2 * eps)
+            assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+            assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
 
 
 #: Relative steps of the central differences below: 1e-5, but larger where the loss reaches
@@ -130,30 +136,33 @@ _OTHER_PATHS = {
 }
 
 
-@pytest.mark.parametrize("path,name", [
-    ("stvk", "mu"), ("stvk", "yield_stress"), ("hyperelastic", "mu"), ("hyperelastic", "lam"),
-    ("non_newtonian", "yield_stress"), ("non_newtonian", "flow_rate"), ("spiky_pressure", "pressure_stiffness"),
-    ("spiky_pressure", "viscosity"), ("unfused_paper", "mu"), ("unfused_variational", "mu"),
-    ("unfused_variational", "flow_rate"), ("unfused_variational", "hardening"), ("compression_field", "mu"),
-])
-def test_other_models_pressure_forces_schedules_and_fields_gradients_match_central_differences(weights, path, name):
+#: The parameters each of ``_OTHER_PATHS`` is checked in (one taped run's gradients).
+_OTHER_PATH_NAMES = {"stvk": ("mu", "yield_stress"), "hyperelastic": ("mu", "lam"),
+                     "non_newtonian": ("yield_stress", "flow_rate"), "spiky_pressure": ("pressure_stiffness", "viscosity"),
+                     "unfused_paper": ("mu",), "unfused_variational": ("mu", "flow_rate", "hardening"),
+                     "compression_field": ("mu",)}
+
+
+@pytest.mark.parametrize("path", list(_OTHER_PATH_NAMES))
+def test_other_models_pressure_forces_schedules_and_fields_gradients_match_central_differences(weights, path):
     """The other stress models (St. Venant-Kirchhoff, the hyperelastic one, the
     non-Newtonian flow rule), the spiky pressure force, the non-fused step (its hand-written
     adjoints recorded one kernel at a time) and a force field, on the same yielding rollout
     from F = I: the tape against float64 central differences, at a small step and at
-    ``LARGE_STEP``."""
+    ``LARGE_STEP``, in each of ``_OTHER_PATH_NAMES``."""
     params, field, fused = _OTHER_PATHS[path]
+    names = _OTHER_PATH_NAMES[path]
     model = _model(params, field=field)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,), fused=fused)
-    base = getattr(model.materials[0], name)
-    for rel, tol in ((REL_STEP.get(path, 1e-5), 1e-4), LARGE_STEP):
-        eps = rel * abs(base)
-        plus = _rollout_loss(_model({**params, name: base + eps}, field=field), weights, fused=fused)[0]
-        minus = _rollout_loss(_model({**params, name: base - eps}, field=field), weights, fused=fused)[0]
-        fd = (plus - minus) / (2 * eps)
-        print(path, name, rel, grads[name][0], fd, abs(grads[name][0] / fd - 1))
-        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=tol), rel
+    _, grads = _rollout_loss(model, weights, grad_of=names, fused=fused)
+    for name in names:
+        base = getattr(model.materials[0], name)
+        for rel, tol in ((REL_STEP.get(path, 1e-5), 1e-4), LARGE_STEP):
+            eps = rel * abs(base)
+            plus = _rollout_loss(_model({**params, name: base + eps}, field=field), weights, fused=fused)[0]
+            minus = _rollout_loss(_model({**params, name: base - eps}, field=field), weights, fused=fused)[0]
+            fd = (plus - minus) / (2 * eps)
+            assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+            assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
 
 
 def _contact_model(case, mu=(1.0e3, 2.0e3)):
@@ -182,10 +191,10 @@ def _contact_model(case, mu=(1.0e3, 2.0e3)):
 
 def _contact_loss(model, weights, steps, grad=False):
     solver = we.Solver(model)
+    if not grad:  # a central difference's run: no tape
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, weights)
     states = [model.state() for _ in range(steps + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
-    if not grad:
-        return loss.numpy()[0]
     tape.backward(loss)
     return loss.numpy()[0], model.mu.grad.numpy().copy(), states[-1]
 
@@ -310,36 +319,40 @@ def test_gradient_across_the_saturated_flow_step(weights, elastic_force, rate_dt
             assert grads[name][0] == pytest.approx(one_sided, rel=1e-3), name
 
 
-@pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("yield_stress", "variational"),
-                                                  ("v0", "variational"), ("mu", "paper")])
-def test_curvature_corrected_fit_gradients_match_central_differences(weights, name, elastic_force):
+@pytest.mark.parametrize("names, elastic_force", [(("mu", "yield_stress", "v0"), "variational"), (("mu",), "paper")],
+                         ids=["variational", "paper"])
+def test_curvature_corrected_fit_gradients_match_central_differences(weights, names, elastic_force):
     """``Solver(fit="curvature_corrected")`` (``curvature.py``): the hand-written adjoints of
     its deformation update and its elastic force (``variational_forces_adjoint``; eqs. 10-13:
     ``forces.elastic_forces_adjoint``) against central differences, and against Warp's
-    generated adjoints."""
+    generated adjoints, in ``names`` (one taped run's)."""
     params = {"elastic_force": elastic_force}
     model = _model(params)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit="curvature_corrected")
-    _, generated = _rollout_loss(_model(params), weights, grad_of=(name,), fit="curvature_corrected", hand_adjoints=False)
-    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
-    if name == "v0":
-        i, c, eps = 7, 1, 1e-6
+    _, grads = _rollout_loss(model, weights, grad_of=names, fit="curvature_corrected")
+    _, generated = _rollout_loss(_model(params), weights, grad_of=names, fit="curvature_corrected", hand_adjoints=False)
+    for name in names:
+        np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max(),
+                                   err_msg=name)
+        if name == "v0":
+            i, c, eps = 7, 1, 1e-6
+            m = _model(params)  # one model for both runs, its initial velocities set before each
+            v0 = m.particle_v0.copy()
 
-        def loss_with(delta):
-            m = _model(params)
-            m.particle_v0[i, c] += delta
-            return _rollout_loss(m, weights, fit="curvature_corrected")[0]
+            def loss_with(delta):
+                m.particle_v0 = v0.copy()
+                m.particle_v0[i, c] += delta
+                return _rollout_loss(m, weights, fit="curvature_corrected")[0]
 
-        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
-        assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * abs(base)
-    plus = _rollout_loss(_model({name: base + eps, **params}), weights, fit="curvature_corrected")[0]
-    minus = _rollout_loss(_model({name: base - eps, **params}), weights, fit="curvature_corrected")[0]
-    fd = (plus - minus) / (2 * eps)
-    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+            fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+            assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+            continue
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * abs(base)
+        plus = _rollout_loss(_model({name: base + eps, **params}), weights, fit="curvature_corrected")[0]
+        minus = _rollout_loss(_model({name: base - eps, **params}), weights, fit="curvature_corrected")[0]
+        fd = (plus - minus) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 def _hourglass_model(params=None, **kw):
@@ -350,27 +363,26 @@ def _hourglass_model(params=None, **kw):
     return m
 
 
-@pytest.mark.parametrize("name", ["mu", "v0"])
-def test_hourglass_control_gradients_match_central_differences(weights, name):
+def test_hourglass_control_gradients_match_central_differences(weights):
     """``Solver(hourglass=c)`` (``hourglass.py``, Warp's generated adjoint; it reads the
-    stored F and mu) against central differences, with a control strong enough to move
-    the loss."""
+    stored F and mu) against central differences in ``mu`` and an initial velocity (one taped
+    run's), with a control strong enough to move the loss."""
     c = 0.5
     loss_on = _rollout_loss(_hourglass_model(), weights, hourglass=c)[0]
     loss_off = _rollout_loss(_hourglass_model(), weights)[0]
     assert abs(loss_on - loss_off) > 1e-6 * abs(loss_off), (loss_on, loss_off)
-    _, grads = _rollout_loss(_hourglass_model(), weights, grad_of=(name,), hourglass=c)
-    if name == "v0":
-        i, comp, eps = 7, 1, 1e-6
+    _, grads = _rollout_loss(_hourglass_model(), weights, grad_of=("mu", "v0"), hourglass=c)
+    i, comp, eps = 7, 1, 1e-6
+    m = _hourglass_model()  # one model for the velocity's runs, its initial velocities set before each
+    v0 = m.particle_v0.copy()
 
-        def loss_with(delta):
-            m = _hourglass_model()
-            m.particle_v0[i, comp] += delta
-            return _rollout_loss(m, weights, hourglass=c)[0]
+    def loss_with(delta):
+        m.particle_v0 = v0.copy()
+        m.particle_v0[i, comp] += delta
+        return _rollout_loss(m, weights, hourglass=c)[0]
 
-        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
-        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
+    fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+    assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
     base = _model().materials[0].mu
     eps = 1e-5 * base
     plus = _rollout_loss(_hourglass_model({"mu": base + eps}), weights, hourglass=c)[0]
@@ -466,36 +478,38 @@ def _energy_spiky_model(case, params=None):
 
 
 @pytest.mark.parametrize("case", ["rest", "merging"])
-@pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity", "v0"])
-def test_energy_spiky_pressure_gradients_match_central_differences(weights, case, name):
+def test_energy_spiky_pressure_gradients_match_central_differences(weights, case):
     """``pressure_force = "energy_spiky"``: the hand-written adjoints of the spiky density
     and of its energy pair force (``pressure.density_adjoint``, ``pressure_forces_adjoint``)
     against float64 central differences, at rest and with two particle layers merging, with
     viscosity on: its volumes come from the poly6 SPH density (``State.density``), the
     pressure from the spiky one (``State.pressure_density``), so both densities' adjoints
-    carry the gradient."""
+    carry the gradient. In the pressure stiffness, the viscosity and a particle's initial
+    velocity (one taped run's)."""
     model = _energy_spiky_model(case)
-    loss, grads = _rollout_loss(model, weights, grad_of=(name,))
-    if name == "v0":
-        i = int(np.flatnonzero(np.abs(np.abs(model.particle_x0[:, 1]) - 0.002) < 0.001)[0]) if case == "merging" else 7
-        for comp in (0, 1):
-            def loss_with(delta):
-                m = _energy_spiky_model(case)
-                m.particle_v0[i, comp] += delta
-                return _rollout_loss(m, weights)[0]
+    names = ("pressure_stiffness", "viscosity")
+    loss, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"))
+    i = int(np.flatnonzero(np.abs(np.abs(model.particle_x0[:, 1]) - 0.002) < 0.001)[0]) if case == "merging" else 7
+    m = _energy_spiky_model(case)  # one model for the velocity's runs, its initial velocities set before each
+    v0 = m.particle_v0.copy()
+    for comp in (0, 1):
+        def loss_with(delta):
+            m.particle_v0 = v0.copy()
+            m.particle_v0[i, comp] += delta
+            return _rollout_loss(m, weights)[0]
 
-            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
-    base = getattr(model.materials[0], name)
-    # 1e-4, not 1e-5: at rest the loss (0.2) moves by 7e-13 over +-1e-5 of the viscosity,
-    # and the round-off of two float64 losses is then 1e-4 of the difference (measured:
-    # the quotient moves by 1.6e-4 when F's round-off is carried, State.F_lo, the tape by 2e-12).
-    eps = 1e-4 * base
-    fd = (_rollout_loss(_energy_spiky_model(case, {name: base + eps}), weights)[0]
-          - _rollout_loss(_energy_spiky_model(case, {name: base - eps}), weights)[0]) / (2 * eps)
-    assert abs(fd) > 1e-9, "the loss does not reach " + name
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9), comp
+    for name in names:
+        base = getattr(model.materials[0], name)
+        # 1e-4, not 1e-5: at rest the loss (0.2) moves by 7e-13 over +-1e-5 of the viscosity,
+        # and the round-off of two float64 losses is then 1e-4 of the difference (measured:
+        # the quotient moves by 1.6e-4 when F's round-off is carried, State.F_lo, the tape by 2e-12).
+        eps = 1e-4 * base
+        fd = (_rollout_loss(_energy_spiky_model(case, {name: base + eps}), weights)[0]
+              - _rollout_loss(_energy_spiky_model(case, {name: base - eps}), weights)[0]) / (2 * eps)
+        assert abs(fd) > 1e-9, "the loss does not reach " + name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 #: (parameter at 0, the other SPH parameter's value, pressure force, ``Solver(fused=)``): both at 0,
@@ -556,34 +570,34 @@ def _elastic_model(params=None, **kw):
     return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})}, **kw)
 
 
-@pytest.mark.parametrize("name", ["mu", "lam", "v0"])
-def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights, name):
+def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights):
     """What the default solver runs for a purely elastic model under a tape (the
     rest model with the corrected total fit, ``Solver.rest_model``: the hand-written adjoints of
     its kernels, ``comparison.adjoint_kernels``, and Warp's generated one of the control)
-    against central differences."""
+    against central differences in ``mu``, ``lam`` and an initial velocity (one taped run's)."""
     _, solver = _rollout_loss(_elastic_model(), weights, fit=None, hourglass=None)
     assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0 and solver.rest_model, (solver.fit,
                                                                                                  solver.hourglass)
-    _, grads = _rollout_loss(_elastic_model(), weights, grad_of=(name,), fit=None, hourglass=None)
-    if name == "v0":
-        i, comp, eps = 7, 1, 1e-6
+    _, grads = _rollout_loss(_elastic_model(), weights, grad_of=("mu", "lam", "v0"), fit=None, hourglass=None)
+    i, comp, eps = 7, 1, 1e-6
+    m = _elastic_model()  # one model for the velocity's runs, its initial velocities set before each
+    v0 = m.particle_v0.copy()
 
-        def loss_with(delta):
-            m = _elastic_model()
-            m.particle_v0[i, comp] += delta
-            return _rollout_loss(m, weights, fit=None, hourglass=None)[0]
+    def loss_with(delta):
+        m.particle_v0 = v0.copy()
+        m.particle_v0[i, comp] += delta
+        return _rollout_loss(m, weights, fit=None, hourglass=None)[0]
 
-        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
-        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
-    base = getattr(_elastic_model().materials[0], name)
-    eps = 1e-5 * base
-    plus = _rollout_loss(_elastic_model({name: base + eps}), weights, fit=None, hourglass=None)[0]
-    minus = _rollout_loss(_elastic_model({name: base - eps}), weights, fit=None, hourglass=None)[0]
-    fd = (plus - minus) / (2 * eps)
-    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+    assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+    for name in ("mu", "lam"):
+        base = getattr(_elastic_model().materials[0], name)
+        eps = 1e-5 * base
+        plus = _rollout_loss(_elastic_model({name: base + eps}), weights, fit=None, hourglass=None)[0]
+        minus = _rollout_loss(_elastic_model({name: base - eps}), weights, fit=None, hourglass=None)[0]
+        fd = (plus - minus) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 #: The rest model's scenes for its hand-written adjoints (``comparison.adjoint_kernels``):
@@ -638,30 +652,30 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
 
 
 @pytest.mark.parametrize("case", REST_CASES)
-@pytest.mark.parametrize("name", ["mu", "lam", "v0", "x0"])
-def test_rest_models_hand_written_adjoints_match_central_differences(weights, case, name):
+def test_rest_models_hand_written_adjoints_match_central_differences(weights, case):
     """The rest model's hand-written adjoints (its total fit's and its variational force's,
     ``comparison.adjoint_kernels``, with those of the rest of the step) against float64
     central differences in ``mu``, ``lam`` and a particle's initial velocity and position, at
     rest, strained (a few %, and up to 15 %: the block's linear material cannot flow, so it
     takes the corotated stress, ``forces.corotated_stress``), through ground contact, with
     guarded rest neighbourhoods and through inverted rest fits (a bottom corner, 0: guarded in
-    ``guarded``, on the ground in ``contact``; an interior particle, 41)."""
-    loss, grads = _rest_case_loss(case, weights, grad_of=(name,))
-    if name in ("v0", "x0"):
+    ``guarded``, on the ground in ``contact``; an interior particle, 41), all four from one
+    taped run."""
+    loss, grads = _rest_case_loss(case, weights, grad_of=("mu", "lam", "v0", "x0"))
+    for name in ("v0", "x0"):
         key = "dv" if name == "v0" else "dx"
         eps = 1e-6 if name == "v0" else 1e-7
         for i, c in [(0, 1), (41, 0)]:
             fd = (_rest_case_loss(case, weights, **{key: (i, c, eps)})
                   - _rest_case_loss(case, weights, **{key: (i, c, -eps)})) / (2 * eps)
-            assert abs(fd) > 1e-6, (i, c)
-            assert grads[name][i, c] == pytest.approx(fd, rel=1e-5, abs=1e-9), (i, c)
-        return
-    base = getattr(_elastic_model().materials[0], name)
-    eps = 1e-5 * base
-    fd = (_rest_case_loss(case, weights, {name: base + eps}) - _rest_case_loss(case, weights, {name: base - eps})) / (2 * eps)
-    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+            assert abs(fd) > 1e-6, (name, i, c)
+            assert grads[name][i, c] == pytest.approx(fd, rel=1e-5, abs=1e-9), (name, i, c)
+    for name in ("mu", "lam"):
+        base = getattr(_elastic_model().materials[0], name)
+        eps = 1e-5 * base
+        fd = (_rest_case_loss(case, weights, {name: base + eps}) - _rest_case_loss(case, weights, {name: base - eps})) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 #: Rest-configuration materials (``Material(deformation="rest")``) beside the default's rest
@@ -825,31 +839,33 @@ def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     return model
 
 
-@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity", "v0"])
-def test_floor_images_gradients_match_central_differences(weights, name):
+def test_floor_images_gradients_match_central_differences(weights):
     """Through the ground's floor images (fit, variational energy, SPH density, pressure and
     viscosity against the floor; the default pressure force, ``energy_spiky``, whose spiky
     pressure density and poly6 SPH density both hold the images): the taped rollout (the fused forward with the hand-written
-    adjoints, which carry the image terms) against float64 central differences."""
+    adjoints, which carry the image terms) against float64 central differences, in six
+    material parameters and the lowest particle's initial velocity (one taped run's)."""
     model = _images_model()
-    loss, grads = _rollout_loss(model, weights, grad_of=(name,))
-    if name == "v0":
-        i = int(np.argmin(model.particle_x0[:, 1]))
-        for comp in (0, 1):
-            def loss_with(delta):
-                m = _images_model()
-                m.particle_v0[i, comp] += delta
-                return _rollout_loss(m, weights)[0]
+    names = ("mu", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
+    loss, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"))
+    i = int(np.argmin(model.particle_x0[:, 1]))
+    m = _images_model()  # one model for the velocity's runs, its initial velocities set before each
+    v0 = m.particle_v0.copy()
+    for comp in (0, 1):
+        def loss_with(delta):
+            m.particle_v0 = v0.copy()
+            m.particle_v0[i, comp] += delta
+            return _rollout_loss(m, weights)[0]
 
-            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * base
-    fd = (_rollout_loss(_images_model({name: base + eps}), weights)[0]
-          - _rollout_loss(_images_model({name: base - eps}), weights)[0]) / (2 * eps)
-    assert abs(fd) > 1e-9, "the loss does not reach " + name
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9), comp
+    for name in names:
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * base
+        fd = (_rollout_loss(_images_model({name: base + eps}), weights)[0]
+              - _rollout_loss(_images_model({name: base - eps}), weights)[0]) / (2 * eps)
+        assert abs(fd) > 1e-9, "the loss does not reach " + name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 def test_a_rollouts_default_start_after_an_initial_state_has_new_floor_images():
@@ -874,10 +890,12 @@ def test_a_rollouts_default_start_after_an_initial_state_has_new_floor_images():
 def _assert_lowest_v0_gradient(make, grads, weights, fit="linear"):
     """``grads["v0"]`` of the lowest particle of ``make()``'s model, along x and y, against
     central differences of the rollout loss at a step of 1e-6 m/s."""
-    i = int(np.argmin(make().particle_x0[:, 1]))
+    m = make()  # one model for the runs, its initial velocities set before each
+    v0 = m.particle_v0.copy()
+    i = int(np.argmin(m.particle_x0[:, 1]))
     for comp in (0, 1):
         def loss_with(delta):
-            m = make()
+            m.particle_v0 = v0.copy()
             m.particle_v0[i, comp] += delta
             return _rollout_loss(m, weights, fit=fit)[0]
 
@@ -905,80 +923,76 @@ def _lowest_height(scene: str) -> float:
 
 
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES))
-@pytest.mark.parametrize("name", ["mu", "pressure_stiffness", "viscosity", "v0"])
-def test_floor_images_gradients_at_rest_and_through_contact(weights, scene, name):
+def test_floor_images_gradients_at_rest_and_through_contact(weights, scene):
     """The hand-written adjoints with the floor images (the fused forward under the tape,
     ``Solver.fast_under_tape``) against float64 central differences: a block at rest on
     the imaged ground (F = I, every singular value repeated), and one landing on it (the
-    collider's contact within the rollout)."""
+    collider's contact within the rollout); in ``mu``, the pressure stiffness, the viscosity
+    and the lowest particle's initial velocity (one taped run's)."""
     kw = IMAGE_SCENES[scene]
     model = _images_model(**kw)
     assert we.Solver(model).fast_under_tape()
-    if name == "mu":  # once per scene: the scene does what its name says
-        low = _lowest_height(scene)
-        assert (low <= 1e-9) if scene == "contact" else (0.0 < low < 0.5 * 0.02)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,))
-    if name == "v0":
-        i = int(np.argmin(model.particle_x0[:, 1]))
-        for comp in (0, 1):
-            def loss_with(delta):
-                m = _images_model(**kw)
-                m.particle_v0[i, comp] += delta
-                return _rollout_loss(m, weights)[0]
-
-            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-        return
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * base
-    fd = (_rollout_loss(_images_model({name: base + eps}, **kw), weights)[0]
-          - _rollout_loss(_images_model({name: base - eps}, **kw), weights)[0]) / (2 * eps)
-    assert abs(fd) > 1e-9, "the loss does not reach " + name
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    low = _lowest_height(scene)  # the scene does what its name says
+    assert (low <= 1e-9) if scene == "contact" else (0.0 < low < 0.5 * 0.02)
+    names = ("mu", "pressure_stiffness", "viscosity")
+    _, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"))
+    _assert_lowest_v0_gradient(lambda: _images_model(**kw), grads, weights)
+    for name in names:
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * base
+        fd = (_rollout_loss(_images_model({name: base + eps}, **kw), weights)[0]
+              - _rollout_loss(_images_model({name: base - eps}, **kw), weights)[0]) / (2 * eps)
+        assert abs(fd) > 1e-9, "the loss does not reach " + name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
-@pytest.mark.parametrize("name", ["mu", "lam"])
-def test_floor_images_gradients_of_the_paper_force_match_central_differences(weights, scene, name):
+def test_floor_images_gradients_of_the_paper_force_match_central_differences(weights, scene):
     """The paper's force (eqs. 10-13) over the floor images (``forces.paper_image_forces``,
     its hand-written adjoint ``forces.elastic_forces_adjoint``): the taped rollout against
-    float64 central differences at rest, through contact and squeezed."""
+    float64 central differences in ``mu`` and ``lam`` (one taped run's) at rest, through
+    contact and squeezed."""
     kw = IMAGE_SCENES.get(scene, {})
     paper = {"elastic_force": "paper"}
     model = _images_model(paper, **kw)
     assert we.Solver(model).fast_under_tape()
-    _, grads = _rollout_loss(model, weights, grad_of=(name,))
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * base
-    fd = (_rollout_loss(_images_model({**paper, name: base + eps}, **kw), weights)[0]
-          - _rollout_loss(_images_model({**paper, name: base - eps}, **kw), weights)[0]) / (2 * eps)
-    assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    _, grads = _rollout_loss(model, weights, grad_of=("mu", "lam"))
+    for name in ("mu", "lam"):
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * base
+        fd = (_rollout_loss(_images_model({**paper, name: base + eps}, **kw), weights)[0]
+              - _rollout_loss(_images_model({**paper, name: base - eps}, **kw), weights)[0]) / (2 * eps)
+        assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
-@pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("v0", "variational"), ("lam", "paper")])
-def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(weights, scene, name, elastic_force):
+@pytest.mark.parametrize("names, elastic_force", [(("mu", "v0"), "variational"), (("lam",), "paper")],
+                         ids=["variational", "paper"])
+def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(weights, scene, names, elastic_force):
     """``fit="curvature_corrected"`` over the floor images (``curvature.moment_pair_sums``,
     ``floor_image_moment``, ``floor_image_forces``; the paper's force's image pairs): its
     hand-written adjoints against Warp's generated ones and against float64 central
-    differences, at rest, through contact and squeezed."""
+    differences, at rest, through contact and squeezed: with the variational force in ``mu``
+    and the lowest particle's initial velocity (one taped run's), with the paper's in ``lam``."""
     kw = IMAGE_SCENES.get(scene, {})
     params = {"elastic_force": elastic_force}
     fit = "curvature_corrected"
     model = _images_model(params, **kw)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
-    _, generated = _rollout_loss(_images_model(params, **kw), weights, grad_of=(name,), fit=fit, hand_adjoints=False)
-    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
-    if name == "v0":
-        _assert_lowest_v0_gradient(lambda: _images_model(params, **kw), grads, weights, fit)
-        return
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * base
-    fd = (_rollout_loss(_images_model({**params, name: base + eps}, **kw), weights, fit=fit)[0]
-          - _rollout_loss(_images_model({**params, name: base - eps}, **kw), weights, fit=fit)[0]) / (2 * eps)
-    assert abs(fd) > 1e-11, "the loss does not reach " + name
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    _, grads = _rollout_loss(model, weights, grad_of=names, fit=fit)
+    _, generated = _rollout_loss(_images_model(params, **kw), weights, grad_of=names, fit=fit, hand_adjoints=False)
+    for name in names:
+        np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max(),
+                                   err_msg=name)
+        if name == "v0":
+            _assert_lowest_v0_gradient(lambda: _images_model(params, **kw), grads, weights, fit)
+            continue
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * base
+        fd = (_rollout_loss(_images_model({**params, name: base + eps}, **kw), weights, fit=fit)[0]
+              - _rollout_loss(_images_model({**params, name: base - eps}, **kw), weights, fit=fit)[0]) / (2 * eps)
+        assert abs(fd) > 1e-11, "the loss does not reach " + name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 @pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity"])
@@ -1002,14 +1016,11 @@ def test_floor_images_gradients_of_the_energy_pressure_force_match_central_diffe
 #: curvature-corrected fit, and the floor images at rest (F = I, 0.3 dx over the plane) and
 #: through contact.
 BIWEIGHT_CASES = {
-    "linear-mu": ("block", "variational", "linear", "mu"),
-    "linear-yield_stress": ("block", "variational", "linear", "yield_stress"),
-    "linear-flow_rate": ("block", "variational", "linear", "flow_rate"),
-    "linear-v0": ("block", "variational", "linear", "v0"),
-    "paper-lam": ("block", "paper", "linear", "lam"),
-    "corrected-mu": ("block", "variational", "curvature_corrected", "mu"),
-    "images-rest-mu": ("rest", "variational", "linear", "mu"),
-    "images-contact-v0": ("contact", "variational", "linear", "v0"),
+    "linear": ("block", "variational", "linear", ("mu", "yield_stress", "flow_rate", "v0")),
+    "paper": ("block", "paper", "linear", ("lam",)),
+    "corrected": ("block", "variational", "curvature_corrected", ("mu",)),
+    "images-rest": ("rest", "variational", "linear", ("mu",)),
+    "images-contact": ("contact", "variational", "linear", ("v0",)),
 }
 
 
@@ -1024,24 +1035,27 @@ def _biweight_model(scene, elastic_force, params=None):
 def test_biweight_fit_gradients_match_central_differences(weights, case):
     """The biweight's hand-written adjoints (its weight and slope in the fit's, the
     variational force's and the corrected fit's pair adjoints) against float64 central
-    differences at a relative step of 1e-5, and against Warp's generated adjoints."""
-    scene, elastic_force, fit, name = BIWEIGHT_CASES[case]
+    differences at a relative step of 1e-5, and against Warp's generated adjoints, in the
+    case's parameters (one taped run's)."""
+    scene, elastic_force, fit, names = BIWEIGHT_CASES[case]
     model = _biweight_model(scene, elastic_force)
     assert model.fit_weight == "biweight"
-    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
-    _, generated = _rollout_loss(_biweight_model(scene, elastic_force), weights, grad_of=(name,), fit=fit,
+    _, grads = _rollout_loss(model, weights, grad_of=names, fit=fit)
+    _, generated = _rollout_loss(_biweight_model(scene, elastic_force), weights, grad_of=names, fit=fit,
                                  hand_adjoints=False)
-    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
-    if name == "v0":
-        _assert_lowest_v0_gradient(lambda: _biweight_model(scene, elastic_force), grads, weights, fit)
-        return
-    base = getattr(model.materials[0], name)
-    eps = 1e-5 * abs(base)
-    plus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base + eps}), weights, fit=fit)[0]
-    minus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base - eps}), weights, fit=fit)[0]
-    fd = (plus - minus) / (2 * eps)
-    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    for name in names:
+        np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max(),
+                                   err_msg=name)
+        if name == "v0":
+            _assert_lowest_v0_gradient(lambda: _biweight_model(scene, elastic_force), grads, weights, fit)
+            continue
+        base = getattr(model.materials[0], name)
+        eps = 1e-5 * abs(base)
+        plus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base + eps}), weights, fit=fit)[0]
+        minus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base - eps}), weights, fit=fit)[0]
+        fd = (plus - minus) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
 # A single layer 6 x 6 of particles, every other one raised 0.08 dx (a checkerboard): its
@@ -1339,10 +1353,10 @@ def _resting_model(case, params=None):
 
 def _resting_loss(model, case, w, grad_of=None, steps=8):
     solver = we.Solver(model, **AT_REST[case][1])
+    if grad_of is None:  # a central difference's run: no tape
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, w)
     states = [model.state() for _ in range(steps + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, w)
-    if grad_of is None:
-        return loss.numpy()[0]
     grads = taped_gradients(model, states, loss, tape, grad_of)
     return loss.numpy()[0], grads, states
 
@@ -1382,10 +1396,14 @@ def test_gradients_at_rest_on_the_ground_match_central_differences(case):
             assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
     # The block's own particles (a ghost floor's follow them).
     x0 = model.particle_x0[:36]
+    # One model for the velocities' runs (a run from a model another run left is a new one's
+    # to the bit), its initial velocities set before each.
+    m = _resting_model(case)
+    v0 = m.particle_v0.copy()
     for i, c in ((int(np.argmin(x0[:, 1])), 0), (int(np.argmax(x0[:, 1])), 1)):
         for eps in (1e-4, 1e-6):
             def loss_with(delta):
-                m = _resting_model(case)
+                m.particle_v0 = v0.copy()
                 m.particle_v0[i, c] += delta
                 return _resting_loss(m, case, w)
 
