@@ -70,6 +70,21 @@ def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, 
     return loss.numpy()[0], grads
 
 
+def _reused(model):
+    """``at(name, value)``: ``model`` with ``name`` set to ``value`` in each material that holds
+    its built value (``Model.set_materials``), so that a test's central differences build their
+    model once: a run from a model another run left, its materials set, is a new model's to
+    the bit (measured on every case of ``AT_REST`` and of ``test_gradient_coverage.py``)."""
+    materials = list(model.materials)
+
+    def at(name, value):
+        base = getattr(materials[0], name)
+        model.set_materials([mt.replace(**{name: value}) if getattr(mt, name) == base else mt for mt in materials])
+        return model
+
+    return at
+
+
 @pytest.fixture(scope="module")
 def weights():
     n = _model().particle_count
@@ -82,10 +97,11 @@ def test_material_gradient_matches_central_differences(weights):
     model = _model()
     names = ("mu", "yield_stress", "lam", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
     _, grads = _rollout_loss(model, weights, grad_of=names)
+    at = _reused(_model())
     for name in names:
         base = getattr(model.materials[0], name)
         eps = 1e-5 * abs(base)
-        fd = (_rollout_loss(_model({name: base + eps}), weights)[0] - _rollout_loss(_model({name: base - eps}), weights)[0]) / (2 * eps)
+        fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         # Central-difference noise here is ~1e-13; a loss that did not reach the parameter
         # would give exactly 0 or noise.
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
@@ -107,12 +123,13 @@ def test_comparison_models_gradients_match_central_differences(weights, deformat
     model = _model(p)
     names = ("mu", "yield_stress", "flow_rate", "hardening")
     _, grads = _rollout_loss(model, weights, grad_of=names, fit=fit)
+    at = _reused(_model(p))
     for name in names:
         base = getattr(model.materials[0], name)
         for rel, tol in ((1e-5, 1e-4), LARGE_STEP):
             eps = rel * abs(base)
-            plus = _rollout_loss(_model({name: base + eps, **p}), weights, fit=fit)[0]
-            minus = _rollout_loss(_model({name: base - eps, **p}), weights, fit=fit)[0]
+            plus = _rollout_loss(at(name, base + eps), weights, fit=fit)[0]
+            minus = _rollout_loss(at(name, base - eps), weights, fit=fit)[0]
             fd = (plus - minus) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
             assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
@@ -154,12 +171,13 @@ def test_other_models_pressure_forces_schedules_and_fields_gradients_match_centr
     names = _OTHER_PATH_NAMES[path]
     model = _model(params, field=field)
     _, grads = _rollout_loss(model, weights, grad_of=names, fused=fused)
+    at = _reused(_model(params, field=field))
     for name in names:
         base = getattr(model.materials[0], name)
         for rel, tol in ((REL_STEP.get(path, 1e-5), 1e-4), LARGE_STEP):
             eps = rel * abs(base)
-            plus = _rollout_loss(_model({**params, name: base + eps}, field=field), weights, fused=fused)[0]
-            minus = _rollout_loss(_model({**params, name: base - eps}, field=field), weights, fused=fused)[0]
+            plus = _rollout_loss(at(name, base + eps), weights, fused=fused)[0]
+            minus = _rollout_loss(at(name, base - eps), weights, fused=fused)[0]
             fd = (plus - minus) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
             assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
@@ -348,8 +366,9 @@ def test_curvature_corrected_fit_gradients_match_central_differences(weights, na
             continue
         base = getattr(model.materials[0], name)
         eps = 1e-5 * abs(base)
-        plus = _rollout_loss(_model({name: base + eps, **params}), weights, fit="curvature_corrected")[0]
-        minus = _rollout_loss(_model({name: base - eps, **params}), weights, fit="curvature_corrected")[0]
+        at = _reused(_model(params))
+        plus = _rollout_loss(at(name, base + eps), weights, fit="curvature_corrected")[0]
+        minus = _rollout_loss(at(name, base - eps), weights, fit="curvature_corrected")[0]
         fd = (plus - minus) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
@@ -506,8 +525,8 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
         # and the round-off of two float64 losses is then 1e-4 of the difference (measured:
         # the quotient moves by 1.6e-4 when F's round-off is carried, State.F_lo, the tape by 2e-12).
         eps = 1e-4 * base
-        fd = (_rollout_loss(_energy_spiky_model(case, {name: base + eps}), weights)[0]
-              - _rollout_loss(_energy_spiky_model(case, {name: base - eps}), weights)[0]) / (2 * eps)
+        at = _reused(_energy_spiky_model(case))
+        fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-9, "the loss does not reach " + name
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
@@ -593,8 +612,9 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     for name in ("mu", "lam"):
         base = getattr(_elastic_model().materials[0], name)
         eps = 1e-5 * base
-        plus = _rollout_loss(_elastic_model({name: base + eps}), weights, fit=None, hourglass=None)[0]
-        minus = _rollout_loss(_elastic_model({name: base - eps}), weights, fit=None, hourglass=None)[0]
+        at = _reused(_elastic_model())
+        plus = _rollout_loss(at(name, base + eps), weights, fit=None, hourglass=None)[0]
+        minus = _rollout_loss(at(name, base - eps), weights, fit=None, hourglass=None)[0]
         fd = (plus - minus) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
@@ -862,8 +882,8 @@ def test_floor_images_gradients_match_central_differences(weights):
     for name in names:
         base = getattr(model.materials[0], name)
         eps = 1e-5 * base
-        fd = (_rollout_loss(_images_model({name: base + eps}), weights)[0]
-              - _rollout_loss(_images_model({name: base - eps}), weights)[0]) / (2 * eps)
+        at = _reused(_images_model())
+        fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-9, "the loss does not reach " + name
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
@@ -940,8 +960,8 @@ def test_floor_images_gradients_at_rest_and_through_contact(weights, scene):
     for name in names:
         base = getattr(model.materials[0], name)
         eps = 1e-5 * base
-        fd = (_rollout_loss(_images_model({name: base + eps}, **kw), weights)[0]
-              - _rollout_loss(_images_model({name: base - eps}, **kw), weights)[0]) / (2 * eps)
+        at = _reused(_images_model(**kw))
+        fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-9, "the loss does not reach " + name
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
@@ -960,8 +980,8 @@ def test_floor_images_gradients_of_the_paper_force_match_central_differences(wei
     for name in ("mu", "lam"):
         base = getattr(model.materials[0], name)
         eps = 1e-5 * base
-        fd = (_rollout_loss(_images_model({**paper, name: base + eps}, **kw), weights)[0]
-              - _rollout_loss(_images_model({**paper, name: base - eps}, **kw), weights)[0]) / (2 * eps)
+        at = _reused(_images_model(paper, **kw))
+        fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
@@ -989,8 +1009,9 @@ def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(w
             continue
         base = getattr(model.materials[0], name)
         eps = 1e-5 * base
-        fd = (_rollout_loss(_images_model({**params, name: base + eps}, **kw), weights, fit=fit)[0]
-              - _rollout_loss(_images_model({**params, name: base - eps}, **kw), weights, fit=fit)[0]) / (2 * eps)
+        at = _reused(_images_model(params, **kw))
+        fd = (_rollout_loss(at(name, base + eps), weights, fit=fit)[0]
+              - _rollout_loss(at(name, base - eps), weights, fit=fit)[0]) / (2 * eps)
         assert abs(fd) > 1e-11, "the loss does not reach " + name
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
@@ -1051,8 +1072,9 @@ def test_biweight_fit_gradients_match_central_differences(weights, case):
             continue
         base = getattr(model.materials[0], name)
         eps = 1e-5 * abs(base)
-        plus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base + eps}), weights, fit=fit)[0]
-        minus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base - eps}), weights, fit=fit)[0]
+        at = _reused(_biweight_model(scene, elastic_force))
+        plus = _rollout_loss(at(name, base + eps), weights, fit=fit)[0]
+        minus = _rollout_loss(at(name, base - eps), weights, fit=fit)[0]
         fd = (plus - minus) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
@@ -1386,19 +1408,26 @@ def test_gradients_at_rest_on_the_ground_match_central_differences(case):
         assert (np.abs(rows).max(axis=(0, 2)) > 0.0).all(), "every tool (the pinned floor) holds the block"
     elif floor not in ("ghost", "slip"):
         assert np.abs(last.collider_force.numpy()).max() > 0.0, "the block rests on the collider"
+    # One model for the central differences' runs (a run from a model another run left, its
+    # materials or initial velocities set, is a new one's to the bit): the parameter set in each
+    # material made with it (a particle floor's is the block's), then put back.
+    m = _resting_model(case)
+    materials = list(m.materials)
     for name in names:
         base = getattr(model.materials[0], name)
+
+        def loss_at(value):
+            m.set_materials([mt.replace(**{name: value}) if getattr(mt, name) == base else mt for mt in materials])
+            return _resting_loss(m, case, w)
+
         for rel in (1e-3, 1e-5):
             eps = rel * base
-            fd = (_resting_loss(_resting_model(case, {name: base + eps}), case, w)
-                  - _resting_loss(_resting_model(case, {name: base - eps}), case, w)) / (2 * eps)
+            fd = (loss_at(base + eps) - loss_at(base - eps)) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
             assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
+        m.set_materials(materials)
     # The block's own particles (a ghost floor's follow them).
     x0 = model.particle_x0[:36]
-    # One model for the velocities' runs (a run from a model another run left is a new one's
-    # to the bit), its initial velocities set before each.
-    m = _resting_model(case)
     v0 = m.particle_v0.copy()
     for i, c in ((int(np.argmin(x0[:, 1])), 0), (int(np.argmax(x0[:, 1])), 1)):
         for eps in (1e-4, 1e-6):
