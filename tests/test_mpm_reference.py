@@ -84,15 +84,17 @@ def test_near_yield_column_spreads_its_base_as_the_1d_analysis():
     yielding and the column upright. So the 1-D analysis is the right target for the particle
     column (docs/validation.md, "The continuum's column"), whose collider-held base spreads
     less. 3 cells, not 4, for the suite's time (a third of the CPU): a continuum yield stress
-    2 % low (the return mapping onto 0.98 Y) reads 1.23 x and fails it.
+    2 % low (the return mapping onto 0.98 Y) reads 1.23 x and fails it; one 2 % high (onto
+    1.02 Y) reads 0.922 x (0.899 at 4 cells, where the bound 0.9 failed it), so at 3 cells,
+    which read 7 % high, the spreading's lower bound is 0.95.
 
     Run at twice the benchmark's step (``cfl`` 0.6 for 0.3: half the steps): the column is
-    relaxed to rest, so the step does not enter what is read (measured at 0.3 / 0.45 / 0.6:
+    relaxed to rest, so the step does not enter what is read (measured at 4 cells, 0.3 / 0.45 / 0.6:
     elastic 0.9958 / 0.9962 / 0.9963, plastic 1.0313 / 1.0311 / 1.0308 x the theory, front
     0.7375 at all three, tilt 2e-4 / 1e-4 / 8e-5 of the width)."""
     r = mpm_slump.near_yield_column(res=3, cfl=0.6)
     assert r["elastic_over_theory"] == pytest.approx(1.0, abs=0.02), r
-    assert r["plastic_over_theory"] == pytest.approx(1.0, abs=0.1), r
+    assert 0.95 < r["plastic_over_theory"] < 1.1, r
     assert 0.7 < r["front_depth"] < 0.8, r  # the 1-D front at 0.8 L, the spreading base drags a little above
     assert r["top_offset_over_width"] < 0.01, r  # upright: the tilt comes later
 
