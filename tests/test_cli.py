@@ -1822,10 +1822,12 @@ def test_subprocess_bad_input(tmp_path):
     assert_one_line_error(bad.stderr, "'centre'", "did you mean 'center'")
 
 
-def test_init_warp_holds_back_only_the_native_cuda_note(capfd, monkeypatch):
+def test_init_warp_holds_back_only_the_native_cuda_note(capfd, monkeypatch, tmp_path):
     """``we.init_warp()`` (the notebooks' and the CLI's start): a Python process starting Warp
     this way writes nothing on stderr on a CPU machine, where a bare ``wp.init()`` writes
-    Warp's native CUDA-driver note; other native output still reaches stderr."""
+    Warp's native CUDA-driver note; other native output still reaches stderr. The same child
+    then runs a 2-frame ``run`` through ``cli.main``: a successful run writes nothing on
+    stderr either (no traceback, no warning)."""
     from warp_esph.startup import _native_notes
 
     notes = _native_notes(lambda: os.write(2, b"native note A\nWarp CUDA warning: no driver\n"))
@@ -1833,10 +1835,13 @@ def test_init_warp_holds_back_only_the_native_cuda_note(capfd, monkeypatch):
     os.write(2, b"after\n")  # fd 2 is back where it was
     assert capfd.readouterr().err == "after\n"
 
-    code = "import warp as wp, warp_esph as we; print(len(we.init_warp())); print(wp.get_device())"
-    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    code = ("import warp as wp, warp_esph as we; print(len(we.init_warp())); print(wp.get_device())\n"
+            "from warp_esph.cli import main\n"
+            "print('rc', main(['run', 'dough_drop', '--scale', '0.3', '--frames', '2', '-o', 'q.usdc', '--no-progress']))")
+    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert quiet.returncode == 0, quiet.stderr
     assert "CUDA" not in quiet.stderr and "Warp" not in quiet.stderr and "Warp" not in quiet.stdout
+    assert quiet.stderr == "" and "rc 0" in quiet.stdout and (tmp_path / "q.usdc").stat().st_size > 0, quiet.stderr
     bare = subprocess.run([sys.executable, "-c", "import warp as wp; wp.config.log_level = wp.LOG_WARNING; wp.init()"],
                           capture_output=True, text=True, timeout=120)
     held = int(quiet.stdout.split()[0])
