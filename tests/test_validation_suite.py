@@ -1042,7 +1042,7 @@ def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
     that the default runs for this elastic block, not the control alone: without the control
     (``model.AUTO_HOURGLASS = 0``) it read 0.9993 x its first reading, within the 1 % bound;
     without both (``fit="curvature_corrected", hourglass=0``, the incremental fit) 0.577 x,
-    and with the paper's linear fit and no control 0.648 x (next test), far outside it."""
+    and with the paper's linear fit and no control (the next test's set-up) 0.648 x, far outside it."""
     assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
 
