@@ -105,7 +105,7 @@ def test_material_gradient_matches_central_differences(weights):
         # Central-difference noise here is ~1e-13; a loss that did not reach the parameter
         # would give exactly 0 or noise.
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 @pytest.mark.parametrize("deformation", ["rest", "additive", "rest_variational", "rest_variational_corrected"])
@@ -132,7 +132,7 @@ def test_comparison_models_gradients_match_central_differences(weights, deformat
             minus = _rollout_loss(at(name, base - eps), weights, fit=fit)[0]
             fd = (plus - minus) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-            assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
+            assert grads[name][0] == pytest.approx(fd, rel=tol, abs=0.0), (name, rel)
 
 
 #: Relative steps of the central differences below: 1e-5, but larger where the loss reaches
@@ -180,7 +180,7 @@ def test_other_models_pressure_forces_schedules_and_fields_gradients_match_centr
             minus = _rollout_loss(at(name, base - eps), weights, fused=fused)[0]
             fd = (plus - minus) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-            assert grads[name][0] == pytest.approx(fd, rel=tol), (name, rel)
+            assert grads[name][0] == pytest.approx(fd, rel=tol, abs=0.0), (name, rel)
 
 
 def _contact_model(case, mu=(1.0e3, 2.0e3)):
@@ -244,7 +244,7 @@ def test_gradients_through_contact_between_bodies_and_of_the_default_elastic_sol
         fd = (vals[0] - vals[1]) / (2e-5 * mu[k])
         print(case, k, g[k], fd, abs(g[k] / fd - 1))
         assert abs(fd) > 1e-11, k
-        assert g[k] == pytest.approx(fd, rel=1e-4), k
+        assert g[k] == pytest.approx(fd, rel=1e-4, abs=0.0), k
 
 
 def test_rollout_yields_and_guards_stay_quiet(weights):
@@ -287,7 +287,7 @@ def test_variational_force_gradients_match_central_differences(weights, name):
     minus = _rollout_loss(_model({name: base - eps, "elastic_force": "variational"}), weights)[0]
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
 def _clamped_flows(params) -> tuple[int, int]:
@@ -332,7 +332,7 @@ def test_gradient_across_the_saturated_flow_step(weights, elastic_force, rate_dt
         minus = _rollout_loss(_model({**params, name: base - eps}), weights)[0]
         fd = (plus - minus) / (2 * eps)
         assert abs(fd) > 1e-12, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
         for one_sided in ((plus - value) / eps, (value - minus) / eps):
             assert grads[name][0] == pytest.approx(one_sided, rel=1e-3), name
 
@@ -473,7 +473,7 @@ def test_gradients_through_full_keyed_rows_match_central_differences(case):
         eps = rel * base
         fd = (_keyed_rollout(case, params={name: base + eps})[0] - _keyed_rollout(case, params={name: base - eps})[0]) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert g == pytest.approx(fd, rel=tol), rel
+        assert g == pytest.approx(fd, rel=tol, abs=0.0), rel
 
 
 def _energy_spiky_model(case, params=None):
@@ -885,7 +885,7 @@ def test_floor_images_gradients_match_central_differences(weights):
         at = _reused(_images_model())
         fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-9, "the loss does not reach " + name
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 def test_a_rollouts_default_start_after_an_initial_state_has_new_floor_images():
@@ -963,7 +963,7 @@ def test_floor_images_gradients_at_rest_and_through_contact(weights, scene):
         at = _reused(_images_model(**kw))
         fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-9, "the loss does not reach " + name
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
@@ -983,7 +983,7 @@ def test_floor_images_gradients_of_the_paper_force_match_central_differences(wei
         at = _reused(_images_model(paper, **kw))
         fd = (_rollout_loss(at(name, base + eps), weights)[0] - _rollout_loss(at(name, base - eps), weights)[0]) / (2 * eps)
         assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
@@ -1013,7 +1013,7 @@ def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(w
         fd = (_rollout_loss(at(name, base + eps), weights, fit=fit)[0]
               - _rollout_loss(at(name, base - eps), weights, fit=fit)[0]) / (2 * eps)
         assert abs(fd) > 1e-11, "the loss does not reach " + name
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 @pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity"])
@@ -1077,7 +1077,7 @@ def test_biweight_fit_gradients_match_central_differences(weights, case):
         minus = _rollout_loss(at(name, base - eps), weights, fit=fit)[0]
         fd = (plus - minus) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), name
 
 
 # A single layer 6 x 6 of particles, every other one raised 0.08 dx (a checkerboard): its
@@ -1276,7 +1276,7 @@ def test_fits_in_the_few_neighbours_fade_have_the_gradients_of_central_differenc
     eps = 1e-5 * mu
     fd = (roll(cluster({"mu": mu + eps}), w)[0] - roll(cluster({"mu": mu - eps}), w)[0]) / (2 * eps)
     assert abs(fd) > 1e-11
-    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
 def test_the_loss_has_no_jump_where_a_neighbour_leaves_the_count():
@@ -1424,7 +1424,7 @@ def test_gradients_at_rest_on_the_ground_match_central_differences(case):
             eps = rel * base
             fd = (loss_at(base + eps) - loss_at(base - eps)) / (2 * eps)
             assert abs(fd) > 1e-11, f"the loss does not reach {name}"
-            assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
+            assert grads[name][0] == pytest.approx(fd, rel=1e-4, abs=0.0), (name, rel)
         m.set_materials(materials)
     # The block's own particles (a ghost floor's follow them).
     x0 = model.particle_x0[:36]
