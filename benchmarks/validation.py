@@ -1917,20 +1917,24 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for S in (0.2, 0.3, 0.1, 0.5):
         runs.append(("slump", {"S": S, "resolution": 24, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
     # The biweight fit weight (docs/physics.md, "The fit's weight") where the targets read:
-    # the slumps at the three resolutions of the convergence verdict and the two finer spread
-    # piles.
+    # the slumps at the three resolutions of the convergence verdict (with S = 0.05 at 8 and 12
+    # across, which the rest target names beside its finest rows) and the three spread piles
+    # (poly6's convergence verdict includes the one 3 through).
     for res in (8, 12, 16):
-        for S in (0.1, 0.2, 0.3, 0.5):
+        for S in SLUMP_S if res < 16 else (0.1, 0.2, 0.3, 0.5):
             runs.append(("slump", {"S": S, "resolution": res, "elastic_force": "variational",
                                    "duration": SLUMP_DURATION_FINE if res == 16 else SLUMP_DURATION,
                                    "fit_weight": "biweight"}))
-    for res in (4, 5):
+    for res in (3, 4, 5):
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "fit_weight": "biweight"}))
     # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
-    # "The no-slip ghost floor"); they rest by about 4 s.
-    for res in (8, 12, 16):
-        for S in (0.1, 0.2, 0.3, 0.5):
-            runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
+    # "The no-slip ghost floor"); they rest by about 4 s. Then with the biweight, whose
+    # targets include this floor's.
+    for weight in FIT_WEIGHTS:
+        for res in (8, 12, 16):
+            for S in (0.1, 0.2, 0.3, 0.5):
+                runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}
+                             | ({"fit_weight": weight} if weight != "poly6" else {})))
     # The near-yield column at a fixed width (docs/physics.md, "The near-yield column at a
     # fixed width"): 4 cm wide and 20 cm tall at every resolution, 0.79 of its self-weight
     # buckling length, so the resolutions resolve one column (without a width it grows with

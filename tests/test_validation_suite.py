@@ -1302,6 +1302,31 @@ def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan
     assert quick and all(k["duration"] <= 5.0 for k in quick)
 
 
+def test_the_full_plan_has_a_biweight_twin_of_every_target_row_below_24_across():
+    """A default switch to the biweight must re-measure every row the targets of issue 12 read
+    (docs/physics.md, "The fit weight's default: the evidence"): each poly6 slump of the full
+    plan with the default elastic force below 24 across (the particle floor's, S = 0.05 with
+    them, and the no-slip ghost floor's) and each spread pile at a = 0.25 has the same entry
+    with ``fit_weight="biweight"``, so ``--only ...:fit_weight=biweight`` can run it."""
+    runs = validation.plan(False)
+
+    def wanted(name, k):
+        if name == "slump":
+            return k.get("elastic_force", "variational") == "variational" and k["resolution"] < 24
+        return name == "spread" and k["shallowness"] == 0.25
+
+    poly6 = [(n, k) for n, k in runs if wanted(n, k) and k.get("fit_weight", "poly6") == "poly6"]
+    biweight = [(n, k) for n, k in runs if wanted(n, k) and k.get("fit_weight") == "biweight"]
+    assert {(n, k["resolution"], k.get("S"), k.get("floor")) for n, k in poly6} == {
+        (n, k["resolution"], k.get("S"), k.get("floor")) for n, k in biweight}
+    twins = {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in biweight}
+    assert {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in poly6} == twins
+    assert {k["floor"] for n, k in biweight if "floor" in k} == {"ghost_particles"}
+    assert validation.select(runs, "slump:S=0.05:fit_weight=biweight") == [
+        ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0,
+                   "fit_weight": "biweight"}) for res in (8, 12)]
+
+
 def test_slump_at_rest_needs_both_a_still_top_and_a_still_pile():
     rate, ke = validation.REST_RATE, validation.REST_KINETIC
     assert validation.slump_at_rest(0.5 * rate, 0.5 * ke)
