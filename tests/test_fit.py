@@ -72,7 +72,7 @@ def _check_fd(model, names, v0_entries=0, rel=1e-4):
         fd = (_value(r, loss, plus) - _value(r, loss, minus)) / (2 * h)
         r.set_parameters(base)
         assert abs(fd) > 1e-14, f"the loss does not reach {name}"
-        assert grads[name][0] == pytest.approx(fd, rel=rel), name
+        assert grads[name][0] == pytest.approx(fd, rel=rel, abs=0.0), name
     rng = np.random.default_rng(3)
     for i, c in zip(rng.integers(0, model.particle_count, v0_entries), rng.integers(0, 3, v0_entries)):
         vals = []
@@ -194,7 +194,7 @@ def test_split_materials_gives_per_particle_gradients():
     _, g2 = r2.backward(g)
     for name in ("mu", "yield_stress", "flow_rate"):
         assert g2[name].shape == (model.particle_count,)
-        assert g2[name].sum() == pytest.approx(g1[name][0], rel=1e-10)
+        assert g2[name].sum() == pytest.approx(g1[name][0], rel=1e-10, abs=0.0)
     assert np.count_nonzero(g2["yield_stress"]) > model.particle_count // 2
 
 
@@ -243,7 +243,7 @@ def test_chamfer_value_gradient_and_radius():
     loss = ChamferLoss(y, radius=r, frames=[5])
     pos = {5: wp.array(x, dtype=wp.vec3d)}
     value, grads = loss.value_and_grad(pos)
-    assert value == pytest.approx(_brute_chamfer(x, y, r), rel=1e-12)
+    assert value == pytest.approx(_brute_chamfer(x, y, r), rel=1e-12, abs=0.0)
     n_x, n_y = loss.unmatched[5]
     d2 = ((x[:, None, :] - y[None, :, :]) ** 2).sum(-1)
     assert n_x == int((d2.min(axis=1) >= r * r).sum()) >= 1  # x[0] at least
@@ -264,7 +264,7 @@ def test_chamfer_and_position_losses_over_several_frames():
     value, grads = loss.value_and_grad(pos)
     expect = 0.5 * (_brute_chamfer(x[2], clouds[2], 0.05) + _brute_chamfer(x[4], clouds[4], 0.05))
     expect += 0.5 * 0.5 * (np.mean(np.sum((0.1 * x[2]) ** 2, 1)) + np.mean(np.sum((0.1 * x[4]) ** 2, 1)))
-    assert value == pytest.approx(expect, rel=1e-12)
+    assert value == pytest.approx(expect, rel=1e-12, abs=0.0)
     for f in (2, 4):
         entries = [(3, 0), (17, 1), (31, 2)]
         fd = _fd_positions(loss, pos, f, entries)
@@ -298,7 +298,7 @@ def test_a_loss_value_under_a_recording_tape_records_nothing_on_it():
     with tape:
         wp.launch(_twice, 30, [x], [y])
         recorded = len(tape.launches)
-        assert loss.value({2: y}) == pytest.approx(expect, rel=1e-12)
+        assert loss.value({2: y}) == pytest.approx(expect, rel=1e-12, abs=0.0)
         assert len(tape.launches) == recorded
         assert recording_tape() is tape
         wp.launch(dot_loss, 30, [y, w], [out])
@@ -333,7 +333,7 @@ def test_a_loss_value_between_a_callers_launch_and_backward_leaves_the_callers_g
     tape = wp.Tape()
     with tape:
         loss.launch(2, x, out)
-    assert out.numpy()[0] == pytest.approx(value(x0), rel=1e-12)
+    assert out.numpy()[0] == pytest.approx(value(x0), rel=1e-12, abs=0.0)
     value(x0 + rng.normal(size=(n, 3)) * 0.02)  # another point, between the launch and the backward
     tape.backward(out)
     grad = x.grad.numpy()
@@ -405,7 +405,7 @@ def test_chamfer_and_mesh_losses_through_a_rollout():
         fd = (_value(r, loss, {"mu": base["mu"] + hstep}) - _value(r, loss, {"mu": base["mu"] - hstep})) / (2 * hstep)
         r.set_parameters(base)
         assert abs(fd) > 1e-14
-        assert grads["mu"][0] == pytest.approx(fd, rel=1e-4), repr(loss)
+        assert grads["mu"][0] == pytest.approx(fd, rel=1e-4, abs=0.0), repr(loss)
 
 
 # ------------------------------------------------------------------------ fit
