@@ -132,7 +132,7 @@ def test_backward_leaves_the_model_holding_the_values_it_held():
         else:
             model.set_material(0, model.materials[0].replace(mu=2.0e3, yield_stress=20.0))
         loss.backward()
-        assert m.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12), change  # this forward's gradient
+        assert m.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12, abs=0.0), change  # this forward's gradient
         assert rollout.get_parameters()["mu"].tolist() == [2.0e3], change  # and the model as it was
         if change == "set_material":
             assert rollout.get_parameters()["yield_stress"].tolist() == [20.0] and model.materials[0].mu == 2.0e3
@@ -192,7 +192,7 @@ def test_backward_re_runs_its_forward_from_the_start_and_tools_that_forward_ran_
         setattr(model, change, new)
     rollout_positions(rollout, {"mu": torch.tensor([1.0e3], dtype=torch.float64)})  # a later forward
     loss.backward()
-    assert m.grad.item() == pytest.approx(ref, rel=1e-12)
+    assert m.grad.item() == pytest.approx(ref, rel=1e-12, abs=0.0)
     # The model keeps what was set, and the change matters (the gradient there is another).
     now = model.tools.velocity.numpy() if change == "tool velocity" else getattr(model, change)
     np.testing.assert_array_equal(now, new)
@@ -216,7 +216,7 @@ def test_backward_re_runs_its_forward_at_the_dt_gravity_and_contact_law_that_for
     setattr(owner, change, new)
     rollout_positions(rollout, {"mu": torch.tensor([1.0e3], dtype=torch.float64)})  # a later forward
     loss.backward()
-    assert m.grad.item() == pytest.approx(ref, rel=1e-12)
+    assert m.grad.item() == pytest.approx(ref, rel=1e-12, abs=0.0)
     # The setting kept, and it matters (the gradient there is another).
     assert getattr(owner, change) == new
     assert abs(_mu_gradient(rollout) - ref) > 1e-3 * abs(ref)
@@ -246,7 +246,7 @@ def test_a_checkpointed_backward_refuses_a_dt_or_gravity_set_since_its_forward()
         loss = rollout_positions(rollout, {"mu": m}).square().sum()
         setattr(owner, name, new)
         loss.backward()
-        assert m.grad.item() == pytest.approx(ref, rel=1e-12), name
+        assert m.grad.item() == pytest.approx(ref, rel=1e-12, abs=0.0), name
         assert getattr(owner, name) == new
         setattr(owner, name, old)
     loss = rollout_positions(rollout, {"mu": _mu()}).square().sum()
@@ -323,7 +323,7 @@ def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward
                         rollout_positions(rollout, {"mu": torch.tensor([1.1e3], dtype=torch.float64)})
                 loss.backward()  # a full tape's recorded poses, without a re-run: its own gradient
                 speed[0] = 1.0
-                assert m.grad.item() == pytest.approx(ref, rel=1e-12), (every, later)
+                assert m.grad.item() == pytest.approx(ref, rel=1e-12, abs=0.0), (every, later)
                 assert rollout.get_parameters()["mu"].tolist() == [1.0e3 if not later else 1.1e3]
 
 
@@ -344,7 +344,7 @@ def test_a_rollout_s_steps_frames_and_segments_are_fixed_once_made():
             setattr(rollout, name, value)
         assert getattr(rollout, name) == was
     out.square().sum().backward()
-    assert mu.grad.item() == pytest.approx(_mu_gradient(Rollout(model, 3, 1.0e-3, frames=[2, 3])), rel=1e-9)
+    assert mu.grad.item() == pytest.approx(_mu_gradient(Rollout(model, 3, 1.0e-3, frames=[2, 3])), rel=1e-9, abs=0.0)
 
 
 def test_backward_after_the_rollout_was_released_re_runs_its_forward():
@@ -359,7 +359,7 @@ def test_backward_after_the_rollout_was_released_re_runs_its_forward():
     loss = rollout_positions(rollout, {"mu": mu}).square().sum()
     rollout.release()
     loss.backward()
-    assert mu.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12) and ref.grad.item() != 0.0
+    assert mu.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12, abs=0.0) and ref.grad.item() != 0.0
 
 
 def test_a_run_nothing_goes_back_through_records_no_tape():
@@ -388,7 +388,7 @@ def test_a_run_nothing_goes_back_through_records_no_tape():
     g = mu.grad.item()
     mu.grad = None
     rollout_positions(ref, {"mu": mu}).square().sum().backward()
-    assert mu.grad.item() == pytest.approx(g, rel=1e-12) and g != 0.0
+    assert mu.grad.item() == pytest.approx(g, rel=1e-12, abs=0.0) and g != 0.0
 
 
 def test_each_start_is_checked_once_per_forward_and_backward(start_checks):
