@@ -322,7 +322,7 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     d = doc["diagnostics"]
     assert d["labels"] == ["mu"] and d["method"] == "gauss-newton"
     assert d["observations"] == observed.size == 18
-    assert d["noise"] == [pytest.approx(0.01 * np.sqrt(np.mean(observed**2)), rel=1e-12)]
+    assert d["noise"] == [pytest.approx(0.01 * np.sqrt(np.mean(observed**2)), rel=1e-12, abs=0.0)]
     assert d["undetermined"] == [] and d["warnings"] == [], d["warnings"]
     assert d["relative_error"][0] < 0.05 and min(d["range_rise"][0]) > 100.0
     with pytest.raises(ValueError, match="--target-tool = 'plane1' is not allowed: .* holds the forces of plane0"):
@@ -633,7 +633,7 @@ def test_a_force_curves_standard_error_follows_its_measured_scatter():
     # A curve fitted to round-off keeps the floor: 1 % of its RMS force.
     exact = ReactionForceLoss(truth, "plate", ends, window=2, components="y")
     d = diagnose(_elastic_press(5000.0), exact, ["mu"], steps=60, dt=2.0e-4, progress=False)
-    assert d.noise[0] == pytest.approx(0.01 * np.sqrt(np.mean(truth**2)), rel=1e-12)
+    assert d.noise[0] == pytest.approx(0.01 * np.sqrt(np.mean(truth**2)), rel=1e-12, abs=0.0)
 
 
 def test_gauss_newton_fits_the_press_modulus_in_four_steps_and_the_held_lam_is_what_biases_it():
