@@ -148,12 +148,12 @@ def test_world_gradients_match_separate_tapes():
     per_world = r.per_world(grads)
     for w, mat in enumerate((MAT_A, MAT_B)):
         ref_value, ref_grads = ref[mat]
-        assert r.world_values[w] == pytest.approx(ref_value, rel=1e-12)
+        assert r.world_values[w] == pytest.approx(ref_value, rel=1e-12, abs=0.0)
         for name in (*PARAMETERS, "x0", "v0"):
             g, g_ref = per_world[w][name], ref_grads[name]
             assert np.abs(g_ref).max() > 0.0 or name == "pressure_stiffness", name
             np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-12 * np.abs(g_ref).max(), err_msg=name)
-    assert value == pytest.approx(sum(v for v, _ in ref.values()), rel=1e-12)
+    assert value == pytest.approx(sum(v for v, _ in ref.values()), rel=1e-12, abs=0.0)
     # Inside a sum (a scaled one here; beside a force loss in docs/fitting.md) each world's term: the
     # WorldLoss's world_values stayed the last direct evaluation's and the rollout's read None.
     model.set_material(0, MAT_B.replace(mu=2.0 * MAT_B.mu), world=1)
@@ -161,13 +161,13 @@ def test_world_gradients_match_separate_tapes():
     value2, _ = r.backward(2.0 * loss)
     assert r.world_values is not None and r.world_values[1] != pytest.approx(2.0 * ref[MAT_B][0], rel=1e-6)
     np.testing.assert_array_equal(loss.world_values, r.world_values)
-    assert r.world_values[0] == pytest.approx(2.0 * ref[MAT_A][0], rel=1e-12)
-    assert value2 == pytest.approx(r.world_values.sum(), rel=1e-12)
+    assert r.world_values[0] == pytest.approx(2.0 * ref[MAT_A][0], rel=1e-12, abs=0.0)
+    assert value2 == pytest.approx(r.world_values.sum(), rel=1e-12, abs=0.0)
     # The same loss twice in a sum is that loss scaled (its per-frame buffers served both
     # launches: 3 x the gradient, and world values of one).
     g2 = r.backward(2.0 * loss)[1]
     value3, g3 = r.backward(loss + loss)
-    assert value3 == pytest.approx(value2, rel=1e-12)
+    assert value3 == pytest.approx(value2, rel=1e-12, abs=0.0)
     np.testing.assert_allclose(r.world_values, loss.world_values)
     for name in ("mu", "v0"):
         np.testing.assert_allclose(g3[name], g2[name], rtol=1e-12, atol=0.0)
@@ -587,7 +587,7 @@ def test_each_worlds_loss_roundoff_is_its_run_alones():
         alone = Rollout(alone_model, STEPS, DT, frames=[STEPS])
         alone.forward()
         alone.backward(losses.PositionLoss(target, frames=[STEPS], weight=weight))
-        assert both[w] == pytest.approx(alone.loss_roundoff()[0], rel=1e-9)
+        assert both[w] == pytest.approx(alone.loss_roundoff()[0], rel=1e-9, abs=0.0)
 
 
 def test_split_materials_keeps_tools_and_solver_options():
@@ -679,7 +679,7 @@ def test_each_worlds_loss_over_several_frames_is_the_separate_runs_to_the_bit(ki
         assert r.world_values[w] == v
         for name in ("mu", "yield_stress", "x0"):
             np.testing.assert_array_equal(per_world[w][name], g[name])
-    assert value == pytest.approx(sum(v for v, _ in alone), rel=1e-15)
+    assert value == pytest.approx(sum(v for v, _ in alone), rel=1e-15, abs=0.0)
 
 
 def _probe_scene(kind, material):
@@ -798,7 +798,7 @@ def test_each_worlds_parameter_gradients_are_its_loss_central_differences():
                 values.append(r.world_values.copy())
             fd = (values[0][w] - values[1][w]) / (2.0 * step)
             assert fd != 0.0
-            assert per_world[w][name][0] == pytest.approx(fd, rel=1e-5), (name, w)
+            assert per_world[w][name][0] == pytest.approx(fd, rel=1e-5, abs=0.0), (name, w)
             assert values[0][1 - w] == values[1][1 - w], (name, w)
     r.set_parameters(base)
 
