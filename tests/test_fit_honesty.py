@@ -538,7 +538,7 @@ def test_every_number_of_a_fits_history_is_what_it_says(dtype, worlds):
     for entry in history:
         run = Rollout(cube(*(entry["params"][name][0] for name in TRUTH)), steps, dt, frames=frames)
         run.forward()
-        assert entry["loss"] == pytest.approx(loss.value(run.observations()), rel=1e-12), entry
+        assert entry["loss"] == pytest.approx(loss.value(run.observations()), rel=1e-12, abs=0.0), entry
         assert entry["seconds"] > 0.0, entry
     assert sum(entry["seconds"] for entry in history) <= wall
     if worlds:
@@ -546,7 +546,7 @@ def test_every_number_of_a_fits_history_is_what_it_says(dtype, worlds):
         for entry in history:
             if entry["stage"] == "descent":
                 rounds.setdefault(entry["round_seconds"], []).append(entry["seconds"])
-        assert all(sum(shares) == pytest.approx(total, rel=1e-12) for total, shares in rounds.items())
+        assert all(sum(shares) == pytest.approx(total, rel=1e-12, abs=0.0) for total, shares in rounds.items())
     descent = [entry for entry in history if entry["stage"] == "descent"]
     best = min((entry for entry in descent if math.isfinite(entry["loss"])), key=lambda entry: entry["loss"])
     assert result.loss == best["loss"]
