@@ -1049,7 +1049,7 @@ def test_an_adaptive_step_set_by_the_viscous_limit_names_it():
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material(mu=1e4, lam=1e4, viscosity=1e8))
     model = b.finalize()
-    assert model.stable_dt() == pytest.approx(0.3 / 12.0 * 1000.0 * 0.1**2 / 1e8, rel=1e-12)
+    assert model.stable_dt() == pytest.approx(0.3 / 12.0 * 1000.0 * 0.1**2 / 1e8, rel=1e-12, abs=0.0)
     with pytest.raises(StepRefusal, match=r"^the adaptive step is not allowed for this model at 30 fps: its stable step, "
                                           r"2\.5e-09 s \(the viscous limit \(C / 12\) rho0 h\^2 / eta of material 0, "
                                           r"viscosity eta = 1e\+08 Pa s at support radius h = 0\.1 m\), would take 1\.33e\+07 "
@@ -2048,7 +2048,7 @@ def test_a_loss_evaluated_before_warp_has_started_starts_it(tmp_path):
     assert "refused: positions of dtype float64 are not allowed: must be wp.vec3f or wp.vec3d" in proc.stdout, proc.stdout
     # mean over the 4 particles of |(0.1, 0.1, 0.1)|^2
     value = float(re.search(r"value: ([0-9.e+-]+)", proc.stdout).group(1))
-    assert value == pytest.approx(3 * 0.1**2, rel=1e-12)
+    assert value == pytest.approx(3 * 0.1**2, rel=1e-12, abs=0.0)
 
 
 class _Frames:
