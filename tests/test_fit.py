@@ -252,7 +252,7 @@ def test_chamfer_value_gradient_and_radius():
     assert np.all(g[0] == 0.0), "a point with nothing within the radius contributes r^2 and no gradient"
     entries = [(i, c) for i, c in zip(rng.integers(1, 60, 8), rng.integers(0, 3, 8))]
     fd = _fd_positions(loss, pos, 5, entries)
-    assert np.array([g[i, c] for i, c in entries]) == pytest.approx(fd, rel=1e-6, abs=1e-10)
+    assert np.array([g[i, c] for i, c in entries]) == pytest.approx(fd, rel=1e-6, abs=0.0)
 
 
 def test_chamfer_and_position_losses_over_several_frames():
