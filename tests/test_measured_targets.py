@@ -56,18 +56,18 @@ def test_missing_target_points_drop_out_of_value_residuals_and_counts():
     loss = PositionLoss(t, frames=[3, 7])
     positions = {3: x[0], 7: x[1]}
     expect, pairs = _numpy_loss(x, t)
-    assert loss(positions) == pytest.approx(expect, rel=1e-12)
+    assert loss(positions) == pytest.approx(expect, rel=1e-12, abs=0.0)
     r = loss.residuals(positions)
     assert len(r) == 3 * pairs == loss.observation_count()
     assert np.isfinite(r).all()
-    assert loss.residual_scale() * loss(positions) == pytest.approx(float(np.sum(r * r)), rel=1e-12)
+    assert loss.residual_scale() * loss(positions) == pytest.approx(float(np.sum(r * r)), rel=1e-12, abs=0.0)
     # A particle missing everywhere is the same as leaving it out by ``particles``.
     t2 = x + 1e-3
     t2[:, 4] = np.nan
     keep = [i for i in range(10) if i != 4]
     gone = PositionLoss(t2, frames=[3, 7])
     subset = PositionLoss(t2[:, keep], frames=[3, 7], particles=keep)
-    assert gone(positions) == pytest.approx(subset(positions), rel=1e-12)
+    assert gone(positions) == pytest.approx(subset(positions), rel=1e-12, abs=0.0)
     # The position gradient of a missing particle is 0 at that frame only.
     _, g = loss.value_and_grad({f: wp.array(p, dtype=wp.vec3d) for f, p in positions.items()})
     for k, f in enumerate([3, 7]):
@@ -97,14 +97,14 @@ def test_gradients_with_missing_targets_match_central_differences():
     minus["mu"] -= h
     fd = (value(plus) - value(minus)) / (2 * h)
     assert abs(fd) > 1e-14
-    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4, abs=0.0)
     for i, c in ((0, 0), (5, 1), (13, 2)):
         vals = []
         for d in (1e-6, -1e-6):
             v = model.particle_v0.copy()
             v[i, c] += d
             vals.append(value(v0=v))
-        assert grads["v0"][i, c] == pytest.approx((vals[0] - vals[1]) / 2e-6, rel=1e-4, abs=1e-12)
+        assert grads["v0"][i, c] == pytest.approx((vals[0] - vals[1]) / 2e-6, rel=1e-4, abs=0.0)
 
 
 def test_positions_missing_everywhere_or_in_a_whole_frame_are_refused_by_name():
