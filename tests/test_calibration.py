@@ -112,7 +112,7 @@ def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, 
     substeps = math.ceil((1.0 / 30.0) / least)
     assert substeps == 24 and (1.0 / 30.0) / stable(2000.0) < 17
     assert f"dt = {1.0 / 30.0 / substeps:.4g} s: each evaluation runs {2 * substeps} steps" in err
-    assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
+    assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12, abs=0.0)
     # The help says so: it said 'else the stable step', read as the guess's.
     from warp_esph.cli import main
 
@@ -556,7 +556,7 @@ def test_gauss_newton_fits_the_joint_experiments_from_forward_runs():
     assert all(h["grad"] is None for h in result.history)  # no backward pass
     # The residual vector is the loss: the same value from fit's loss evaluation.
     again = fit([slow, fast], None, params, iterations=0, diagnostics=False, progress=False)
-    assert again.loss == pytest.approx(result.loss, rel=1e-9)
+    assert again.loss == pytest.approx(result.loss, rel=1e-9, abs=0.0)
 
     class NoResiduals(PositionLoss):
         residuals = property(lambda self: (_ for _ in ()).throw(AttributeError("residuals")))
@@ -583,7 +583,7 @@ def test_silhouette_loss_and_gradient_match_reference_and_central_differences():
     loss = SilhouetteLoss({5: masks}, cams, radius=0.01)
     value, grads = loss.value_and_grad({5: wp.array(X, dtype=wp.vec3d)})
     reference = np.mean([np.mean((soft_silhouette(X, c, 0.01) - m) ** 2) for c, m in zip(cams, masks)])
-    assert value == pytest.approx(reference, rel=1e-12)
+    assert value == pytest.approx(reference, rel=1e-12, abs=0.0)
     g = grads[5].numpy()
     h = 1e-6
     for i in range(0, 40, 3):
@@ -699,7 +699,7 @@ def test_silhouette_gradient_through_a_rollout():
         vals.append(loss.value(dict(zip(r.frames, r.frame_positions))))
     fd = (vals[0] - vals[1]) / (2e-5 * mu)
     assert abs(fd) > 0
-    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
 def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
@@ -938,7 +938,7 @@ def test_cli_joint_experiments_file(tmp_path, dough_scene):
                  "--experiments", str(tmp_path / "exps.json"), "--output-dir", str(out), *common]) == 0
     doc = json.loads((out / "fit.json").read_text())
     assert len(doc["experiments"]) == 2 and doc["experiments"][1]["weight"] == 2.0
-    assert doc["initial_loss"] == pytest.approx(losses[0] + 2.0 * losses[1], rel=1e-12)
+    assert doc["initial_loss"] == pytest.approx(losses[0] + 2.0 * losses[1], rel=1e-12, abs=0.0)
     assert losses[0] > 0 and losses[1] > 0
     (tmp_path / "bad.json").write_text(json.dumps([{"scene": "guess.toml", "targte": "run.usdc"}]))
     assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--experiments", str(tmp_path / "bad.json"),
@@ -1413,13 +1413,13 @@ def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, d
         return json.loads((tmp_path / name / "fit.json").read_text())["initial_loss"]
 
     every = loss(None, "all")  # each fit's one evaluation is a rollout: read once, compared twice
-    assert loss("6,2,4", "shuffled") == pytest.approx(every, rel=1e-12)
+    assert loss("6,2,4", "shuffled") == pytest.approx(every, rel=1e-12, abs=0.0)
     assert loss("2,6", "two") != pytest.approx(loss("4", "one"), rel=1e-3)
     # The run USD's selections choose among the stored frames too.
     six = loss("6", "six")
-    assert loss("last", "last") == pytest.approx(six, rel=1e-12)
-    assert loss("4:6", "slice") == pytest.approx(loss("4,6", "pair"), rel=1e-12)
-    assert loss("all", "every") == pytest.approx(every, rel=1e-12)
+    assert loss("last", "last") == pytest.approx(six, rel=1e-12, abs=0.0)
+    assert loss("4:6", "slice") == pytest.approx(loss("4,6", "pair"), rel=1e-12, abs=0.0)
+    assert loss("all", "every") == pytest.approx(every, rel=1e-12, abs=0.0)
     capsys.readouterr()
     assert main(["fit", str(guess), "--target", str(target), "--target-frames", "1,2,3", "--output-dir",
                  str(tmp_path / "bad"), *common]) == 2
@@ -1435,7 +1435,7 @@ def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, d
     assert err[-1].endswith("--target-frames = 'last,6' is not allowed: it names frame 6 twice; name each frame once"), err
     # Stored out of order: 'last' is still the largest frame.
     np.savez(target, positions=np.load(target)["positions"][[2, 0, 1]], frames=[6, 2, 4], fps=30.0)
-    assert loss("last", "last_shuffled") == pytest.approx(six, rel=1e-12)
+    assert loss("last", "last_shuffled") == pytest.approx(six, rel=1e-12, abs=0.0)
 
 
 def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, capsys, dough_scene, monkeypatch):
