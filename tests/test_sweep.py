@@ -1224,7 +1224,7 @@ def test_one_log_level_is_the_geometric_midpoint_of_any_range(lo, hi, mid):
     overflowed to inf (1e200 x 1e300), where sqrt(LO) sqrt(HI) is the number."""
     (point,) = sample_points([f"yield_stress={lo!r}:{hi!r}:log:1"])
     y = point["yield_stress"]
-    assert lo < y < hi and y == pytest.approx(mid, rel=1e-12)
+    assert lo < y < hi and y == pytest.approx(mid, rel=1e-12, abs=0.0)
 
 
 def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside(dying_worker_sweep):
