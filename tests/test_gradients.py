@@ -920,7 +920,7 @@ def _assert_lowest_v0_gradient(make, grads, weights, fit="linear"):
             return _rollout_loss(m, weights, fit=fit)[0]
 
         fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
 #: The block's bottom layer is at y = -0.03 (spacing 0.02). "rest": at rest (F = I, v = 0)
