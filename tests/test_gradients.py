@@ -91,6 +91,20 @@ def weights():
     return random_weights(n, 0)
 
 
+def _v0_central_difference(m, weights, i, comp, eps=1e-6, **kwargs):
+    """The rollout loss's central difference in particle ``i``'s initial velocity along
+    ``comp`` (step ``eps`` m/s), on one model ``m`` whose initial velocities are set before
+    each run and restored after; ``kwargs`` go to ``_rollout_loss``."""
+    v0 = m.particle_v0.copy()
+    losses = []
+    for delta in (eps, -eps):
+        m.particle_v0 = v0.copy()
+        m.particle_v0[i, comp] += delta
+        losses.append(_rollout_loss(m, weights, **kwargs)[0])
+    m.particle_v0 = v0
+    return (losses[0] - losses[1]) / (2 * eps)
+
+
 def test_material_gradient_matches_central_differences(weights):
     """The tape's gradient in each material parameter (one taped run's) against its float64
     central difference at a relative step of 1e-5."""
@@ -352,16 +366,8 @@ def test_curvature_corrected_fit_gradients_match_central_differences(weights, na
         np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max(),
                                    err_msg=name)
         if name == "v0":
-            i, c, eps = 7, 1, 1e-6
-            m = _model(params)  # one model for both runs, its initial velocities set before each
-            v0 = m.particle_v0.copy()
-
-            def loss_with(delta):
-                m.particle_v0 = v0.copy()
-                m.particle_v0[i, c] += delta
-                return _rollout_loss(m, weights, fit="curvature_corrected")[0]
-
-            fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+            i, c = 7, 1
+            fd = _v0_central_difference(_model(params), weights, i, c, fit="curvature_corrected")
             assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
             continue
         base = getattr(model.materials[0], name)
@@ -391,16 +397,8 @@ def test_hourglass_control_gradients_match_central_differences(weights):
     loss_off = _rollout_loss(_hourglass_model(), weights)[0]
     assert abs(loss_on - loss_off) > 1e-6 * abs(loss_off), (loss_on, loss_off)
     _, grads = _rollout_loss(_hourglass_model(), weights, grad_of=("mu", "v0"), hourglass=c)
-    i, comp, eps = 7, 1, 1e-6
-    m = _hourglass_model()  # one model for the velocity's runs, its initial velocities set before each
-    v0 = m.particle_v0.copy()
-
-    def loss_with(delta):
-        m.particle_v0 = v0.copy()
-        m.particle_v0[i, comp] += delta
-        return _rollout_loss(m, weights, hourglass=c)[0]
-
-    fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+    i, comp = 7, 1
+    fd = _v0_central_difference(_hourglass_model(), weights, i, comp, hourglass=c)
     assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
     base = _model().materials[0].mu
     eps = 1e-5 * base
@@ -509,15 +507,9 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
     names = ("pressure_stiffness", "viscosity")
     loss, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"))
     i = int(np.flatnonzero(np.abs(np.abs(model.particle_x0[:, 1]) - 0.002) < 0.001)[0]) if case == "merging" else 7
-    m = _energy_spiky_model(case)  # one model for the velocity's runs, its initial velocities set before each
-    v0 = m.particle_v0.copy()
+    m = _energy_spiky_model(case)
     for comp in (0, 1):
-        def loss_with(delta):
-            m.particle_v0 = v0.copy()
-            m.particle_v0[i, comp] += delta
-            return _rollout_loss(m, weights)[0]
-
-        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        fd = _v0_central_difference(m, weights, i, comp)
         assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9), comp
     for name in names:
         base = getattr(model.materials[0], name)
@@ -598,16 +590,8 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0 and solver.rest_model, (solver.fit,
                                                                                                  solver.hourglass)
     _, grads = _rollout_loss(_elastic_model(), weights, grad_of=("mu", "lam", "v0"), fit=None, hourglass=None)
-    i, comp, eps = 7, 1, 1e-6
-    m = _elastic_model()  # one model for the velocity's runs, its initial velocities set before each
-    v0 = m.particle_v0.copy()
-
-    def loss_with(delta):
-        m.particle_v0 = v0.copy()
-        m.particle_v0[i, comp] += delta
-        return _rollout_loss(m, weights, fit=None, hourglass=None)[0]
-
-    fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+    i, comp = 7, 1
+    fd = _v0_central_difference(_elastic_model(), weights, i, comp, fit=None, hourglass=None)
     assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
     for name in ("mu", "lam"):
         base = getattr(_elastic_model().materials[0], name)
@@ -869,15 +853,9 @@ def test_floor_images_gradients_match_central_differences(weights):
     names = ("mu", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
     loss, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"))
     i = int(np.argmin(model.particle_x0[:, 1]))
-    m = _images_model()  # one model for the velocity's runs, its initial velocities set before each
-    v0 = m.particle_v0.copy()
+    m = _images_model()
     for comp in (0, 1):
-        def loss_with(delta):
-            m.particle_v0 = v0.copy()
-            m.particle_v0[i, comp] += delta
-            return _rollout_loss(m, weights)[0]
-
-        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        fd = _v0_central_difference(m, weights, i, comp)
         assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9), comp
     for name in names:
         base = getattr(model.materials[0], name)
@@ -910,16 +888,10 @@ def test_a_rollouts_default_start_after_an_initial_state_has_new_floor_images():
 def _assert_lowest_v0_gradient(make, grads, weights, fit="linear"):
     """``grads["v0"]`` of the lowest particle of ``make()``'s model, along x and y, against
     central differences of the rollout loss at a step of 1e-6 m/s."""
-    m = make()  # one model for the runs, its initial velocities set before each
-    v0 = m.particle_v0.copy()
+    m = make()
     i = int(np.argmin(m.particle_x0[:, 1]))
     for comp in (0, 1):
-        def loss_with(delta):
-            m.particle_v0 = v0.copy()
-            m.particle_v0[i, comp] += delta
-            return _rollout_loss(m, weights, fit=fit)[0]
-
-        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        fd = _v0_central_difference(m, weights, i, comp, fit=fit)
         assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
