@@ -1452,6 +1452,36 @@ def test_a_tool_placing_with_worlds_warns_once_per_body_of_the_scene():
     assert x[:, 1].min() > 0.0
 
 
+def test_a_body_deep_inside_a_tool_is_refused_by_the_name_the_scene_gave_it():
+    """With worlds the refusal named the body by its world copy ('w0/block', a name the
+    scene never gave) and counted the particles inside of every world and body ('128 of its
+    particles' of a 64-particle body in two worlds); nor did it say how deep a start is
+    allowed. Now it names the scene's body (and its world where the worlds differ), counts
+    that body's particles in that world, and says that half a spacing is allowed; a static
+    collider's likewise."""
+    def scene(name="block", tool=True):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.3, 0.0), (0.08, 0.08, 0.08), we.Material.preset("dough"), name=name)
+        b.add_box((0.0, 0.6, 0.0), (0.04, 0.04, 0.04), we.Material.preset("dough"), name="lid")
+        b.add_tool("box", name="plate", half_extents=(0.03, 0.2, 0.03), position=(0.0, 0.45, 0.0))
+        return b
+    allowed = r"; a body may start at most half a spacing \(0\.01 m\) inside a {} \(placed on its surface\): "
+    tail = r"start inside tool 'plate' at its first pose, up to 0\.02 m deep \(at \[[^]]*\]\)" + allowed.format("tool")
+    for make, who in ((lambda: scene().finalize(worlds=2), "body 'block'"),
+                      (lambda: we.finalize_worlds([scene(), scene()]), "body 'block' of world 0"),
+                      (lambda: we.finalize_worlds([scene(), scene("other")]), "body 'block' of world 0")):
+        with pytest.raises(ValueError, match="^" + who + r" is not allowed where it is: 16 of its particles " + tail +
+                           "move the body or the tool out$"):
+            make()
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.08, 0.08), we.Material.preset("dough"), name="block")
+    b.add_ground(0.03)
+    with pytest.raises(ValueError, match=r"^body 'block' is not allowed where it is: 48 of its particles start inside "
+                                         r"plane0, up to 0\.06 m deep \(at \[[^]]*\]\)" + allowed.format("collider") +
+                                         "move it out, or the collider$"):
+        b.finalize(worlds=2)
+
+
 def test_a_particle_started_in_the_corner_of_two_colliders_is_placed_outside_both():
     """A particle 0.1 spacings inside both planes of a 60-degree trough: placed on the first,
     it lay deeper in the second (0.15 spacings), and placed on that, 0.075 spacings back inside

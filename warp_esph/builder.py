@@ -1164,8 +1164,9 @@ def _check_outside_colliders(builder) -> None:
         if inside.any():
             i = int(np.argmax(d))
             body = builder._bodies[int(np.searchsorted(starts, i, side="right")) - 1]
-            why = (f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start "
-                   f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, or the collider")
+            why = (f"body {body.name!r} is not allowed where it is: {int(inside[body.start:body.start + body.count].sum())} "
+                   f"of its particles start inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()})"
+                   f"{_allowed_inside('collider', tol)}: move it out, or the collider")
             # A scene file's: the collider's table, which plane0, sphere0, box0 do not name.
             builder._refuse(origin, why, why)
 
@@ -1307,14 +1308,23 @@ def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
     return np.zeros(len(xl))
 
 
-def _check_outside_tools(model, builder) -> None:
+def _allowed_inside(what: str, depth: float) -> str:
+    """What a refusal of a body started inside a ``what`` (tool, collider) says is allowed."""
+    return f"; a body may start at most half a spacing ({depth:.3g} m) inside a {what} (placed on its surface)"
+
+
+def _check_outside_tools(model, builders) -> None:
     """Refuse a body that starts more than half a spacing inside a tool at the tool's first
     pose (pinned particles aside), as ``_check_outside_colliders`` does for the static
     ones: the first step moved the particles inside onto the tool's surface and reported a
     force (a sphere tool of 1000 m radius flung them 1 km, reported as a divergence; a box
     mesh tool in the middle of a block, which was not measured, pushed its particles out
-    and read 69 N in five steps). ``builder`` (the first world's): one read from a scene file
-    names the file and the tool's table."""
+    and read 69 N in five steps). ``builders``: the worlds'; the body is named as its
+    builder names it (the model's 'w0/block' is a name the scene never gave), with its
+    world where the worlds' builders differ, and the first one read from a scene file names
+    the file and the tool's table."""
+    builder = builders[0]
+    one_scene = all(b is builder for b in builders)
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64)
     free = ts.pin.numpy() < 0
@@ -1327,10 +1337,13 @@ def _check_outside_tools(model, builder) -> None:
         inside = d > tol
         if inside.any():
             i = int(np.argmax(d))
-            body = model.bodies[int(model.particle_body_np[i])]
-            why = (f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start inside tool "
-                   f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
-                   "move the body or the tool out")
+            k = int(model.particle_body_np[i])
+            body = model.bodies[k]
+            own = builders[body.world]._bodies[k - sum(len(b._bodies) for b in builders[:body.world])]
+            name = repr(own.name) if one_scene else f"{own.name!r} of world {body.world}"
+            why = (f"body {name} is not allowed where it is: {int(inside[body.start:body.start + body.count].sum())} of its "
+                   f"particles start inside tool {tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at "
+                   f"{np.round(x[i], 4).tolist()}){_allowed_inside('tool', tol)}: move the body or the tool out")
             builder._refuse(("tool", tool.name), why, why)
 
 
@@ -1723,7 +1736,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     model.fit, model.contact_ramp, model.hourglass = first.fit, first.contact_ramp, first.hourglass
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
-        _check_outside_tools(model, first)
+        _check_outside_tools(model, builders)
         # Once per scene, as the static colliders' placing: finalize(worlds=W) repeats one
         # builder W times, and each copy warned by its own name ('w0/plate', 'w1/plate').
         free = model.tools.pin.numpy() < 0
