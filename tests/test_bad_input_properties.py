@@ -7,6 +7,7 @@ wrong types), scene-file keys, states of another model or precision given to
 ``Solver.step``, damaged USD outputs, checkpoints, meshes and fit targets, and run
 configurations that would need an absurd number of steps."""
 
+import json
 import math
 import os
 import re
@@ -238,6 +239,48 @@ def test_broken_scene_files(tmp_path, content):
     with pytest.raises(ValueError, match="broken.toml"):
         load_scene_file(path)
 
+
+FILE_NAME = "it names the default output file, so it must be a file name (a string, not empty, no '/', '\\' or '..')"
+
+
+@pytest.mark.parametrize("field, value, shown, allowed", [
+    ("name", "", "''", FILE_NAME),
+    ("name", " ", "' '", FILE_NAME),
+    ("name", "../../x", "'../../x'", FILE_NAME),
+    ("name", "..", "'..'", FILE_NAME),
+    ("name", None, "None", FILE_NAME),
+    ("name", 7, "7", FILE_NAME),
+    ("name", "ti\nny", "'ti\\nny'", "no control characters"),
+    ("name", "ti\x1bny", "'ti\\x1bny'", "no control characters"),
+    ("name", "evil\u202etxt", "'evil\\u202etxt'", "no invisible format characters"),
+    ("name", "p\u200b", "'p\\u200b'", "no invisible format characters"),
+    ("description", "two\nlines", "'two\\nlines'", "no line breaks"),
+    ("description", "a \u202eb", "'a \\u202eb'", "no bidirectional embeddings"),
+    ("description", None, "None", "must be a string"),
+])
+def test_a_scene_made_in_python_is_refused_as_a_scene_files_is(tmp_path, field, value, shown, allowed):
+    """A ``Scene`` made in Python took any name and description, which a scene file's
+    ``[scene]`` refuses: 'evil\u202etxt' reached a sweep's record, a fit's folder and
+    messages, and '../../x' the default output's path. Now the same check refuses them when
+    the Scene is made, before any kernel runs, with the file's words; a zero-width joiner in a
+    description is text, as a file's."""
+    from warp_esph.scenes import Scene
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    args = {"name": "tiny", "description": "a box", field: value}
+    with pytest.raises(ValueError) as caught:
+        Scene(args["name"], args["description"], b)
+    msg = str(caught.value)
+    assert msg.startswith(f"Scene.{field} = {shown} is not allowed: ") and allowed in msg, msg
+    if isinstance(value, str):  # the file's refusal, the same words after its key
+        path = tmp_path / "s.toml"
+        path.write_text(f'[scene]\n{field} = {json.dumps(value)}\n[[bodies]]\nshape = "box"\ncenter = [0, 0.2, 0]\n'
+                        'size = [0.1, 0.1, 0.1]\nmaterial = "dough"\n', encoding="utf-8")
+        with pytest.raises(ValueError) as from_file:
+            load_scene_file(path)
+        assert str(from_file.value) == f"{path}: [scene] {msg[len('Scene.'):]}", (str(from_file.value), msg)
+    assert Scene("tiny", "drop \U0001f469\u200d\U0001f52c", b).name == "tiny"
 
 
 # ------------------------------------------------------------------ states of another model

@@ -522,7 +522,8 @@ def test_a_scene_named_by_its_file_gets_a_one_line_name(tmp_path):
     invisible format characters become '_'."""
     from warp_esph.scenes import load_scene_file
 
-    for stem, name in (("ev\u202eil", "ev_il"), ("ti\nny", "ti_ny")):
+    # Nor what a name may not hold, which a scene made in Python refuses (a backslash, blank).
+    for stem, name in (("ev\u202eil", "ev_il"), ("ti\nny", "ti_ny"), ("a\\b", "a_b"), ("  ", "__")):
         scene = tmp_path / f"{stem}.toml"
         scene.write_text(GOOD_TOML.replace('name = "tiny"\n', ""))
         assert load_scene_file(str(scene)).name == name

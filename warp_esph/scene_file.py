@@ -61,6 +61,34 @@ class Scene:
     diverges: tuple[str, ...] = ()
     inputs: tuple[tuple[str, str], ...] = ()
 
+    def __post_init__(self):
+        # As a scene file's [scene] name and description: one made in Python took any, and
+        # 'evil\u202etxt' went into a sweep's record and a fit's folder and messages.
+        check_name("Scene.name", self.name)
+        check_description("Scene.description", self.description)
+
+
+def check_name(param: str, name) -> str:
+    """A scene's ``name`` (``param``: ``Scene.name``, a file's ``[scene] name``), refused
+    where it is no file name or not one line of visible text (``checks.one_line``)."""
+    if not isinstance(name, str) or not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0"):
+        # The name makes the default output <name>.usdc: '../../x' wrote two folders up.
+        raise ValueError(f"{param} = {checks.shorten(name)!r} is not allowed: it names the default output file, so it "
+                         "must be a file name (a string, not empty, no '/', '\\' or '..')")
+    # A newline went into the default output's name ('ti\nny.usdc') and split every one-line
+    # message naming the scene; a tab or an escape sequence read as terminal control.
+    return checks.one_line(param, name, "it names the default output file and the scene in one-line messages")
+
+
+def check_description(param: str, text) -> str:
+    """A scene's ``description`` (``param`` as ``check_name``'s): free text, not a name, so a
+    format character that only joins (an emoji sequence's, a Persian word's) is its text;
+    one that reorders what follows it is not (``checks.one_line_text``)."""
+    role = "it is the scene's one-line description (Scene.description)"
+    if not isinstance(text, str):
+        raise ValueError(f"{param} = {checks.shorten(text)!r} is not allowed: {role}, so it must be a string")
+    return checks.one_line_text(param, text, role)
+
 
 # ------------------------------------------------------------------ schema
 class _Num:
@@ -557,26 +585,21 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             if used is material:
                 builder.origins[("material", k)] = f"[materials.{_table_key(name)}]" if name in materials_table else f"material {name!r}"
     name = scene.get("name")
-    if name is not None and (not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0")):
-        # The name makes the default output <name>.usdc: '../../x' wrote two folders up.
-        raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file, so it "
-                         "must be a file name (not empty, no '/', '\\' or '..')")
     try:
         if name is not None:
-            # A newline went into the default output's name ('ti\nny.usdc') and split every one-line
-            # message naming the scene; a tab or an escape sequence read as terminal control.
-            checks.one_line("[scene] name", name, "it names the default output file and the scene in one-line messages")
+            check_name("[scene] name", name)
         if "description" in scene:
-            # Free text, not a name: a format character that only joins (an emoji sequence's,
-            # a Persian word's) is its text; one that reorders what follows it is not.
-            checks.one_line_text("[scene] description", scene["description"],
-                                 "it is the scene's one-line description (Scene.description)")
+            check_description("[scene] description", scene["description"])
     except ValueError as e:
         raise ValueError(f"{file}: {e}") from None
     # Named by its file, the name only labels, as a mesh file's default: cleaned, not refused
     # ('ev\u202eil.toml' was printed as it was in 'run's one-line report, reordering it).
-    name = name or checks.one_line_label(os.path.splitext(os.path.basename(file))[0])
-    description = scene.get("description") or f"scene file {file}"
+    # So are what Scene refuses in a name, which a file's name may hold ('a\\b.toml', '  .toml').
+    if name is None:
+        name = checks.one_line_label(os.path.splitext(os.path.basename(file))[0]).replace("\\", "_")
+        name = name if name.strip() else "_" * len(name)
+    # Of the file's path, which only labels, cleaned as the name (Scene refuses a line break).
+    description = scene.get("description") or f"scene file {checks.one_line_label(file)}"
     # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
     # bunny.usdc had its mesh replaced by the run, and could not be run again.
     inputs = [("the scene file", os.path.abspath(file))]
