@@ -21,6 +21,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import warp_esph as we
+from warp_esph import losses, silhouette
+from warp_esph.fit import fit
 from warp_esph.scenes import load_scene_file
 
 # Values of every wrong kind: wrong types, NaN, inf, negative, zero, huge, empty.
@@ -613,6 +615,36 @@ def test_a_huge_wrong_value_is_named_in_one_short_line(parameter, value):
         NAMED_WHOLE[parameter](value)
     assert len(str(info.value)) < 1000 and "\n" not in str(info.value), str(info.value)[:300]
 
+
+
+#: An integer past the floats (Python's, TOML's and JSON's integers are unbounded), placed
+#: where an array of numbers goes: numpy's float64 cast raised OverflowError ('int too large
+#: to convert to float') at each of these, naming no parameter.
+PAST_THE_FLOATS = 10**400
+_P = [[PAST_THE_FLOATS, 0, 0], [0.0, 0.1, 0.0]]
+_EYE = np.eye(3).tolist()
+BEYOND_FLOATS = {
+    "v0": lambda r: r.forward(v0=[PAST_THE_FLOATS, 0, 0]),
+    "x0": lambda r: r.forward(x0=[[PAST_THE_FLOATS, 0, 0]] * r.model.particle_count),
+    "F0": lambda r: r.forward(F0=[[PAST_THE_FLOATS, 0, 0], [0, 1, 0], [0, 0, 1]]),
+    "alpha0": lambda r: r.forward(alpha0=PAST_THE_FLOATS),
+    "target": lambda r: fit(r.model, [[PAST_THE_FLOATS, 0, 0]] * r.model.particle_count, steps=2, dt=1e-4),
+    "targets at step 2": lambda r: losses.PositionLoss({2: _P}),
+    "targets": lambda r: losses.ChamferLoss(_P, radius=0.01, frames=[2]),
+    "targets ": lambda r: losses.ReactionForceLoss([PAST_THE_FLOATS], tool="t", steps=[1], components="y"),
+    "center": lambda r: losses.SlumpLoss(0.1, None, frame=2, spacing=0.05, center=[PAST_THE_FLOATS, 0]),
+    "camera 'camera': R": lambda r: silhouette.PinholeCamera(8, 8, 1, 1, 4, 4, [[PAST_THE_FLOATS, 0, 0], [0, 1, 0], [0, 0, 1]], [0, 0, 1]),
+    "camera 'camera': t": lambda r: silhouette.PinholeCamera(8, 8, 1, 1, 4, 4, _EYE, [PAST_THE_FLOATS, 0, 1]),
+    "mask of camera 'camera' at step 2": lambda r: silhouette.SilhouetteLoss(
+        {2: [[[PAST_THE_FLOATS] * 8] * 8]}, [silhouette.PinholeCamera(8, 8, 1, 1, 4, 4, _EYE, [0, 0, 1])], radius=0.01),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BEYOND_FLOATS))
+def test_an_integer_past_the_floats_where_numbers_go_is_refused_by_name(small_rollout, name):
+    with pytest.raises(ValueError, match="^" + re.escape(name.strip()) + r"\b.* is not allowed") as info:
+        BEYOND_FLOATS[name](small_rollout)
+    assert len(str(info.value)) < 300, str(info.value)  # the value shortened (SlumpLoss wrote its 401 digits)
 
 # ----------------------------------------------------------------- absurd numbers of steps
 @settings(max_examples=40, deadline=None)

@@ -246,6 +246,13 @@ def host_values(name: str, value):
     return (t.double() if t.is_floating_point() else t).numpy()
 
 
+#: What ``np.asarray(value, dtype=np.float64)`` raises for a value that is no array of
+#: numbers: text or ragged rows (TypeError, ValueError), and an integer past the floats
+#: (OverflowError: Python's, TOML's and JSON's integers are unbounded; 10**400 given as a
+#: velocity, a target or a camera's R ended in numpy's 'int too large to convert to float').
+ARRAY_ERRORS = (TypeError, ValueError, OverflowError)
+
+
 def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__len__"):
         _fail(name, value, f"must be a sequence of {length} numbers")

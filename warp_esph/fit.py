@@ -385,7 +385,7 @@ def _target_loss(target, frames) -> Loss:
     try:
         complex_ = np.iscomplexobj(a)
         a = None if complex_ else np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError):
+    except checks.ARRAY_ERRORS:
         raise ValueError(f"target = {checks.shorten(target)!r} is not allowed: must be positions, an array of shape (n, 3) "
                          "or (frames, n, 3), a {step: positions} mapping or a Loss") from None
     if complex_:

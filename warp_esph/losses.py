@@ -313,7 +313,7 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
             complex_ = np.iscomplexobj(data)
             # Refused before numpy keeps the real part with only a ComplexWarning.
             a = None if complex_ else np.asarray(data, dtype=np.float64)
-        except (TypeError, ValueError):  # ragged rows: numpy's own message named no parameter
+        except checks.ARRAY_ERRORS:  # ragged rows: numpy's own message named no parameter
             raise ValueError(f"{name} is not allowed: give an array, a sequence of arrays or a {{step: array}} mapping") from None
         if complex_:
             raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
@@ -337,7 +337,7 @@ def _points(name: str, p, missing: bool = False, unseen: str = "") -> np.ndarray
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
     try:
         a = np.asarray(p, dtype=np.float64)
-    except (TypeError, ValueError):  # numpy's "could not convert string to float" named no parameter
+    except checks.ARRAY_ERRORS:  # numpy's "could not convert string to float" named no parameter
         raise ValueError(f"{name} = {checks.shorten(p)!r} is not allowed: must be (N, 3) numbers") from None
     if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
         raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
@@ -1542,7 +1542,7 @@ class ReactionForceLoss(Loss):
         targets = checks.host_values("targets", targets)
         try:
             t = np.asarray(targets, dtype=np.float64)
-        except (TypeError, ValueError):
+        except checks.ARRAY_ERRORS:
             raise ValueError(f"targets = {checks.shorten(targets)!r} is not allowed: must be numbers (N)") from None
         if t.ndim == 1 and len(comps) == 1:
             t = t[:, None]
@@ -1943,10 +1943,10 @@ class SlumpLoss(Loss):
         center = checks.host_values("center", center)
         try:
             c = np.asarray(center, dtype=np.float64).ravel()
-        except (TypeError, ValueError):  # numpy's "could not convert string to float" named no parameter
+        except checks.ARRAY_ERRORS:  # numpy's "could not convert string to float" named no parameter
             c = np.full(1, np.nan)
         if c.shape != (2,) or not np.isfinite(c).all():
-            raise ValueError(f"center = {center!r} is not allowed: give the axis position (x, z)")
+            raise ValueError(f"center = {checks.shorten(center)!r} is not allowed: give the axis position (x, z)")
         self.center = c
         self.tau = 0.05 * self.spacing if tau is None else checks.positive("tau", tau)
         if self.tau < 1e-6 * self.spacing:  # the smooth maximum's exponentials overflow: NaN gradients at 5e-324

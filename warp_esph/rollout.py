@@ -518,7 +518,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     value = checks.host_values(name, value)
     try:
         v = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except checks.ARRAY_ERRORS:
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
                          f"{initial_shapes(name, n)}") from None
     one = None  # the one entry given for every particle, which its refusals name (not "particle 0")

@@ -90,8 +90,13 @@ class PinholeCamera:
         for k in ("fx", "fy"):
             setattr(self, k, checks.positive(k, getattr(self, k)))
         self.cx, self.cy = checks.number("cx", self.cx), checks.number("cy", self.cy)
-        self.R = np.asarray(self.R, dtype=np.float64)
-        self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        for key in ("R", "t"):
+            try:
+                setattr(self, key, np.asarray(getattr(self, key), dtype=np.float64))
+            except checks.ARRAY_ERRORS:  # numpy's own message named no key
+                raise ValueError(f"camera {self.name!r}: {key} = {checks.shorten(getattr(self, key))!r} is not allowed: "
+                                 "must be numbers") from None
+        self.t = self.t.reshape(-1)
         if self.R.shape != (3, 3) or not np.isfinite(self.R).all():
             raise ValueError(f"camera {self.name!r}: R with shape {self.R.shape} is not allowed: must be a finite 3x3 rotation")
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0.0:
@@ -117,7 +122,7 @@ class PinholeCamera:
                 raise ValueError(f"camera {name!r}: K and {', '.join(both)} are not allowed together: give one of them")
             try:
                 K = np.asarray(d["K"], dtype=np.float64)
-            except (TypeError, ValueError):  # numpy's own message for text or ragged rows
+            except checks.ARRAY_ERRORS:  # numpy's own message for text or ragged rows
                 K = np.full(1, np.nan)
             if K.shape != (3, 3) or not np.isfinite(K).all():
                 raise ValueError(f"camera {name!r}: K = {checks.shorten(d['K'])!r} is not allowed: must be 3x3 finite numbers")
@@ -133,7 +138,7 @@ class PinholeCamera:
         for key in ("R", "t"):
             try:
                 d[key] = np.asarray(d[key], dtype=np.float64)
-            except (TypeError, ValueError):  # numpy's own message named no key
+            except checks.ARRAY_ERRORS:  # numpy's own message named no key
                 raise ValueError(f"camera {name!r}: {key} = {checks.shorten(d[key])!r} is not allowed: must be "
                                  "numbers") from None
         # Whole numbers as they are (int() took 16.9 as 16 and true as 1); 32.0 is 32.
@@ -184,7 +189,7 @@ def _mask_array(a, where: str) -> np.ndarray:
     positive (whose inside cannot be told: a signed distance? a [-1, 1] image?) are refused."""
     try:
         a = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError):
+    except checks.ARRAY_ERRORS:
         raise ValueError(f"mask {where} is not allowed: it is not an array of numbers") from None
     if a.ndim == 3:
         a = a[..., :3].mean(axis=2)
@@ -434,7 +439,7 @@ class SilhouetteLoss(Loss):
                     if np.iscomplexobj(m):  # its real part was taken with a ComplexWarning
                         raise TypeError
                     m = np.asarray(m, dtype=np.float64)
-                except (TypeError, ValueError):
+                except checks.ARRAY_ERRORS:
                     raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it is not an array of "
                                      "numbers") from None
                 if m.shape != (c.height, c.width):
