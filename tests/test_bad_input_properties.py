@@ -1049,6 +1049,23 @@ def test_a_monitor_exemption_of_a_0d_array_is_refused_by_name():
     we.simulate(model, 1, monitor_exempt=np.array(["blk"]), progress=False)
 
 
+def test_a_monitor_exemption_or_a_tool_scale_of_an_array_is_refused_by_name():
+    """A 2-D array of exemptions, or an array given as a primitive tool's ``scale`` (a mesh
+    tool's alone), met a comparison with numpy's 'The truth value of an array with more than
+    one element is ambiguous', naming no parameter, and the exemptions' refusal wrote the
+    array's rows on lines of their own; ``scale=True`` beside a sphere was taken (True == 1)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="blk")
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"^monitor_exempt = array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\) is not "
+                                         r"allowed: must be a list of body names \(\['blk'\]\)$"):
+        we.simulate(model, 1, monitor_exempt=np.zeros((2, 3)), progress=False)
+    for scale, shown in ((np.array([1.0, 2.0, 3.0]), r"array\(\[1\., 2\., 3\.\]\)"), (True, "True")):
+        with pytest.raises(ValueError, match=rf"^scale = {shown} is not allowed for shape 'sphere': its options are radius$"):
+            b.add_tool("sphere", radius=0.05, position=(1.0, 1.0, 1.0), scale=scale)
+    b.add_tool("sphere", radius=0.05, position=(1.0, 1.0, 1.0), scale=np.float64(1.0))  # the default, as numpy holds it
+
+
 @pytest.mark.parametrize("value", [np.array([]), np.array(["rest", "additive"]), np.array("rest")])
 @pytest.mark.parametrize("make", ["Material", "preset", "replace"])
 def test_a_deformation_given_as_a_numpy_array_is_refused_by_name(make, value):

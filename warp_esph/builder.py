@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import os
 import warnings
 from collections.abc import Sequence
@@ -646,7 +647,9 @@ class SceneBuilder:
                  "mesh": mesh, "prim_path": prim_path}
         own = _TOOL_SHAPE_OPTIONS[kind]
         stray = [k for k, v in given.items() if v is not None and k not in own]
-        if kind != "mesh" and scale != 1.0:
+        # A mesh's alone: any other value given, an array (numpy's 'truth value ... is
+        # ambiguous' at '!=') or True (== 1) as well.
+        if kind != "mesh" and not (isinstance(scale, numbers.Real) and not isinstance(scale, (bool, np.bool_)) and scale == 1.0):
             stray.append("scale")
         if stray:
             raise ValueError(f"{stray[0]} = {checks.shorten(given.get(stray[0], scale))!r} is not allowed for shape "
