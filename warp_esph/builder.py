@@ -160,7 +160,7 @@ class SceneBuilder:
         #: ``Model.hourglass`` of the model ``finalize`` makes.
         self.hourglass = None if hourglass is None else checks.hourglass("hourglass", hourglass)
         if not isinstance(bodies_interact, bool):
-            raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
+            raise ValueError(f"bodies_interact = {checks.shorten(bodies_interact)!r} is not allowed: must be True or False")
         #: Whether SPH pressure and viscosity act between bodies (contact between bodies).
         #: ``False`` makes every body a separate simulation that only shares colliders.
         self.bodies_interact = bodies_interact
@@ -458,13 +458,13 @@ class SceneBuilder:
             layers = math.ceil(self.support_radius / dx - 1e-9)
         layers = checks.positive_int("layers", layers, maximum=MAX_FLOOR_LAYERS)
         if where is not None and not callable(where):
-            raise ValueError(f"where = {where!r} is not allowed: must be callable as where(floor_positions) -> bool array")
+            raise ValueError(f"where = {checks.shorten(where)!r} is not allowed: must be callable as where(floor_positions) -> bool array")
         if not isinstance(elastic, bool):
-            raise ValueError(f"elastic = {elastic!r} is not allowed: must be True or False")
+            raise ValueError(f"elastic = {checks.shorten(elastic)!r} is not allowed: must be True or False")
         if not isinstance(ghost, bool):
-            raise ValueError(f"ghost = {ghost!r} is not allowed: must be True or False")
+            raise ValueError(f"ghost = {checks.shorten(ghost)!r} is not allowed: must be True or False")
         if not isinstance(slip, bool):
-            raise ValueError(f"slip = {slip!r} is not allowed: must be True or False")
+            raise ValueError(f"slip = {checks.shorten(slip)!r} is not allowed: must be True or False")
         if slip and not ghost:
             raise ValueError("slip = True is not allowed without ghost = True: only a ghost floor can let the material slide")
         if ghost and elastic:
@@ -554,7 +554,7 @@ class SceneBuilder:
         its energy does is stored and an undamped layer on it keeps its energy
         (docs/physics.md, "The floor images' energy is not stored")."""
         if not isinstance(images, bool):
-            raise ValueError(f"images = {images!r} is not allowed: must be True or False")
+            raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):
             raise ValueError("images = True is not allowed twice: one ground may be a rough floor of the fits")
         self._add_collider(self.planes, Plane((0.0, 1.0, 0.0), checks.number("height", height),
@@ -1770,7 +1770,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
     ``w * len(model.materials) + k`` (``model.world_materials(w)``). For the multi-start fit
     (``fit(..., starts=K, worlds=True)``), which has a model rather than its builder."""
     if not isinstance(model, Model):
-        raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
     if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
         raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be an integer >= 1")
     if worlds > MAX_WORLDS:

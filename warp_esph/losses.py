@@ -773,7 +773,7 @@ class WorldLoss(Loss):
     def __init__(self, model, losses):
         starts = getattr(model, "world_start", None)
         if starts is None:
-            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+            raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
         W = len(starts) - 1
         if isinstance(losses, Loss):
             losses = [losses] * W

@@ -245,7 +245,7 @@ class Material:
                 "it is the gradient of a fit's energy; use deformation = 'incremental' or 'rest', or elastic_force = 'paper'"
             )
         if not isinstance(self.clamp_pressure, bool):
-            raise ValueError(f"Material.clamp_pressure = {self.clamp_pressure!r} is not allowed: must be True or False")
+            raise ValueError(f"Material.clamp_pressure = {checks.shorten(self.clamp_pressure)!r} is not allowed: must be True or False")
 
     @classmethod
     def from_young(cls, E: float, nu: float, **kwargs) -> "Material":

@@ -80,10 +80,10 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
     unit, centimetres, with a ``UserWarning``.
     """
     if prim_path is not None and not isinstance(prim_path, str):
-        raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be a string such as '/root/bunny' or None")
+        raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: must be a string such as '/root/bunny' or None")
     if isinstance(source, tuple):
         if prim_path is not None:
-            raise ValueError(f"prim_path = {prim_path!r} is not allowed: it is only for USD files, not (points, triangles)")
+            raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: it is only for USD files, not (points, triangles)")
         if len(source) != 2:
             raise ValueError(f"source with {len(source)} items is not allowed: a tuple must be (points, triangles)")
         label = "(points, triangles)"
@@ -101,7 +101,7 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
             label = f"{label} (prim {prim!r})"
         elif _extension(path, meshio_ext):
             if prim_path is not None:
-                raise ValueError(f"prim_path = {prim_path!r} is not allowed: it is only for USD files, not {label}")
+                raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: it is only for USD files, not {label}")
             points, triangles = _read_meshio(label, path)
         else:
             suffix = pathlib.Path(path).suffix or "(none)"
@@ -168,7 +168,7 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         prim = _only_mesh(label, stage, time)
     else:
         if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsolutePath():
-            raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be an absolute prim path such as '/root/bunny'")
+            raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: must be an absolute prim path such as '/root/bunny'")
         prim = stage.GetPrimAtPath(prim_path)
         if not prim.IsValid():
             raise ValueError(f"prim_path = {prim_path!r} is not allowed: {label} has no prim there")

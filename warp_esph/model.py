@@ -647,7 +647,7 @@ class Model:
     def fit(self, value: str | None):
         """None: back to the default."""
         if value is not None and (not isinstance(value, str) or value not in FITS):
-            raise ValueError(f"fit = {value!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+            raise ValueError(f"fit = {checks.shorten(value)!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         self._fit = value
 
     @property
@@ -779,7 +779,7 @@ class Model:
         runs as given."""
         asked = self.fit if fit is None else fit
         if not isinstance(asked, str) or asked not in FITS:
-            raise ValueError(f"fit = {asked!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+            raise ValueError(f"fit = {checks.shorten(asked)!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         chosen = asked
         if asked == "auto":
             # A ghost floor (sim/ghost_floor.py) enters the linear fit only.
@@ -849,7 +849,7 @@ class Model:
                 raise ValueError(f"index = {index!r} is not allowed: world {w} has materials 0..{end - first - 1}")
             index = int(first + index)
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
-            raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
+            raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
         if not isinstance(material, Material):
             raise ValueError(f"material = {checks.shorten(material)!r} is not allowed: must be a warp_esph.Material")
         old = self.materials[index]

@@ -1453,7 +1453,7 @@ def simulate(
     """
     try:
         if not isinstance(model, Model):
-            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+            raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
         frames = _frame_count(frames)
         if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)) or start_frame < 0:
             raise ValueError(f"start_frame = {checks.shorten(start_frame)!r} is not allowed: must be an integer >= 0")
@@ -1481,7 +1481,7 @@ def simulate(
             check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
-                raise ValueError(f"writer = {writer!r} is not allowed: it must have a write_frame(frame_index, state) method")
+                raise ValueError(f"writer = {checks.shorten(writer)!r} is not allowed: it must have a write_frame(frame_index, state) method")
             wmodel = getattr(writer, "model", None)
             if isinstance(wmodel, Model) and _body_layout(wmodel) != _body_layout(model):
                 # A UsdWriter holds its model's bodies and their particle counts.
@@ -1491,7 +1491,7 @@ def simulate(
             if wfps is not None and not math.isclose(float(wfps), fps, rel_tol=1e-9):
                 raise ValueError(f"fps = {fps:g} is not allowed: the writer was opened with fps = {float(wfps):g}")
         if callback is not None and not callable(callback):
-            raise ValueError(f"callback = {callback!r} is not allowed: must be callable as callback(frame_index, state)")
+            raise ValueError(f"callback = {checks.shorten(callback)!r} is not allowed: must be callable as callback(frame_index, state)")
         if solver is None:
             solver = Solver(model)
         elif not isinstance(solver, Solver) or solver.model is not model:

@@ -162,7 +162,7 @@ def _check_ghost_floor(model: Model, fit: str):
     """What ``add_particle_floor(ghost=True)`` supports: the linear incremental fit with the
     variational elastic force, on the non-fused kernels (``sim/ghost_floor.py``)."""
     if fit != "linear":
-        raise ValueError(f"fit = {fit!r} is not allowed with a ghost floor (add_particle_floor(ghost=True)): "
+        raise ValueError(f"fit = {checks.shorten(fit)!r} is not allowed with a ghost floor (add_particle_floor(ghost=True)): "
                          f"its ghosts enter the linear fit only ('linear' or 'auto')")
     kinds = sorted({m.elastic_force for m in model.materials} - {"variational"})
     if kinds:
@@ -325,7 +325,7 @@ class Solver:
                              "(SceneBuilder.finalize())")
         self.model = model
         if fit is not None and (not isinstance(fit, str) or fit not in FITS):
-            raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+            raise ValueError(f"fit = {checks.shorten(fit)!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         if hourglass is not None:
             checks.hourglass("hourglass", hourglass)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
@@ -343,9 +343,9 @@ class Solver:
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
-            raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+            raise ValueError(f"fused = {checks.shorten(fused)!r} is not allowed: must be True or False")
         if not isinstance(yield_with_pressure, bool):
-            raise ValueError(f"yield_with_pressure = {yield_with_pressure!r} is not allowed: must be True or False")
+            raise ValueError(f"yield_with_pressure = {checks.shorten(yield_with_pressure)!r} is not allowed: must be True or False")
         if yield_with_pressure and model.uses_comparison_models:
             raise ValueError("yield_with_pressure = True is not allowed with a comparison deformation model "
                              "(Material.deformation 'rest' or 'additive'): its constitutive update has no such test; "
