@@ -1,5 +1,5 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
-docs/scene_format.md's loader and example file, docs/tools.md's press and docs/fitting.md's quick start and worlds, docs/cli.md's sweep;
+docs/scene_format.md's loader, example file and lab material, docs/tools.md's press and docs/fitting.md's quick start and worlds, docs/cli.md's sweep;
 and the pages' example command lines,
 the CLI's and the benchmarks', parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
@@ -86,6 +86,19 @@ def test_the_scene_format_example_file_loads_as_its_comments_say(tmp_path):
     assert soft.yield_stress == we.Material.preset("dough").yield_stress
     assert (bouncy.mu, bouncy.lam, bouncy.density, bouncy.yield_stress) == (7.0e4, 2.8e5, 1100.0, float("inf"))
     assert clay == we.Material.preset("clay") and dough == we.Material.preset("dough")
+
+
+def test_the_scene_format_lab_material_is_the_one_from_rheology_gives(tmp_path):
+    """docs/scene_format.md's material of a rheometer's values, given a body and loaded: the
+    material ``Material.from_rheology`` makes of the values its table holds."""
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    blocks = re.findall(r"^```toml\n(.*?)^```", (ROOT / "docs" / "scene_format.md").read_text(), flags=re.S | re.M)
+    (table,) = [b for b in blocks if "shear_yield_stress" in b]
+    (tmp_path / "lab.toml").write_text('[scene]\nspacing = 0.05\n\n' + table
+                                       + '\n[[bodies]]\nshape = "sphere"\nmaterial = "paste"\ncenter = [0, 0.2, 0]\nradius = 0.1\n')
+    (material,) = load_scene_file(tmp_path / "lab.toml").builder.finalize().materials
+    assert material == we.Material.from_rheology(2.0e4, 0.3, shear_yield_stress=50.0, plastic_viscosity=10.0)
 
 
 def test_the_tools_md_press_exerts_the_force_the_page_states():

@@ -638,3 +638,44 @@ def test_an_under_resolved_body_no_scale_searched_resolves_says_how_far_it_looke
     with pytest.raises(ValueError, match=rf"body 'sheet' is under-resolved .*; no scale up to {last:g} resolves it; give "
                        r"the body more particle layers$"):
         load_scene(str(path), scale=1.05)
+
+
+def _material_of(tmp_path, table: str) -> we.Material:
+    """The material of BASE's one body, its table ``[materials.m]`` given as ``table``."""
+    path = tmp_path / "rheology.toml"
+    path.write_text(BASE.replace('preset = "dough"', table, 1))
+    return load_scene_file(path).builder.finalize().materials[0]
+
+
+def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_path):
+    """A lab's shear yield stress (a rheometer's) or uniaxial one (a compression test's) and
+    plastic viscosity, written in a scene file's material table, give the material that
+    ``Material.from_rheology`` gives (``tests/test_units.py`` checks that one in simple shear).
+    Before, ``shear_yield_stress`` was an unknown key with the advice "did you mean
+    'yield_stress'?", which would have set the yield stress sqrt(2) x too low."""
+    rheometer = _material_of(tmp_path, "E = 2.0e4\nnu = 0.3\nshear_yield_stress = 50.0\nplastic_viscosity = 10.0")
+    assert rheometer == we.Material.from_rheology(2.0e4, 0.3, shear_yield_stress=50.0, plastic_viscosity=10.0)
+    assert rheometer.shear_yield_stress == pytest.approx(50.0) and rheometer.plastic_viscosity == pytest.approx(10.0)
+    # From a preset: the preset's elastic constants set the flow rate of the viscosity given.
+    dough = we.Material.preset("dough")
+    pressed = _material_of(tmp_path, 'preset = "dough"\nuniaxial_yield_stress = 300.0\nplastic_viscosity = 50.0')
+    assert pressed == dough.replace(yield_stress=math.sqrt(2.0 / 3.0) * 300.0, flow_rate=dough.mu / 50.0)
+    assert pressed.uniaxial_yield_stress == pytest.approx(300.0)
+    # inf: a material that never flows, as from_rheology's math.inf.
+    assert _material_of(tmp_path, 'preset = "dough"\nplastic_viscosity = inf').flow_rate == 0.0
+
+
+@pytest.mark.parametrize("table, message", [
+    ('preset = "dough"\nshear_yield_stress = 50.0\nyield_stress = 70.0',
+     r"\[materials.m\] gives yield_stress and shear_yield_stress: give one"),
+    ('preset = "dough"\nshear_yield_stress = 50.0\nuniaxial_yield_stress = 80.0',
+     r"\[materials.m\] gives shear_yield_stress and uniaxial_yield_stress: give one"),
+    ('preset = "dough"\nplastic_viscosity = 10.0\nflow_rate = 5.0',
+     r"\[materials.m\] gives flow_rate and plastic_viscosity: give one"),
+    ('preset = "dough"\nmodel = "hyperelastic"\nshear_yield_stress = 50.0',
+     r"\[materials.m\]: shear_yield_stress is not allowed for model = 'hyperelastic'.*'linear' or 'stvk'"),
+    ('preset = "dough"\nplastic_viscosity = -1.0', r"\[materials.m\]: plastic_viscosity = -1.0? is not allowed: must be > 0"),
+])
+def test_a_material_tables_rheometer_values_are_refused_beside_what_they_set(tmp_path, message, table):
+    with pytest.raises(ValueError, match=message):
+        _material_of(tmp_path, table)

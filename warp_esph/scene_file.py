@@ -182,7 +182,11 @@ MATERIAL_KEYS = {
     "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
     "deformation": (STR, False), "elastic_force": (STR, False), "pressure_force": (STR, False),
+    "shear_yield_stress": (NUM, False), "uniaxial_yield_stress": (NUM, False), "plastic_viscosity": (NUM_INF, False),
 }
+#: A lab's values, which set ``yield_stress`` and ``flow_rate`` as ``Material.from_rheology``
+#: does, from the table's final ``mu`` (a preset's where the table gives no moduli).
+RHEOLOGY_KEYS = ("shear_yield_stress", "uniaxial_yield_stress", "plastic_viscosity")
 #: ``floor_margin`` puts a particle floor under the body (``SceneBuilder.add_particle_floor``;
 #: ``floor_layers`` its layers, default ceil(support_radius / spacing); ``floor_elastic`` its
 #: ``elastic``, default false; ``floor_ghost`` its ``ghost`` and ``floor_slip`` its ``slip``,
@@ -288,7 +292,11 @@ def _material(file: str, name: str, table: dict) -> Material:
         raise ValueError(f"{file}: {where} is not allowed: the name {name!r} names the material in one-line messages "
                          f"and in the bodies' material keys, so it must be {checks.ONE_LINE}")
     _check_table(file, where, table, MATERIAL_KEYS)
-    fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu")}
+    fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu", *RHEOLOGY_KEYS)}
+    for a, b in (("yield_stress", "shear_yield_stress"), ("yield_stress", "uniaxial_yield_stress"),
+                 ("shear_yield_stress", "uniaxial_yield_stress"), ("flow_rate", "plastic_viscosity")):
+        if a in table and b in table:
+            raise ValueError(f"{file}: {where} gives {a} and {b}: give one")
     if ("E" in table) != ("nu" in table):
         raise ValueError(f"{file}: {where} gives {'E' if 'E' in table else 'nu'} without {'nu' if 'E' in table else 'E'}: give both")
     if "E" in table:
@@ -310,10 +318,12 @@ def _material(file: str, name: str, table: dict) -> Material:
             # The deformation model's default force, as for a new material (the presets hold
             # the incremental model's, which "additive" refuses), and left defaulted as a preset's.
             made = dataclasses.replace(PRESETS[preset], **_following_force(PRESETS[preset], fields))
-            return _from_young(made, E, nu) if "E" in table else made
-        if "mu" not in fields or "lam" not in fields:
+        elif "mu" not in fields or "lam" not in fields:
             raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
-        return _from_young(Material(**fields), E, nu) if "E" in table else Material(**fields)
+        else:
+            made = Material(**fields)
+        made = _with_rheology(made, table)
+        return _from_young(made, E, nu) if "E" in table else made
     except ValueError as e:
         msg = str(e)
         if msg.startswith(file):
@@ -322,6 +332,25 @@ def _material(file: str, name: str, table: dict) -> Material:
         # not 'Material.model = ...'), as every other table's refusals name their keys.
         msg = msg.removeprefix("Material.")
         raise ValueError(f"{file}: {where}: {msg}") from None
+
+
+def _with_rheology(material: Material, table: dict) -> Material:
+    """``material`` with the yield stress and flow rate of a table's ``RHEOLOGY_KEYS``."""
+    given = [key for key in RHEOLOGY_KEYS if key in table]
+    if not given:
+        return material
+    # The Bingham relation holds for these models alone (Material.from_rheology).
+    material._check_bingham(given[0])
+    changes = {}
+    if "shear_yield_stress" in table:
+        changes["yield_stress"] = math.sqrt(2.0) * checks.non_negative("shear_yield_stress", table["shear_yield_stress"])
+    if "uniaxial_yield_stress" in table:
+        changes["yield_stress"] = math.sqrt(2.0 / 3.0) * checks.non_negative(
+            "uniaxial_yield_stress", table["uniaxial_yield_stress"])
+    if "plastic_viscosity" in table:
+        eta = checks.positive("plastic_viscosity", table["plastic_viscosity"], allow_inf=True)
+        changes["flow_rate"] = material.mu / eta
+    return material.replace(**changes)
 
 
 def _tagged(file: str, where: str, table, tag: str, kinds: dict) -> tuple[str, str]:
