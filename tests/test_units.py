@@ -101,6 +101,25 @@ def test_rheology_constructor_converts_the_lab_quantities():
     assert we.Material(mu=1.0, lam=1.0).plastic_viscosity == math.inf
 
 
+@pytest.mark.parametrize("call, message", [
+    (lambda: we.Material.preset("dough", shear_yield_stress=50.0),
+     r"'shear_yield_stress' is not allowed in Material\.preset: must be one of mu, .*; shear_yield_stress is a lab's value, "
+     r"not a field: yield_stress = sqrt\(2\) shear_yield_stress \(give the fields, or make the material with "
+     r"Material\.from_rheology\)"),
+    (lambda: we.Material.preset("dough").replace(plastic_viscosity=10.0),
+     r"'plastic_viscosity' is not allowed in Material\.replace: .*; plastic_viscosity is a lab's value, not a field: "
+     r"flow_rate = mu / plastic_viscosity"),
+    (lambda: we.Material.from_young(1e4, 0.3, uniaxial_yield_stress=80.0),
+     r"uniaxial_yield_stress is a lab's value, not a field: yield_stress = sqrt\(2/3\) uniaxial_yield_stress"),
+])
+def test_a_lab_quantity_given_as_a_field_is_refused_saying_which_field_it_sets(call, message):
+    """A preset set to a rheometer's values (``Material.preset("dough", shear_yield_stress=50)``)
+    is what a lab's user tries first: the refusal listed the fields alone, not that the value
+    is yield_stress / sqrt(2), nor where a lab's values are taken."""
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
 @pytest.mark.parametrize(
     "kwargs, name",
     [
