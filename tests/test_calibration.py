@@ -485,6 +485,9 @@ def test_the_large_strain_bias_is_said_for_the_poly6_weight_past_its_measured_st
     alpha = np.r_[np.full(85, 0.3), np.full(15, 0.9)]
     said = large_strain_bias(model("poly6", 100), alpha, "experiment 1: ")
     assert said.startswith("experiment 1: 15 % of the particles end past a plastic strain of 0.65") and "biweight" in said
+    # Where the weight is chosen, in each of the three ways: it had said "fit with
+    # fit_weight='biweight'", a keyword fit() does not take and no option of warp-esph fit.
+    assert "SceneBuilder(fit_weight='biweight'), [solver] fit_weight = \"biweight\" or --fit-weight biweight" in said
     assert large_strain_bias(model("biweight", 100), alpha) is None
     assert large_strain_bias(model("poly6", 100), np.r_[np.full(91, 0.3), np.full(9, 0.9)]) is None
     assert large_strain_bias(model("poly6", 10), np.full(10, 0.65)) is None  # at the threshold, not past it

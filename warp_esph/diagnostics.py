@@ -250,7 +250,8 @@ def large_strain_bias(model, alpha, where: str = "") -> str | None:
     return (f"{where}{100 * share:.0f} % of the particles end past a plastic strain of {LARGE_STRAIN_ALPHA:g} (alpha; a "
             f"uniaxial log strain of about 0.53), where the poly6 fit weight's packing rearranges and carries 0.63-0.74 "
             f"of the Bingham stress at 8-12 particles across: the fitted yield stress or flow rate may be up to 1.6 x "
-            f"the material's; measure less flow, or fit with fit_weight='biweight' (docs/fitting.md, \"Keep the "
+            f"the material's; measure less flow, or fit a model of the biweight fit weight (SceneBuilder(fit_weight="
+            f"'biweight'), [solver] fit_weight = \"biweight\" or --fit-weight biweight; docs/fitting.md, \"Keep the "
             f"measured flow to moderate strains\")")
 
 
