@@ -2587,3 +2587,22 @@ def test_a_plan_of_far_more_steps_than_the_scene_needs_says_so_and_names_the_rat
     assert "500 times the scene's own 6 frames at 30 fps (0.2 s" in said, said
     assert f"the rate 0.03 fps was read from the target {target}" in said, said
     assert "if 0.03 is a frame interval (seconds per frame), the rate is 33.33 fps" in said, said
+
+
+def test_a_target_past_the_fits_frames_is_refused_saying_what_to_give(tmp_path, capsys, dough_scene):
+    """``--frames`` shorter than the target (a user cutting a fit short) was refused as 'the
+    target has frame 3, beyond --frames = 2', which named no way on: the line now says both,
+    a --frames that reaches the target or target frames within the run."""
+    from warp_esph.cli import main
+
+    scene = tmp_path / "truth.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=3))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(run), "--frames", "2", "--iterations", "0", "--no-progress",
+                 "--output-dir", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert (f"the target {run} has frame 3, beyond --frames = 2: give --frames 3 or more, or choose target frames "
+            "up to 2 with --target-frames") in err, err
+    assert not (tmp_path / "fit").exists()

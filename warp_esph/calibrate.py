@@ -896,7 +896,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if t.frames is None:
                 t.frames = [frames]
             if max(t.frames) > frames:
-                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
+                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}: "
+                                 f"give {key('frames')} {max(t.frames)} or more, or choose target frames up to {frames} "
+                                 f"with {key('target_frames')}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             offset = _arg(args, "cloud_offset") or 0.0
             if offset == "surface":
