@@ -1103,6 +1103,37 @@ def test_cli_fits_the_force_components_chosen_and_says_where_a_fitted_column_is_
             "or xz)")
 
 
+def test_cli_says_where_a_force_log_is_zero_in_every_frame_and_column(tmp_path, capsys, monkeypatch):
+    """A log of a plate that never touched the sample (a user's press whose keyframes stopped
+    above it) is 0 throughout: the fit ran, stopped at once on a zero gradient and blamed the
+    material ("no particle reaches the yield stress"), the plan silent. The plan now says the
+    log holds no contact and what to check."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(SCENE.format(mu=10000.0, lam=5000.0, yield_stress=2000.0))
+    log = tmp_path / "lab.csv"
+    log.write_text("frame,time,tool,fx,fy,fz\n" + "".join(f"{f},{f / 200:.6g},plate,0,0,0\n" for f in range(11)))
+
+    def stand_in(experiments, *args, log, **kwargs):
+        log("the fit would start here")  # the plan's lines wait for the fit's first
+        raise ValueError("stopped by the test before the first evaluation")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    argv = ["fit", str(guess), "--target", str(log), "--target-tool", "plate", "--params", "mu", "--no-progress",
+            "--no-usd", "--output-dir", str(tmp_path / "out")]
+    for extra in ([], ["--force-components", "y"]):
+        capsys.readouterr()
+        assert main([*argv, *extra]) == 2
+        err = capsys.readouterr().err
+        assert (f"target {log}: the force on 'plate' is 0 in every frame fitted: the log holds no contact, which the "
+                "model matches only where its tool touches nothing either (no gradient: the fit stops at once); check "
+                "that the scene's tool reaches the sample in the frames measured and that --target-tool names the "
+                "tool the log measured") in err, err
+        assert "are 0 in every frame" not in err, err
+
+
 def test_adam_fits_the_press_modulus_to_its_force_curve():
     """Adam reads the loss's round-off from its observations at its first step (the loss's
     gradient of them times their size), forces included, whose gradient comes per step and

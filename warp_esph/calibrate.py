@@ -1048,15 +1048,22 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
 
 
 def _zero_force_columns(path, term, chosen: bool) -> str | None:
-    """The plan's line where a fitted column of a force log is 0 in every frame fitted, and
-    another is not: a zero is fitted as a measured force (the model's force along that axis held
+    """The plan's line where a fitted column of a force log is 0 in every frame fitted (every
+    column: no contact was measured), and another is not: a zero is fitted as a measured force (the model's force along that axis held
     to 0), and the diagnostics count each as an observation, which lowers the noise they
     estimate where the model's force there is ~0 anyway (a symmetric press). Said, not dropped:
     a measured zero does inform where the model pushes sideways; a load cell that writes 0 for
     axes it does not measure is fitted along its axis with --force-components."""
     t = np.asarray(term.targets)
     zero = [c for j, c in enumerate(term.components) if not np.any(t[:, j])]
-    if not zero or len(zero) == len(term.components):
+    if zero and len(zero) == len(term.components):
+        # A plate that never touched the sample: the fit stopped on a zero gradient and blamed
+        # the material ("no particle reaches the yield stress").
+        return (f"target {path}: the force on {term.tool!r} is 0 in every frame fitted: the log holds no contact, which "
+                "the model matches only where its tool touches nothing either (no gradient: the fit stops at once); check "
+                "that the scene's tool reaches the sample in the frames measured and that --target-tool names the tool "
+                "the log measured")
+    if not zero:
         return None
     kept = "".join(c for c in term.components if c not in zero)
     names = ", ".join(f"f{c}" for c in zero)
