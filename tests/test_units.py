@@ -120,6 +120,24 @@ def test_a_lab_quantity_given_as_a_field_is_refused_saying_which_field_it_sets(c
         call()
 
 
+def test_a_lab_quantity_fitted_or_swept_is_refused_saying_which_parameter_it_sets():
+    """``warp-esph fit --params shear_yield_stress`` and ``sweep --param
+    dough.plastic_viscosity=...``: a rheometer's user names the values measured; the refusals
+    listed the parameters alone."""
+    from warp_esph.fit import check_options
+    from warp_esph.sweep import parse_param
+
+    with pytest.raises(ValueError, match=r"entry 'shear_yield_stress' is not allowed: must be one of mu, .*; "
+                                         r"shear_yield_stress is a lab's value, not a parameter: yield_stress = sqrt\(2\) "
+                                         r"shear_yield_stress \(fit yield_stress: the fitted material's "
+                                         r"shear_yield_stress is yield_stress / sqrt\(2\)\)"):
+        check_options(params="shear_yield_stress", iterations=1)
+    with pytest.raises(ValueError, match=r"--param 'dough.plastic_viscosity' is not allowed: unknown parameter; .*; "
+                                         r"plastic_viscosity is a lab's value, not a parameter: flow_rate = mu / "
+                                         r"plastic_viscosity \(sweep flow_rate\)"):
+        parse_param("dough.plastic_viscosity=5:50:log:3")
+
+
 @pytest.mark.parametrize(
     "kwargs, name",
     [

@@ -56,7 +56,7 @@ from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
                      read_tools_csv, surface_particles)
-from .material import PRESSURE_BULK_SHARE, Material, _following_force
+from .material import LAB_QUANTITIES, PRESSURE_BULK_SHARE, Material, _following_force, lab_value_note
 from .model import Model, State, check_material_precision
 from .rollout import FRAME_BUFFERS, PARAMETERS, TOOL_GRADIENTS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 from .sim.neighbors import NeighborOverflow
@@ -1769,7 +1769,9 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
         raise ValueError(f"{flag('params')} = [] is not allowed: name at least one parameter")
     for p in params:
         if p not in PARAMETERS:
-            raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+            lab = (f"{lab_value_note(p, 'parameter')} (fit {LAB_QUANTITIES[p][0]}: the fitted material's {p} is "
+                   f"{LAB_QUANTITIES[p][2]})" if p in LAB_QUANTITIES else "")
+            raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}{lab}")
     if len(set(params)) != len(params):
         raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
     out = {"params": params, "iterations": _count(flag("iterations"), iterations),

@@ -498,18 +498,26 @@ def _check_fields(where: str, given) -> None:
     fields = [f.name for f in dataclasses.fields(Material)]
     unknown = sorted(set(given) - set(fields))
     if unknown:
-        lab = [f"{name} is a lab's value, not a field: {LAB_QUANTITIES[name]}" for name in unknown if name in LAB_QUANTITIES]
-        hint = f"; {'; '.join(lab)} (give the fields, or make the material with Material.from_rheology)" if lab else ""
+        lab = "".join(lab_value_note(name) for name in unknown)
+        hint = f"{lab} (give the fields, or make the material with Material.from_rheology)" if lab else ""
         raise ValueError(f"{', '.join(map(repr, unknown))} is not allowed in {where}: must be one of {', '.join(fields)}{hint}")
 
 
 #: The values a lab measures, which ``Material.from_rheology`` (and a scene file's material
-#: table) take, and the fields they set: a preset given one had been refused naming the fields alone.
+#: table) take: name -> (the field each sets, how, and how the field converts back). Given in
+#: place of a field (a preset's override, a fitted or swept parameter), they had been refused
+#: naming the fields alone.
 LAB_QUANTITIES = {
-    "shear_yield_stress": "yield_stress = sqrt(2) shear_yield_stress",
-    "uniaxial_yield_stress": "yield_stress = sqrt(2/3) uniaxial_yield_stress",
-    "plastic_viscosity": "flow_rate = mu / plastic_viscosity",
+    "shear_yield_stress": ("yield_stress", "yield_stress = sqrt(2) shear_yield_stress", "yield_stress / sqrt(2)"),
+    "uniaxial_yield_stress": ("yield_stress", "yield_stress = sqrt(2/3) uniaxial_yield_stress", "sqrt(3/2) yield_stress"),
+    "plastic_viscosity": ("flow_rate", "flow_rate = mu / plastic_viscosity", "mu / flow_rate"),
 }
+
+
+def lab_value_note(name: str, what: str = "field") -> str:
+    """``"; NAME is a lab's value, not a WHAT: FORMULA"`` where ``name`` is one of
+    ``LAB_QUANTITIES``, else ``""``: the clause a refusal of that name as a field adds."""
+    return f"; {name} is a lab's value, not a {what}: {LAB_QUANTITIES[name][1]}" if name in LAB_QUANTITIES else ""
 
 
 # Presets: soft, kitchen-scale materials that run stably at 1-2 cm spacing with the

@@ -185,8 +185,13 @@ def parse_param(spec) -> Param:
             p = Param(name, values=values)
     fields = _fields()
     if not isinstance(p.name, str) or p.field not in fields or (p.target is not None and not p.target):
+        from .material import LAB_QUANTITIES, lab_value_note  # noqa: PLC0415
+
+        lab = (f"{lab_value_note(p.field, 'parameter')} (sweep {LAB_QUANTITIES[p.field][0]})"
+               if isinstance(p.name, str) and p.field in LAB_QUANTITIES else "")
         raise ValueError(f"--param {p.name!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
-                         f"optionally prefixed by a body name or material index (e.g. dough.yield_stress, 0.yield_stress)")
+                         f"optionally prefixed by a body name or material index (e.g. dough.yield_stress, 0.yield_stress)"
+                         f"{lab}")
     if p.values is not None:
         if not p.values:
             raise ValueError(f"--param {p.name}: values = () is not allowed: give at least one value")
