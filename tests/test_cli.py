@@ -59,6 +59,7 @@ def test_run_default_scene_in_process(tmp_path, capsys, monkeypatch):
     path = tmp_path / "dough_drop.usdc"  # default scene, default output name, current folder
     assert path.exists()
     assert str(path) in out and "3 frames" in out
+    assert " particles, 1 body, 2 frames at 30 fps" in out, out  # the banner had said '1 bodies'
     for name in solver_module.GUARD_NAMES:
         assert f"{name}=" in out
     assert "warning" not in err and "Traceback" not in err

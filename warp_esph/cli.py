@@ -809,7 +809,8 @@ def _cmd_run(args) -> int:
     seen = _signals_seen(args)
     final_log_error = [None]
     try:
-        print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
+        print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} "
+              f"{'body' if len(model.bodies) == 1 else 'bodies'}, "
               f"{frames} frames at {fps:g} fps, "
               + ("adaptive dt (CFL), at most " if adaptive else "")
               + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
