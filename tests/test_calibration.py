@@ -2606,3 +2606,30 @@ def test_a_target_past_the_fits_frames_is_refused_saying_what_to_give(tmp_path, 
     assert (f"the target {run} has frame 3, beyond --frames = 2: give --frames 3 or more, or choose target frames "
             "up to 2 with --target-frames") in err, err
     assert not (tmp_path / "fit").exists()
+
+
+def test_the_fit_says_the_fitted_values_as_a_lab_measures_them(tmp_path, capsys, dough_scene):
+    """A rheometer's user fits ``yield_stress`` and ``flow_rate`` (the scene file may hold the
+    lab's values, docs/scene_format.md) and reads the answer in the lab's terms: the summary
+    gives the shear and uniaxial yield stress and the plastic viscosity of the fitted values
+    (``Material.shear_yield_stress`` ...), which it had left to the user to convert."""
+    from warp_esph.cli import main
+
+    scene = tmp_path / "truth.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(run), "--iterations", "0", "--no-diagnostics", "--no-usd",
+                 "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
+    out = capsys.readouterr().out
+    assert "  yield_stress = 100 Pa\n  flow_rate = 10 1/s\n" in out, out
+    fitted = we.Material(mu=2000.0, lam=3000.0, yield_stress=100.0, flow_rate=10.0)
+    assert (f"  as a lab measures them: shear_yield_stress = {fitted.shear_yield_stress:.6g} Pa, uniaxial_yield_stress = "
+            f"{fitted.uniaxial_yield_stress:.6g} Pa, plastic_viscosity = {fitted.plastic_viscosity:.6g} Pa s "
+            "(Material.from_rheology's)\n") in out, out
+    # Only what the fitted values set: the flow rate alone gives the plastic viscosity alone.
+    assert main(["fit", str(scene), "--target", str(run), "--params", "flow_rate", "--iterations", "0",
+                 "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
+    out = capsys.readouterr().out
+    assert f"  as a lab measures them: plastic_viscosity = {fitted.plastic_viscosity:.6g} Pa s (" in out, out

@@ -458,6 +458,9 @@ def run_fit(args, out=None, err=None) -> int:
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {_evaluations_said(result)}", file=out)
     for name, v in result.params.items():
         print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)} {UNITS[name]}", file=out)
+    lab = _lab_values(result)
+    if lab:
+        print(f"  as a lab measures them: {lab} (Material.from_rheology's)", file=out)
     if result.step_limit_said():
         print(f"warning: {result.step_limit_said()}", file=out)
     if result.diagnostics is not None:
@@ -1045,6 +1048,22 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
         rms = float(np.sqrt(np.mean(np.sum((first[seen] - x0[seen]) ** 2, axis=1))))
         line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
+
+
+def _lab_values(result) -> str | None:
+    """The fitted yield stress and flow rate as a lab gives them (a rheometer's shear yield
+    stress, a compression test's uniaxial one, the plastic viscosity: ``Material``'s
+    properties), one value per fitted material; None where neither is fitted or a fitted
+    material is no Bingham fluid (the properties refuse it)."""
+    materials = [result.materials[k] for k in result.material_indices]
+    names = (["shear_yield_stress", "uniaxial_yield_stress"] if "yield_stress" in result.params else []) + (
+        ["plastic_viscosity"] if "flow_rate" in result.params else [])
+    try:
+        said = [f"{name} = {', '.join(f'{getattr(m, name):.6g}' for m in materials)} {'Pa s' if 'visc' in name else 'Pa'}"
+                for name in names]
+    except ValueError:
+        return None
+    return ", ".join(said) or None
 
 
 def _zero_force_columns(path, term, chosen: bool) -> str | None:
