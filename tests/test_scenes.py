@@ -679,3 +679,17 @@ def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_pa
 def test_a_material_tables_rheometer_values_are_refused_beside_what_they_set(tmp_path, message, table):
     with pytest.raises(ValueError, match=message):
         _material_of(tmp_path, table)
+
+
+def test_a_scene_file_named_without_its_extension_is_refused_naming_the_file(tmp_path, monkeypatch):
+    """``warp-esph run mine`` beside ``mine.toml``: a bare name is a built-in scene's (a file is
+    read only by a path), and the refusal listed the built-in scenes alone; it now names the
+    file the user meant."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.toml").write_text(BASE)
+    with pytest.raises(ValueError, match=r"^scene = 'mine' is not allowed: unknown scene; the scene file 'mine.toml' is "
+                                         r"here: give its path, 'mine.toml'; the built-in scenes are dough_drop, "):
+        load_scene("mine")
+    assert load_scene("mine.toml").name == "mine"
+    with pytest.raises(ValueError, match=r"unknown scene \(did you mean 'star'\?\); the built-in scenes are "):
+        load_scene("stat")

@@ -649,9 +649,12 @@ def scene_descriptions() -> dict[str, str]:
     return {name: _doc(fn) for name, fn in SCENES.items()}
 
 
-def _unknown(name) -> ValueError:
+def _unknown(name, file: str | None = None) -> ValueError:
+    """``file``: a scene file the user may have meant (``name`` and ``.toml``, found here)."""
     close = difflib.get_close_matches(str(name), SCENES, n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
+    if file is not None:
+        hint += f"; the scene file {file!r} is here: give its path, {file!r}"
     return ValueError(f"scene = {name!r} is not allowed: unknown scene{hint}; the built-in scenes are {', '.join(SCENES)}, "
                       f"or give the path of a .toml scene file")
 
@@ -682,7 +685,8 @@ def _load(name_or_path, scale) -> Scene:
         return SCENES[text](scale=scale)
     if text.lower().endswith(".toml") or os.sep in text or (os.altsep and os.altsep in text) or os.path.exists(text):
         return load_scene_file(text, scale)
-    raise _unknown(text)
+    # A bare name is a built-in scene's; a file is read by its path alone.
+    raise _unknown(text, text + ".toml" if os.path.isfile(text + ".toml") else None)
 
 
 def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what: str = "--scale") -> Scene:
