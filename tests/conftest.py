@@ -117,6 +117,37 @@ def dough_scene():
     return scene
 
 
+#: Two spheres of two materials: ``[materials.soft]`` (material 0, body 'a') and the preset
+#: 'clay' a body names (material 1, body 'b').
+TWO_MATERIALS_SCENE = """
+[scene]
+spacing = 0.05
+
+[materials.soft]
+preset = "dough"
+
+[[bodies]]
+shape = "sphere"
+name = "a"
+material = "soft"
+center = [0, 0.2, 0]
+radius = 0.1
+
+[[bodies]]
+shape = "sphere"
+name = "b"
+material = "clay"
+center = [0.5, 0.2, 0]
+radius = 0.1
+"""
+
+
+@pytest.fixture(scope="session")
+def two_materials_scene():
+    """The TOML of ``TWO_MATERIALS_SCENE``: material names that are no body's."""
+    return TWO_MATERIALS_SCENE
+
+
 @pytest.fixture(scope="session")
 def dropped_cube():
     """``dropped_cube(yield_stress, flow_rate, size=0.1)``: a float64 model with gradients of a

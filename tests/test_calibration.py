@@ -2633,3 +2633,31 @@ def test_the_fit_says_the_fitted_values_as_a_lab_measures_them(tmp_path, capsys,
                  "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
     out = capsys.readouterr().out
     assert f"  as a lab measures them: plastic_viscosity = {fitted.plastic_viscosity:.6g} Pa s (" in out, out
+
+
+def test_fit_material_selects_a_scene_files_material_by_its_name(tmp_path, capsys, monkeypatch, two_materials_scene):
+    """``--material clay`` (a preset a body names) or ``soft`` (a ``[materials.soft]`` table):
+    the material named as the scene file names it; refused before ('give a material index or
+    a body name'), the user's own word for it."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    scene = tmp_path / "two.toml"
+    scene.write_text(two_materials_scene)
+    np.save(tmp_path / "t.npy", np.zeros((2, 64, 3)))  # what the stand-in never reads
+    seen = []
+
+    def stand_in(experiments, *args, **kwargs):
+        seen.append(experiments[0].materials)
+        raise ValueError("stopped by the test before the first evaluation")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    # A material's name becomes its index; a body's name passes as it was (fit resolves it).
+    for chosen, indices in ((["clay"], [1]), (["soft", "b"], [0, "b"]), (["a"], ["a"])):
+        argv = ["fit", str(scene), "--target", str(tmp_path / "t.npy"), "--target-frames", "0,1", "--no-progress",
+                "--no-usd", "--output-dir", str(tmp_path / "out")]
+        for m in chosen:
+            argv += ["--material", m]
+        assert main(argv) == 2
+        assert "stopped by the test" in capsys.readouterr().err
+        assert seen[-1] == indices

@@ -857,7 +857,8 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert_one_line_error(err, f"experiment #1: cannot read scene file '{tmp_path / 'nope.toml'}': No such file or directory")
     assert "relative to" not in err, err
     # The command's own --material is named as the option typed (it said "material 'nobody'").
-    for chosen, words in (("nobody", "error: --material 'nobody' is not allowed: give a material index or a body name ("),
+    for chosen, words in (("nobody", "error: --material 'nobody' is not allowed: give a material index, a body name (box0) "
+                                     "or a material name of the scene file (soft)"),
                           ("5", "error: --material 5 is not allowed: indices are 0..0")):
         assert main([*fit, "--material", chosen]) == 2
         assert_one_line_error(capsys.readouterr().err, words)

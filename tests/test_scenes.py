@@ -693,3 +693,17 @@ def test_a_scene_file_named_without_its_extension_is_refused_naming_the_file(tmp
     assert load_scene("mine.toml").name == "mine"
     with pytest.raises(ValueError, match=r"unknown scene \(did you mean 'star'\?\); the built-in scenes are "):
         load_scene("stat")
+
+
+
+def test_a_scene_files_material_names_select_its_materials(tmp_path, two_materials_scene):
+    """``Scene.material_index``: a scene file's material, by the name its table or a body gives
+    it, is its material index (``fit --material soft``, ``sweep --param soft.yield_stress``;
+    a user names the material as the file does, and was refused: 'give a material index or a
+    body name'). A body's name comes first, as ever; another name is None."""
+    (tmp_path / "two.toml").write_text(two_materials_scene)
+    scene = load_scene_file(tmp_path / "two.toml")
+    assert [m.yield_stress for m in scene.builder.finalize().materials] == [PRESETS["dough"].yield_stress,
+                                                                             PRESETS["clay"].yield_stress]
+    assert (scene.material_index("soft"), scene.material_index("clay"), scene.material_index("a")) == (0, 1, None)
+    assert get_scene("dough_drop", scale=0.35).material_index("dough") is None  # a built-in scene names none

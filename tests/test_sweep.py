@@ -2130,3 +2130,20 @@ def test_a_sample_a_scripted_tool_pressed_and_released_is_no_blow_up():
     model = b.finalize()
     c_p = float(model.wave_speeds(model.parameter_values()).max())
     assert table.rows[0]["kinetic_energy"] > _energy_floor(float(model.particle_mass.numpy().sum()), c_p)
+
+
+def test_a_swept_parameter_selects_a_scene_files_material_by_its_name(tmp_path, two_materials_scene):
+    """``--param soft.yield_stress``: the material of table ``[materials.soft]`` (``clay.NAME``
+    the preset a body names), as a body name or an index selects one; it was refused, 'give a
+    material index or a body name'."""
+    from warp_esph.scenes import load_scene_file
+    from warp_esph.sweep import _assignments, parse_param
+
+    (tmp_path / "two.toml").write_text(two_materials_scene)
+    scene = load_scene_file(tmp_path / "two.toml")
+    chosen = _assignments(scene, [parse_param("soft.yield_stress=50:100:log:2"), parse_param("clay.flow_rate=5")])
+    assert [(field, idx) for _, field, idx in chosen] == [("yield_stress", [0]), ("flow_rate", [1])]
+    with pytest.raises(ValueError, match=r"--param hard.mu is not allowed: material 'hard' is not allowed: give a "
+                                         r"material index, a body name \(a, b\) or a material name of the scene file "
+                                         r"\(soft, clay\)"):
+        _assignments(scene, [parse_param("hard.mu=1e4")])

@@ -927,11 +927,14 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     materials = spec.get("material")
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
+        # A scene file's material by its name, as the file names it (a body's name first).
+        materials = [k if isinstance(m, str) and (k := scene.material_index(m)) is not None else m for m in materials]
         from .fit import _material_indices  # noqa: PLC0415
 
         try:  # refused here, by experiment, not later without its name
             # An experiment's key is named as written in its file, the command's as its option.
-            _material_indices(model, materials, what="material" if where else "--material")
+            _material_indices(model, materials, what="material" if where else "--material",
+                              material_names=scene.material_names)
         except ValueError as e:
             raise ValueError(f"{where}{e}") from None
     kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))

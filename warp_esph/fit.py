@@ -330,8 +330,10 @@ def _as_model(model_or_factory, dtype) -> Model:
     raise ValueError(f"model = {model_or_factory!r} is not allowed: give a Model, a SceneBuilder or a callable returning one")
 
 
-def _material_indices(model: Model, materials, what: str = "material") -> list[int]:
-    # ``what``: how a refusal names one entry of ``materials`` (the CLI's ``--material``).
+def _material_indices(model: Model, materials, what: str = "material", material_names=()) -> list[int]:
+    # ``what``: how a refusal names one entry of ``materials`` (the CLI's ``--material``);
+    # ``material_names``: a scene file's names, which the commands take (Scene.material_index)
+    # and a refusal lists.
     # An elastic particle floor's material is a wall's: no selection but its index fits it.
     walls = {b.floor_material for b in model.bodies if b.floor_material >= 0}
     if materials is None:
@@ -354,7 +356,10 @@ def _material_indices(model: Model, materials, what: str = "material") -> list[i
     for m in materials:
         if isinstance(m, str):
             if m not in names:
-                raise ValueError(f"{what} {m!r} is not allowed: give a material index or a body name ({', '.join(names)})")
+                named = [n for n in material_names if n]
+                raise ValueError(f"{what} {m!r} is not allowed: give a material index" + (
+                    f", a body name ({', '.join(names)}) or a material name of the scene file ({', '.join(named)})"
+                    if named else f" or a body name ({', '.join(names)})"))
             # Every material the body's particles use (one per particle after split_materials).
             b = model.bodies[names.index(m)]
             for k in np.unique(model.particle_material_np[b.start: b.start + b.count]):

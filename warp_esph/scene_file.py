@@ -48,6 +48,8 @@ class Scene:
     paper's Fig. 8 does); ``simulate``'s divergence monitor leaves them out.
     ``inputs``: ``(what, path)`` of each file the scene was read from (a scene file and the
     mesh files of its bodies and tools, absolute): a command refuses to write over them.
+    ``material_names``: a scene file's name of each material, by index (its table's, or the
+    preset's a body names; ``""`` where it has none, as a particle floor's).
     """
 
     name: str
@@ -60,6 +62,15 @@ class Scene:
     view: tuple[float, float] | None = None
     diverges: tuple[str, ...] = ()
     inputs: tuple[tuple[str, str], ...] = ()
+    material_names: tuple[str, ...] = ()
+
+    def material_index(self, name: str) -> int | None:
+        """The index of the material a scene file names ``name`` (``material_names``: its
+        ``[materials.NAME]`` table, or the preset a body names), where no body has that name (a
+        body's name selects its material first); else None."""
+        if name in [body.name for body in self.builder._bodies] or name not in self.material_names:
+            return None
+        return self.material_names.index(name)
 
     def __post_init__(self):
         # As a scene file's [scene] name and description: one made in Python took any, and
@@ -609,9 +620,11 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         _tool(file, k, table, builder, base_dir)
     for k, table in enumerate(pin_tables):
         _pin(file, k, table, builder)
+    material_names = [""] * len(builder._materials)
     for name, material in materials.items():
         for k, used in enumerate(builder._materials):
             if used is material:
+                material_names[k] = name
                 builder.origins[("material", k)] = f"[materials.{_table_key(name)}]" if name in materials_table else f"material {name!r}"
     name = scene.get("name")
     try:
@@ -635,4 +648,5 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     inputs += [(f"the mesh of [[{kind}]] #{k + 1}", os.path.abspath(_in_folder(table["file"], base_dir)))
                for kind, tables in (("bodies", bodies), ("tools", tool_tables))
                for k, table in enumerate(tables) if table.get("shape") == "mesh"]
-    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt, inputs=tuple(inputs))
+    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt, inputs=tuple(inputs),
+                 material_names=tuple(material_names))

@@ -190,7 +190,8 @@ def parse_param(spec) -> Param:
         lab = (f"{lab_value_note(p.field, 'parameter')} (sweep {LAB_QUANTITIES[p.field][0]})"
                if isinstance(p.name, str) and p.field in LAB_QUANTITIES else "")
         raise ValueError(f"--param {p.name!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
-                         f"optionally prefixed by a body name or material index (e.g. dough.yield_stress, 0.yield_stress)"
+                         f"optionally prefixed by a body name, a material index or a scene file's material name (e.g. dough.yield_stress, "
+                         f"0.yield_stress)"
                          f"{lab}")
     if p.values is not None:
         if not p.values:
@@ -605,8 +606,10 @@ def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]
                 raise ValueError(f"--param {p.name} is not allowed: {target!r} names both material {target} and body "
                                  f"{target!r}; rename the body")
             key = int(target) if target.isdigit() else target
+            if isinstance(key, str) and scene.material_index(key) is not None:
+                key = scene.material_index(key)  # a scene file's material, as the file names it
             try:
-                idx = _material_indices(view, [key])
+                idx = _material_indices(view, [key], material_names=getattr(scene, "material_names", ()))
             except ValueError as e:
                 raise ValueError(f"--param {p.name} is not allowed: {e}") from None
         for k in idx:
