@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 
 import warp_esph as we
 from warp_esph import losses, silhouette, tools
-from warp_esph.fit import fit
+from warp_esph.fit import Experiment, fit
 from warp_esph.scenes import load_scene_file
 
 # Values of every wrong kind: wrong types, NaN, inf, negative, zero, huge, empty.
@@ -640,6 +640,37 @@ def test_a_huge_wrong_value_is_named_in_one_short_line(parameter, value):
         NAMED_WHOLE[parameter](value)
     assert len(str(info.value)) < 1000 and "\n" not in str(info.value), str(info.value)[:300]
 
+
+
+
+def test_fit_refuses_frames_beside_a_target_with_its_own_steps_and_names_what_it_is_given():
+    """``fit(model, {2: x}, frames=[5])``: a mapping (or a Loss) carries its steps, and
+    ``frames`` beside it was ignored without a word, any value (NaN, 'x', an object) taken.
+    A 2-D array of parameter names met numpy's 'truth value ... is ambiguous'; a material
+    index past the floats was written whole, and a 2-D array as callback or log on lines of
+    their own."""
+    import warp as wp
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH, name="blk")
+    model = b.finalize(requires_grad=True, dtype=wp.float64)
+    x = model.particle_x0.copy()
+    run = {"steps": 2, "dt": 1e-4, "progress": False, "iterations": 0, "diagnostics": False}
+    for target, what in (({2: x}, "a {step: positions} mapping"), (losses.PositionLoss({2: x}), "a PositionLoss")):
+        for frames in ([5], [2], float("nan"), "x"):
+            with pytest.raises(ValueError, match=rf"^frames = {re.escape(repr(frames))} is not allowed with a target that "
+                                                 rf"carries its own steps \({re.escape(what)}, steps \[2\]\): give the steps there, "
+                                                 r"or leave frames out$"):
+                fit(model, target, steps=2, dt=1e-4, frames=frames, progress=False)
+        with pytest.raises(ValueError, match=r"^frames = \[5\] is not allowed with a target that carries its own steps"):
+            fit([Experiment(model, target, steps=2, dt=1e-4, frames=[5])], None, progress=False)
+    for kwargs, message in (({"params": np.array([["mu"], ["lam"]])}, r"^params entry array\(\['mu'\], dtype='<U3'\) is not allowed"),
+                            ({"materials": [10**400]}, r"^material 1\.000e\+400 is not allowed: indices are 0\.\.0$"),
+                            ({"callback": np.zeros((2, 3))}, r"^callback = array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\) is not allowed"),
+                            ({"log": np.zeros((2, 3))}, r"^log = array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\) is not allowed")):
+        with pytest.raises(ValueError, match=message):
+            fit(model, {2: x}, **{**run, **kwargs})
+    assert set(fit(model, x, frames=[2], **run).params) == {"yield_stress", "flow_rate"}  # positions take frames'
 
 
 #: An integer past the floats (Python's, TOML's and JSON's integers are unbounded), placed

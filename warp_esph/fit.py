@@ -367,7 +367,7 @@ def _material_indices(model: Model, materials, what: str = "material", material_
                     out.append(int(k))
             continue
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 0 <= m < len(model.materials):
-            raise ValueError(f"{what} {m!r} is not allowed: indices are 0..{len(model.materials) - 1}")
+            raise ValueError(f"{what} {checks.shorten(m)!r} is not allowed: indices are 0..{len(model.materials) - 1}")
         if int(m) not in out:
             out.append(int(m))
     if not out:
@@ -378,6 +378,12 @@ def _material_indices(model: Model, materials, what: str = "material", material_
 
 
 def _target_loss(target, frames) -> Loss:
+    if isinstance(target, (Loss, Mapping)) and frames is not None:
+        # Ignored without a word: frames = [5] beside {2: x} fitted step 2, any value taken.
+        loss = target if isinstance(target, Loss) else PositionLoss(target)
+        what = f"a {type(target).__name__}" if isinstance(target, Loss) else "a {step: positions} mapping"
+        raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed with a target that carries its own steps "
+                         f"({what}, steps {list(loss.frames)}): give the steps there, or leave frames out")
     if isinstance(target, Loss):
         return target
     if isinstance(target, (str, os.PathLike)):
@@ -1773,10 +1779,11 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
     if not params:
         raise ValueError(f"{flag('params')} = [] is not allowed: name at least one parameter")
     for p in params:
-        if p not in PARAMETERS:
+        if not isinstance(p, str) or p not in PARAMETERS:  # a 2-D array's rows met 'in' with numpy's 'ambiguous'
             lab = (f"{lab_value_note(p, 'parameter')} (fit {LAB_QUANTITIES[p][0]}: the fitted material's {p} is "
-                   f"{LAB_QUANTITIES[p][2]})" if p in LAB_QUANTITIES else "")
-            raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}{lab}")
+                   f"{LAB_QUANTITIES[p][2]})" if isinstance(p, str) and p in LAB_QUANTITIES else "")
+            raise ValueError(f"{flag('params')} entry {checks.shorten(p)!r} is not allowed: must be one of "
+                             f"{', '.join(PARAMETERS)}{lab}")
     if len(set(params)) != len(params):
         raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
     out = {"params": params, "iterations": _count(flag("iterations"), iterations),
@@ -2089,9 +2096,9 @@ def fit(
     # 1 they read the loss a factor e away (1.2e6 x mu at 14).
     fd_step = checks.in_range("fd_step", fd_step, 1e-8, 1.0)
     if callback is not None and not callable(callback):
-        raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
+        raise ValueError(f"callback = {checks.shorten(callback)!r} is not allowed: must be callable")
     if log is not None and not callable(log):
-        raise ValueError(f"log = {log!r} is not allowed: must be callable as log(message)")
+        raise ValueError(f"log = {checks.shorten(log)!r} is not allowed: must be callable as log(message)")
     say = log or (lambda message: None)
 
     if isinstance(model, (list, tuple)) and model and all(isinstance(e, Experiment) for e in model):
