@@ -98,6 +98,22 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
         return (field, float(getattr(material, field)),
                 f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
                 f"{big:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
+    # The pressure pair force multiplies a pressure by two densities (sim/pressure.py): where
+    # their product underflowed to 0 the force was 0 / 0, NaN positions in the first steps at
+    # half the stable step (float32 from 4e-23 kg/m^3 down, float64 from 2e-162, measured);
+    # where a pressure of M (a strain of 1) times it overflowed, NaN in a squeezed block
+    # (float32 1e18, float64 1e155).
+    tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
+    if material.density < math.sqrt(tiny):
+        return ("density", float(material.density),
+                f"the pressure force multiplies two densities, so it must be at least {math.sqrt(tiny):.3g} (their "
+                f"product below the smallest {scalar.__name__} is 0, and the force 0 / 0); "
+                f"{wider_precision(scalar, 'a larger value', cli)}")
+    if modulus > 0.0 and material.density > math.sqrt(big / modulus):
+        return ("density", float(material.density),
+                f"the pressure force multiplies a pressure of up to the p-wave modulus M = {modulus:.3g} Pa by two "
+                f"densities, so it must be at most sqrt({big:.3g} / M) = {math.sqrt(big / modulus):.3g}; "
+                f"{wider_precision(scalar, 'a smaller value', cli)}")
     # The flow rule compares squares, 4 mu^2 |dev sigma|^2 against the yield stress's
     # (plasticity.flow_fraction): past the precision's range the square was inf, the rate NaN,
     # and every flow removed the whole deviatoric strain in one step whatever the flow rate
