@@ -400,6 +400,11 @@ def test_bad_input_names_the_parameter():
         model.world_particles(-1)
     with pytest.raises(ValueError, match="values with 5 entries"):
         model.per_world(np.zeros(5))
+    # A number, or text, has no entries: an IndexError ('tuple index out of range'), naming nothing.
+    for bad, shown in ((5.0, "5.0"), ("ab", "'ab'")):
+        with pytest.raises(ValueError, match=rf"^values = {shown} is not allowed: must have one entry per particle \(\d+\) or "
+                                             r"one per material \(\d+\)$"):
+            model.per_world(bad)
     with pytest.raises(ValueError, match="array with 3 entries"):
         model.world_view(np.zeros((3, 3)), 0)
     target = np.zeros((model.particle_count // 2, 3))

@@ -961,6 +961,9 @@ class Model:
         a = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
         if kind not in (None, "particles", "materials"):
             raise ValueError(f"kind = {kind!r} is not allowed: must be None, 'particles' or 'materials'")
+        if a.ndim == 0:  # a number has no entries: a.shape[0] was an IndexError
+            raise ValueError(f"values = {checks.shorten(values)!r} is not allowed: must have one entry per particle "
+                             f"({self.particle_count}) or one per material ({len(self.materials)})")
         if a.shape[0] == self.particle_count and kind != "materials":
             starts = self.world_start
         elif a.shape[0] == len(self.materials) and kind != "particles":
