@@ -110,6 +110,15 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
                 f"product below the smallest {scalar.__name__} is 0, and the force 0 / 0); "
                 f"{wider_precision(scalar, 'a larger value', cli)}")
     if modulus > 0.0 and material.density > math.sqrt(big / modulus):
+        # Name the factor out of range: the modulus's largest term where the modulus alone is
+        # past sqrt(max) (lam = 1.5e38 beside a density of 1000), else the density.
+        if modulus > math.sqrt(big):
+            field = max(terms, key=lambda k: terms[k])
+            return (field, float(getattr(material, field)),
+                    f"the pressure force multiplies a pressure of up to the p-wave modulus lam + 2 mu + density "
+                    f"pressure_stiffness = {modulus:.3g} Pa by two densities of {float(material.density):.3g} kg/m^3, "
+                    f"so with that density it must be at most {big:.3g} / density^2 = "
+                    f"{big / float(material.density) ** 2:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
         return ("density", float(material.density),
                 f"the pressure force multiplies a pressure of up to the p-wave modulus M = {modulus:.3g} Pa by two "
                 f"densities, so it must be at most sqrt({big:.3g} / M) = {math.sqrt(big / modulus):.3g}; "
