@@ -2039,8 +2039,7 @@ def test_a_fit_to_targets_out_of_every_particles_reach_says_so():
              "no particle lies within max_dist = 0.5 m of the target mesh in any frame")):
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
-            result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=3, progress=False,
-                         diagnostics=False)
+            result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, iterations=3, progress=False, diagnostics=False)
         # The cloud in millimetres is also warned of before any run (its spread); the mesh, in
         # metres but elsewhere, is not a unit's mistake.
         units = [w for w in said if "a scan in other units than metres" in str(w.message)]
