@@ -163,6 +163,24 @@ def test_a_body_centre_float64_cannot_resolve_is_named():
     b.add_box((1e9, 0.0, 0.0), (0.1, 0.1, 0.1), DOUGH)  # far, but resolved
 
 
+def test_a_spacing_no_precision_can_build_is_refused_when_given():
+    """``SceneBuilder(spacing=1e-320)``: the coincidence check's cell, a millionth of the
+    spacing, underflowed to 0, and two particles two spacings apart were refused as coinciding,
+    after numpy's divide-by-zero warnings. Below what the kernels' constants (1 / h^9, h at
+    least 1.5 spacings) allow even in float64 the spacing is refused when given; above it,
+    finalize's precision check names the support radius, as before."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"^spacing = 1e-320 is not allowed: must be at least 4\.4e-35 \(the kernels' "
+                                             r"constants, 1 / h\^9 of a support radius of at least 1\.5 spacings, must fit "
+                                             r"float64\)$"):
+            we.SceneBuilder(spacing=1e-320)
+    b = we.SceneBuilder(spacing=1e-30)
+    b.add_particles([(0.0, 0.0, 0.0), (2e-30, 0.0, 0.0)], DOUGH)
+    with pytest.raises(ValueError, match=r"^support_radius = 2e-30 is not allowed in float32"):
+        b.finalize()
+
+
 @pytest.mark.parametrize("spacing", [1e308, 1.7976931348623157e308])
 def test_a_spacing_whose_support_radius_overflows_is_refused_by_name(tmp_path, spacing):
     """The default support radius (2 spacings) and the neighbour cap's ratio overflowed to inf:

@@ -147,6 +147,13 @@ class SceneBuilder:
         if self.spacing > widest:
             raise ValueError(f"spacing = {spacing!r} is not allowed: must be at most {widest:.3g} (the support radius, up "
                              f"to {SUPPORT_RANGE[1]:g} spacings, must be a finite number)")
+        # Below what finalize's precision check takes even in float64: at 1e-320 the coincidence
+        # check's cell underflowed to 0, and two particles two spacings apart were refused as one.
+        narrowest = float(np.finfo(np.float64).tiny) ** (1 / 9) / SUPPORT_RANGE[0]
+        if self.spacing < narrowest:
+            raise ValueError(f"spacing = {spacing!r} is not allowed: must be at least {narrowest:.2g} (the kernels' "
+                             f"constants, 1 / h^9 of a support radius of at least {SUPPORT_RANGE[0]:g} spacings, must fit "
+                             "float64)")
         #: ``Model.fit_weight`` of the model ``finalize`` makes.
         self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
         #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
