@@ -1750,7 +1750,8 @@ def test_an_absurd_scale_is_refused_naming_scale_not_the_body(tmp_path, capsys):
     path = tmp_path / "s.toml"
     path.write_text(GOOD_TOML)
     for scene, scale, why in ((str(path), "1e-300", "smaller than the spacing 5e+298"),
-                              (str(path), "1e300", "center = (0.0, 0.15, 0.0) is not allowed"),
+                              # the spacing it divides into, 5e-302 m, is one no precision builds
+                              (str(path), "1e300", "spacing = 5e-302 is not allowed: must be at least 4.4e-35"),
                               ("dough_drop", "1e-300", "body 'dough' has no particles")):
         assert main(["run", scene, "--scale", scale, "--frames", "1", "--no-progress", "-o", str(tmp_path / "x.usdc")]) == 2
         assert_one_line_error(capsys.readouterr().err, f"--scale = {float(scale):g} is not allowed for {scene}: it builds at "
