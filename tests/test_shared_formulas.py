@@ -18,7 +18,7 @@ def _uncompensated_update_kernel(scalar):
     T = type_set(scalar)
     update = deformation.funcs(scalar, "poly6").uncompensated_update
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(F: wp.array(dtype=T.mat33), inc: wp.array(dtype=T.mat33), scale: wp.array(dtype=scalar),
             out: wp.array(dtype=T.mat33), applied: wp.array(dtype=wp.int32)):
         i = wp.tid()
@@ -66,7 +66,7 @@ def _pair_viscosity_kernel(scalar):
 
     pair_viscosity = pressure.funcs(scalar).pair_viscosity
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(eta: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
         i = wp.tid()
         out[i] = pair_viscosity(eta[2 * i], eta[2 * i + 1])
@@ -96,7 +96,7 @@ def _flow_kernel(scalar):
     T = type_set(scalar)
     fl = plasticity.funcs(scalar)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(s: wp.array(dtype=T.vec3), gamma: wp.array(dtype=scalar), mu: scalar, dev: wp.array(dtype=T.vec3),
             norm2: wp.array(dtype=scalar), g: wp.array(dtype=T.vec3), cp: wp.array(dtype=T.vec3)):
         i = wp.tid()
@@ -161,7 +161,7 @@ def _rest_elastic_kernel(scalar):
     T = type_set(scalar)
     part = comparison.kernels(scalar, "poly6").rest_elastic_part
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(G: wp.array(dtype=T.mat33), Fp: wp.array(dtype=T.mat33), Fe: wp.array(dtype=T.mat33)):
         i = wp.tid()
         Fe[i] = part(G[i], Fp[i])
@@ -194,7 +194,7 @@ def _image_chain_kernel():
     T = type_set(S)
     fn = deformation.funcs(S, "poly6")
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(x: wp.array(dtype=T.vec3), g: T.vec3, gg: T.vec3, gn: T.vec3, goff: S, gmin: S, image: int,
             adj_x: wp.array(dtype=T.vec3), adj_own: wp.array(dtype=T.vec3), img: wp.array(dtype=T.vec3)):
         i = wp.tid()
@@ -273,7 +273,7 @@ def _p_hat_kernel(scalar):
     T = type_set(scalar)
     fo = forces.funcs(scalar, "poly6")
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(s: wp.array(dtype=T.vec3), mu: scalar, lam: scalar, eq9: wp.array(dtype=T.vec3),
             p_hat: wp.array(dtype=T.vec3)):
         i = wp.tid()
@@ -310,7 +310,7 @@ def _energy_weight_kernel(scalar):
 
     weight = pressure.funcs(scalar).energy_pair_weight
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(m: wp.array(dtype=scalar), p: wp.array(dtype=scalar), rho: wp.array(dtype=scalar),
             out: wp.array(dtype=scalar)):
         k = wp.tid()
@@ -351,7 +351,7 @@ def _eos_kernel():
     eos = pressure.funcs(S).pressure
     eos_adjoint = pressure.kernels(S).pressure_adjoint
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(rho: wp.array(dtype=S), k: wp.array(dtype=S), clamp: wp.array(dtype=wp.int32), rho0: S, adj_p: S,
             p: wp.array(dtype=S), adj: wp.array(dtype=S)):
         i = wp.tid()
@@ -396,7 +396,7 @@ def _spiky_kernel():
     T = type_set(S)
     sm = smoothing.funcs(S)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(rl: wp.array(dtype=S), h: S, out: wp.array(dtype=T.vec3)):
         i = wp.tid()
         c = sm.spiky_coef(h)
@@ -434,7 +434,7 @@ def _moments_kernel(scalar, fit):
     df = deformation.funcs(scalar, "poly6")
     cf = curvature.funcs(scalar, "poly6")
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(x: wp.array(dtype=T.vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32),
             count: wp.array(dtype=wp.int32), h: scalar, gn: T.vec3, goff: scalar, gmin: scalar, images: int,
             fit_sums: wp.array2d(dtype=T.mat33), same_fit: wp.array(dtype=scalar), pos_sums: wp.array2d(dtype=T.mat33),
@@ -515,7 +515,7 @@ def _pair_terms_kernel(scalar, weight):
     cf = curvature.funcs(scalar, weight)
     fw = smoothing.fit_weight_funcs(scalar, weight)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(xb: wp.array(dtype=T.vec3), yb: wp.array(dtype=T.vec3), h: scalar, lin: wp.array2d(dtype=T.mat33),
             cor: wp.array2d(dtype=T.mat33), scal: wp.array2d(dtype=scalar)):
         i = wp.tid()
@@ -593,7 +593,7 @@ def _python_constant_kernel():
     cf = curvature.funcs(wp.float64, "poly6")
     nk = neighbors.kernels(wp.float64, "poly6")
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def run(r2: wp.array(dtype=wp.float64), hh: wp.float64, A: T.mat33, F: T.mat33, det: wp.float64,
             count: wp.array2d(dtype=wp.float64), mats: wp.array(dtype=T.mat33)):
         i = wp.tid()
