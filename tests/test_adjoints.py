@@ -258,7 +258,7 @@ def test_the_stress_of_an_energy_continued_through_inversion_jumps_where_two_sin
     regularised there (``isotropic.skew_coefficient``, docs/method.md). Measured (mu 3, lam 2,
     a = 1.15, b = 0.8): a jump of 19.4 against |P| = 14.5, one-sided slopes of psi 14.5 and
     -4.9."""
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def corotated(F: wp.array(dtype=T.mat33), out: wp.array(dtype=T.mat33)):
         out[0] = _stress(F[0], S(3.0), S(2.0), forces.COROTATED)
 
@@ -282,7 +282,7 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
     Ts = type_set(scalar)
     iso = isotropic.funcs(scalar)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def k(F: wp.array(dtype=Ts.mat33), s_out: wp.array(dtype=Ts.vec3), G_out: wp.array(dtype=Ts.mat33)):
         i = wp.tid()
         s = iso.singular_values(F[i])
@@ -576,7 +576,7 @@ def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_forc
 _gf = guards.guard_funcs(S)
 
 
-@wp.kernel(module="unique")
+@wp.kernel(module="unique", enable_backward=False)
 def _guard_parts(A: wp.array(dtype=T.mat33), same: wp.array(dtype=S), r2: wp.array(dtype=S), hh: S, min_neighbors: int,
                  max_condition: S, code: wp.array(dtype=wp.int32), code_alone: wp.array(dtype=wp.int32),
                  scale: wp.array(dtype=S), scale_alone: wp.array(dtype=S), dA: wp.array(dtype=T.mat33),
