@@ -794,17 +794,21 @@ def near_yield_at_rest(r: dict) -> bool:
     return r["kinetic_over_weight"] < NEAR_YIELD_REST_KINETIC and near_yield_creep(r) < NEAR_YIELD_REST_CREEP
 
 
-def _near_yield_target(results) -> list[tuple[str, str, str, str]]:
+def _near_yield_target(results, weight: str = "poly6") -> list[tuple[str, str, str, str]]:
     """The near-yield column's row: its fixed-width study (``near_yield_column`` with a
     ``width``; docs/physics.md, "The near-yield column at a fixed width") per floor, judged on
     the finest resolution: holds (at every resolution no lean past a spacing and shortened
     less than twice the theory) and yields only within a width of the 1-D yield depth, and
     its plastic shortening within 10 % of the 1-D analysis's and converging. Rest is not part
     of "holds": a resolution not at rest (``near_yield_at_rest``) is named after the verdict.
-    Then the dx = 0.01 m rows (``NEAR_YIELD_GROWING``), whose columns grow with the resolution."""
+    Then the dx = 0.01 m rows (``NEAR_YIELD_GROWING``), whose columns grow with the resolution.
+    The rows of the fit ``weight`` alone: another weight's rows are a row of their own, with
+    no dx = 0.01 m part, and none where that weight has no fixed-width run."""
     rows = [r for r in results if r["case"] == "near_yield_column" and r.get("width") is not None
             and r.get("elastic_force") == "variational" and r.get("dtype", "float32") == "float32"
-            and not r.get("tilt")]
+            and not r.get("tilt") and _fit_weight(r) == weight]
+    if weight != "poly6" and not rows:
+        return []
     measured, met, used = [], [], []
     for floor, name in (("slip_ghost_particles", "the slip ghost floor"), ("ground", "the ground collider")):
         rs = sorted((r for r in rows if r.get("floor", "ground") == floor), key=lambda r: r["resolution"])
@@ -843,6 +847,8 @@ def _near_yield_target(results) -> list[tuple[str, str, str, str]]:
         if unrested:
             verdict += f"; at rest: not at {' / '.join(unrested)} across"
         met.append(verdict)
+    if weight != "poly6":
+        return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured), "; ".join(met), _runs_of(used))]
     return [(NEAR_YIELD_TARGET, "; ".join(measured + [NEAR_YIELD_GROWING]), "; ".join(met + [NEAR_YIELD_GROWING_MET]),
              _runs_of(used) if used else "–")]
 
@@ -857,8 +863,10 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     out += _slump_targets(results, "particles", mpm=mpm)
     out += _slump_targets(results, "ghost_particles", mpm=mpm)
     out += _slump_targets(results, "particles", "biweight", mpm=mpm)
+    out += _slump_targets(results, "ghost_particles", "biweight", mpm=mpm)
     out += _fitted_yield_target(results, mpm)
-    out += _near_yield_target(results)
+    for weight in FIT_WEIGHT_ORDER:
+        out += _near_yield_target(results, weight)
     for weight in FIT_WEIGHT_ORDER:
         out += _spread_target(results, weight)
     for weight in FIT_WEIGHT_ORDER:

@@ -888,6 +888,23 @@ def test_the_near_yield_target_judges_the_fixed_width_study_per_floor():
     assert _near_yield_target([])[0][2].startswith("at dx = 0.01 m: holds")
 
 
+def test_the_near_yield_target_reads_each_fit_weight_on_its_own():
+    """A biweight column at a resolution poly6 also has (the 8-across row of each) is a target
+    row of its own, after poly6's, without the dx = 0.01 m part; poly6's verdict reads its own
+    rows alone (the two 8-across rows together were refused as resolutions not increasing)."""
+    from benchmarks.validation_report import NEAR_YIELD_TARGET, _targets
+
+    rows = [_near_yield_row(4, 0.44), _near_yield_row(6, 0.53), _near_yield_row(8, 0.62),
+            dict(_near_yield_row(8, 0.56), fit_weight="biweight", run=1)]
+    near = [t for t in _targets(rows) if t[0].startswith(NEAR_YIELD_TARGET)]
+    assert [t[0] for t in near] == [NEAR_YIELD_TARGET, NEAR_YIELD_TARGET + ", with the biweight fit weight"], near
+    assert "within 10 % at 8 across: no (0.62 x)" in near[0][2] and "at dx = 0.01 m" in near[0][2], near[0]
+    assert "within 10 % at 8 across: no (0.56 x)" in near[1][2] and "dx = 0.01 m" not in near[1][2], near[1]
+    assert "only 8 across measured" in near[1][2] and near[1][3] == "R2", near[1]
+    # No biweight row: no biweight target.
+    assert [t[0] for t in _targets(rows[:3]) if t[0].startswith(NEAR_YIELD_TARGET)] == [NEAR_YIELD_TARGET]
+
+
 @pytest.mark.parametrize("width", [0.0, -0.04, float("nan"), "4 cm"])
 def test_near_yield_column_refuses_a_width_that_is_not_a_positive_length(width):
     with pytest.raises(ValueError, match=r"^width = .* is not allowed: must be"):
