@@ -117,7 +117,7 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
             return (field, float(getattr(material, field)),
                     f"the pressure force multiplies a pressure of up to the p-wave modulus lam + 2 mu + density "
                     f"pressure_stiffness = {modulus:.3g} Pa by two densities of {float(material.density):.3g} kg/m^3, "
-                    f"so with that density it must be at most {big:.3g} / density^2 = "
+                    f"so with that density M must be at most {big:.3g} / density^2 = "
                     f"{big / float(material.density) ** 2:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
         return ("density", float(material.density),
                 f"the pressure force multiplies a pressure of up to the p-wave modulus M = {modulus:.3g} Pa by two "
