@@ -675,6 +675,17 @@ def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_pa
     ('preset = "dough"\nmodel = "hyperelastic"\nshear_yield_stress = 50.0',
      r"\[materials.m\]: shear_yield_stress is not allowed for model = 'hyperelastic'.*'linear' or 'stvk'"),
     ('preset = "dough"\nplastic_viscosity = -1.0', r"\[materials.m\]: plastic_viscosity = -1.0? is not allowed: must be > 0"),
+    # As Material.from_rheology's, by the value given: a yield stress past the floats had
+    # made an elastic material without a word, a viscosity of 1e-320 was refused as
+    # 'flow_rate = inf', a value the file never gave.
+    ('preset = "dough"\nshear_yield_stress = 1.5e308', r"\[materials.m\]: shear_yield_stress = 1.5e\+308 is not "
+     r"allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number"),
+    ('E = 1e5\nnu = 0.3\nshear_yield_stress = 1.3e308', r"\[materials.m\]: shear_yield_stress = 1.3e\+308 is "
+     r"not allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number"),
+    ('E = 1e5\nnu = 0.3\nplastic_viscosity = 1e-320', r"\[materials.m\]: plastic_viscosity = 1e-320 is not allowed "
+     r"with E = 100000.0, nu = 0.3: flow_rate = mu / plastic_viscosity = 38461.5 / 9.99989e-321 = inf must be a finite"),
+    ('mu = 1e-300\nlam = 0.0\nplastic_viscosity = 1e100', r"\[materials.m\]: plastic_viscosity = 1e\+100 is not "
+     r"allowed with mu = 1e-300: flow_rate = mu / plastic_viscosity = 1e-300 / 1e\+100 = 0 must be a finite number above 0"),
 ])
 def test_a_material_tables_rheometer_values_are_refused_beside_what_they_set(tmp_path, message, table):
     with pytest.raises(ValueError, match=message):

@@ -295,24 +295,15 @@ class Material:
                 "yield_stress and flow_rate are not allowed in Material.from_rheology: they are derived from "
                 "shear_yield_stress / uniaxial_yield_stress and plastic_viscosity"
             )
-        if shear_yield_stress is not None:
-            given, factor, Y = "shear_yield_stress", "sqrt(2)", math.sqrt(2.0) * checks.non_negative(
-                "shear_yield_stress", shear_yield_stress)
-        else:
-            given, factor, Y = "uniaxial_yield_stress", "sqrt(2/3)", math.sqrt(2.0 / 3.0) * checks.non_negative(
-                "uniaxial_yield_stress", uniaxial_yield_stress)
-        if not math.isfinite(Y):
-            # sqrt(2) x 1.5e308 is inf: an elastic material, the yield stress given without effect.
-            value = shear_yield_stress if given == "shear_yield_stress" else uniaxial_yield_stress
-            raise ValueError(f"{given} = {checks.shorten(value)!r} is not allowed: yield_stress = {factor} {given} "
-                             "must be a finite number (for a material that never yields, use Material.from_young)")
+        Y = (lab_yield_stress("shear_yield_stress", shear_yield_stress) if shear_yield_stress is not None
+             else lab_yield_stress("uniaxial_yield_stress", uniaxial_yield_stress))
         if plastic_viscosity is None:
             # Once the default, it was infinite: flow_rate 0, an elastic material on which the
             # yield stress given had no effect, without a word.
             raise ValueError("plastic_viscosity = None is not allowed in Material.from_rheology: give the Bingham plastic "
                              "viscosity (Pa s; flow_rate = mu / plastic_viscosity), without which the material never flows "
                              "(math.inf says so explicitly)")
-        eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True)
+        checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True)
         model = kwargs.get("model", "linear")
         checks.choice("Material.model", model, MODELS)  # a misspelt model named as such first
         checks.choice("Material.deformation", kwargs.get("deformation", "incremental"), DEFORMATIONS)
@@ -322,15 +313,8 @@ class Material:
             raise ValueError(f"{what} is not allowed in Material.from_rheology: the Bingham relation holds for "
                              f"model {' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental' only "
                              "(give yield_stress and flow_rate to Material for the others)")
-        probe = cls.from_young(E, nu)
-        flow_rate = probe.mu / eta
-        if not math.isfinite(flow_rate) or flow_rate == 0.0 and math.isfinite(eta):
-            # 1e-320 Pa s was refused as Material.flow_rate = inf, a value the caller never gave;
-            # a flow rate that underflows to 0 is an elastic material, the viscosity given without effect.
-            raise ValueError(f"plastic_viscosity = {checks.shorten(plastic_viscosity)!r} is not allowed with E = "
-                             f"{checks.shorten(E)!r}, nu = {checks.shorten(nu)!r}: flow_rate = mu / plastic_viscosity = "
-                             f"{probe.mu:g} / {eta:g} = {flow_rate:g} must be a finite number above 0 (math.inf: "
-                             "a material that never flows)")
+        flow_rate = lab_flow_rate(plastic_viscosity, cls.from_young(E, nu).mu,
+                                  f"E = {checks.shorten(E)!r}, nu = {checks.shorten(nu)!r}")
         return cls.from_young(E, nu, yield_stress=Y, flow_rate=flow_rate, **kwargs)
 
     @classmethod
@@ -512,6 +496,35 @@ LAB_QUANTITIES = {
     "uniaxial_yield_stress": ("yield_stress", "yield_stress = sqrt(2/3) uniaxial_yield_stress", "sqrt(3/2) yield_stress"),
     "plastic_viscosity": ("flow_rate", "flow_rate = mu / plastic_viscosity", "mu / flow_rate"),
 }
+
+
+def lab_yield_stress(name: str, value) -> float:
+    """The ``yield_stress`` of a lab's ``shear_yield_stress`` or ``uniaxial_yield_stress``
+    (``name``) of ``value`` (``LAB_QUANTITIES``), refused by the value given where it is past
+    the floats (``Material.from_rheology`` and a scene file's material table)."""
+    factor = {"shear_yield_stress": math.sqrt(2.0), "uniaxial_yield_stress": math.sqrt(2.0 / 3.0)}[name]
+    Y = factor * checks.non_negative(name, value)
+    if not math.isfinite(Y):
+        # sqrt(2) x 1.5e308 is inf: an elastic material, the yield stress given without effect.
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: {LAB_QUANTITIES[name][1]} must be a finite "
+                         "number (for a material that never yields, use Material.from_young)")
+    return Y
+
+
+def lab_flow_rate(plastic_viscosity, mu: float, moduli: str) -> float:
+    """The ``flow_rate = mu / plastic_viscosity`` of a lab's plastic viscosity, for a material of
+    shear modulus ``mu`` (``moduli``: what gave it, as the refusal names it), refused by the
+    value given where the rate is past the floats or 0 (``math.inf``: 0, a material that never
+    flows)."""
+    eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True)
+    flow_rate = mu / eta
+    if not math.isfinite(flow_rate) or flow_rate == 0.0 and math.isfinite(eta):
+        # 1e-320 Pa s was refused as Material.flow_rate = inf, a value the caller never gave;
+        # a flow rate that underflows to 0 is an elastic material, the viscosity given without effect.
+        raise ValueError(f"plastic_viscosity = {checks.shorten(plastic_viscosity)!r} is not allowed with {moduli}: "
+                         f"flow_rate = mu / plastic_viscosity = {mu:g} / {eta:g} = {flow_rate:g} must be a finite number "
+                         "above 0 (math.inf: a material that never flows)")
+    return flow_rate
 
 
 def lab_value_note(name: str, what: str = "field") -> str:

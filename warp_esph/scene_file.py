@@ -25,7 +25,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 
 from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
-from .material import PRESETS, Material, _following_force, _from_young, _lame
+from .material import PRESETS, Material, _following_force, _from_young, _lame, lab_flow_rate, lab_yield_stress
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -352,15 +352,12 @@ def _with_rheology(material: Material, table: dict) -> Material:
         return material
     # The Bingham relation holds for these models alone (Material.from_rheology).
     material._check_bingham(given[0])
-    changes = {}
-    if "shear_yield_stress" in table:
-        changes["yield_stress"] = math.sqrt(2.0) * checks.non_negative("shear_yield_stress", table["shear_yield_stress"])
-    if "uniaxial_yield_stress" in table:
-        changes["yield_stress"] = math.sqrt(2.0 / 3.0) * checks.non_negative(
-            "uniaxial_yield_stress", table["uniaxial_yield_stress"])
+    changes = {"yield_stress": lab_yield_stress(key, table[key])
+               for key in ("shear_yield_stress", "uniaxial_yield_stress") if key in table}
     if "plastic_viscosity" in table:
-        eta = checks.positive("plastic_viscosity", table["plastic_viscosity"], allow_inf=True)
-        changes["flow_rate"] = material.mu / eta
+        moduli = (f"E = {table['E']!r}, nu = {table['nu']!r}" if "E" in table else f"mu = {material.mu:g}" if "mu" in table
+                  else f"preset {table['preset']!r} (mu = {material.mu:g})")
+        changes["flow_rate"] = lab_flow_rate(table["plastic_viscosity"], material.mu, moduli)
     return material.replace(**changes)
 
 
