@@ -684,6 +684,10 @@ def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_pa
      r"not allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number"),
     ('E = 1e5\nnu = 0.3\nplastic_viscosity = 1e-320', r"\[materials.m\]: plastic_viscosity = 1e-320 is not allowed "
      r"with E = 100000.0, nu = 0.3: flow_rate = mu / plastic_viscosity = 38461.5 / 9.99989e-321 = inf must be a finite"),
+    # Without a flow rate the yield stress given had no effect (flow_rate 0: elastic), as a
+    # from_rheology without plastic_viscosity, which that refuses.
+    ('E = 2e4\nnu = 0.3\nshear_yield_stress = 50.0', r"\[materials.m\]: shear_yield_stress = 50.0 is not allowed "
+     r"without plastic_viscosity or flow_rate: the default flow_rate is 0, so the material never flows"),
     ('mu = 1e-300\nlam = 0.0\nplastic_viscosity = 1e100', r"\[materials.m\]: plastic_viscosity = 1e\+100 is not "
      r"allowed with mu = 1e-300: flow_rate = mu / plastic_viscosity = 1e-300 / 1e\+100 = 0 must be a finite number above 0"),
 ])

@@ -358,6 +358,14 @@ def _with_rheology(material: Material, table: dict) -> Material:
         moduli = (f"E = {table['E']!r}, nu = {table['nu']!r}" if "E" in table else f"mu = {material.mu:g}" if "mu" in table
                   else f"preset {table['preset']!r} (mu = {material.mu:g})")
         changes["flow_rate"] = lab_flow_rate(table["plastic_viscosity"], material.mu, moduli)
+    elif "flow_rate" not in table and material.flow_rate == 0.0 and "yield_stress" in changes:
+        # An elastic material, the yield stress given without effect: from_rheology refuses
+        # this (plastic_viscosity is its required keyword).
+        key = given[0]
+        raise ValueError(f"{key} = {table[key]!r} is not allowed without plastic_viscosity or flow_rate: the "
+                         f"{'preset' + chr(39) + 's' if 'preset' in table else 'default'} flow_rate is 0, so the material "
+                         "never flows and the yield stress has no effect; give plastic_viscosity (Pa s), or "
+                         "plastic_viscosity = inf for a material that never flows")
     return material.replace(**changes)
 
 
