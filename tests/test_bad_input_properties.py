@@ -1171,6 +1171,17 @@ def test_a_monitor_exemption_or_a_tool_scale_of_an_array_is_refused_by_name():
     with pytest.raises(ValueError, match=r"^monitor_exempt = array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\) is not "
                                          r"allowed: must be a list of body names \(\['blk'\]\)$"):
         we.simulate(model, 1, monitor_exempt=np.zeros((2, 3)), progress=False)
+    # A fit's experiment checks its exemptions by the same rule (it had a copy of its own,
+    # which met the 2-D array with numpy's 'ambiguous' and a 0-d one with 'iteration over a
+    # 0-d array').
+    from warp_esph.fit import Experiment, fit  # noqa: PLC0415
+
+    for bad, shown in ((np.zeros((2, 3)), r"array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\)"),
+                       (np.array(5), r"array\(5\)")):
+        with pytest.raises(ValueError, match=rf"^monitor_exempt = {shown} is not allowed: must be a list of body names "
+                                             r"\(\['blk'\]\)$"):
+            fit([Experiment(b, {1: model.particle_x0}, steps=1, dt=1e-4, monitor_exempt=bad)], None, ["mu"],
+                iterations=1, progress=False, diagnostics=False)
     for scale, shown in ((np.array([1.0, 2.0, 3.0]), r"array\(\[1\., 2\., 3\.\]\)"), (True, "True")):
         with pytest.raises(ValueError, match=rf"^scale = {shown} is not allowed for shape 'sphere': its options are radius$"):
             b.add_tool("sphere", radius=0.05, position=(1.0, 1.0, 1.0), scale=scale)

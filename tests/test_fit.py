@@ -2020,7 +2020,7 @@ def test_bodies_a_fit_exempts_from_the_divergence_check():
             run = _Run(Experiment(made, loss, steps=40, dt=dt, materials=[0], monitor_exempt=exempt), wp.float64,
                        1 << 30, "e")
             assert run.checked.sum() == checked
-        with pytest.raises(ValueError, match="monitor_exempt = \\('wilde',\\) is not allowed: 'wilde' is not a body"):
+        with pytest.raises(ValueError, match="monitor_exempt = \\['wilde'\\] is not allowed: 'wilde' is not a body"):
             fit([Experiment(two_blocks(), loss, steps=40, dt=dt, materials=[0], monitor_exempt=["wilde"])], None, ["mu"])
 
 

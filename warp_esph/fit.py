@@ -1029,18 +1029,15 @@ class _Run(_Values):
         self.exp = exp
         # tape_values: every loss-only run taped all the same (the benchmark's baseline).
         self.taped = taped or self.tape_values
+        from .simulate import exempt_bodies  # noqa: PLC0415
+
         exempt = exp.monitor_exempt
-        if exempt is not None and (isinstance(exempt, str) or not hasattr(exempt, "__iter__")):
-            raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names")
         made = exp.model
         if callable(made) and not isinstance(made, (Model, SceneBuilder)):
             made = made()  # once: a factory's Scene brings its diverges too
-        exempt = tuple(getattr(made, "diverges", ()) or ()) if exempt is None else tuple(exempt)
         self.model = _as_model(made, dtype)
         names = [b.name for b in self.model.bodies]
-        for body in exempt:
-            if body not in names:
-                raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {body!r} is not a body of the model ({names})")
+        exempt = exempt_bodies(tuple(getattr(made, "diverges", ()) or ()) if exempt is None else exempt, names)
         #: The particles the divergence monitor's bounds read (``_divergence``; the non-finite
         #: check reads every one).
         self.checked = ~np.isin(self.model.particle_body_np, [names.index(b) for b in exempt])

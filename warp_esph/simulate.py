@@ -170,6 +170,26 @@ class SimulationError(RuntimeError):
         self.frame = frame
 
 
+def exempt_bodies(exempt, names: list[str]) -> tuple[str, ...]:
+    """``monitor_exempt`` (``simulate``'s, a fit's ``Experiment``'s) as a tuple, refused unless
+    it lists body names of ``names``, the model's."""
+    refused = f"monitor_exempt = {checks.shorten(exempt)!r} is not allowed: must be a list of body names ({names})"
+    if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):  # 5 ended in a TypeError, "ab" in 'a', 'b'
+        raise ValueError(refused)
+    try:
+        given, exempt = exempt, tuple(exempt)
+    except TypeError:  # a 0-d numpy array has __iter__ and said numpy's 'iteration over a 0-d array'
+        raise ValueError(refused) from None
+    if not all(isinstance(name, str) for name in exempt):
+        # A 2-D array's rows met 'in' with numpy's 'truth value of an array ... is ambiguous'.
+        raise ValueError(refused)
+    for name in exempt:
+        if name not in names:
+            raise ValueError(f"monitor_exempt = {checks.shorten(given)!r} is not allowed: {name!r} is not a body of the "
+                             f"model ({names})")
+    return exempt
+
+
 class DivergenceMonitor:
     """Catches a run that has blown up, to non-finite values or while staying finite, from
     what the scene can do.
@@ -244,21 +264,7 @@ class DivergenceMonitor:
         the deformation its first step sees (``Solver.start_deformation``: on the rest model,
         the rest fit of the start positions), None: of the stored ``F``."""
         names = [b.name for b in model.bodies]
-        given = exempt
-        refused = f"monitor_exempt = {checks.shorten(given)!r} is not allowed: must be a list of body names ({names})"
-        if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):  # 5 ended in a TypeError, "ab" in 'a', 'b'
-            raise ValueError(refused)
-        try:
-            exempt = tuple(exempt)
-        except TypeError:  # a 0-d numpy array has __iter__ and said numpy's 'iteration over a 0-d array'
-            raise ValueError(refused) from None
-        if not all(isinstance(name, str) for name in exempt):
-            # A 2-D array's rows met 'in' with numpy's 'truth value of an array ... is ambiguous'.
-            raise ValueError(refused)
-        for name in exempt:
-            if name not in names:
-                raise ValueError(f"monitor_exempt = {checks.shorten(given)!r} is not allowed: {name!r} is not a body of the "
-                                 f"model ({names})")
+        exempt = exempt_bodies(exempt, names)
         #: Particles the non-finite check reads: all (of ``particles``), the exempt bodies' too.
         self.finite = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
         #: Particles the bounds read: all but those of the exempt bodies (a scene showing a method fail).
