@@ -688,6 +688,11 @@ def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_pa
     # from_rheology without plastic_viscosity, which that refuses.
     ('E = 2e4\nnu = 0.3\nshear_yield_stress = 50.0', r"\[materials.m\]: shear_yield_stress = 50.0 is not allowed "
      r"without plastic_viscosity or flow_rate: the default flow_rate is 0, so the material never flows"),
+    # Past the model's precision, by the value given (it had named yield_stress = 1.41e+39,
+    # a value the file never gave).
+    ('E = 1e5\nnu = 0.3\nshear_yield_stress = 1e39\nplastic_viscosity = 10.0', r"\[materials.m\]: shear_yield_stress "
+     r"= 1e\+39 is not allowed in float32: it gives yield_stress = sqrt\(2\) shear_yield_stress = 1\.41421e\+39: must "
+     r"be at most 3\.4e\+38; use dtype=float64"),
     ('mu = 1e-300\nlam = 0.0\nplastic_viscosity = 1e100', r"\[materials.m\]: plastic_viscosity = 1e\+100 is not "
      r"allowed with mu = 1e-300: flow_rate = mu / plastic_viscosity = 1e-300 / 1e\+100 = 0 must be a finite number above 0"),
 ])

@@ -356,3 +356,17 @@ def test_softening_stops_at_a_softened_yield_stress_above_minus_two_mu_and_is_re
     # A change of mu moves the bound: the softening it leaves beyond it is refused by name.
     with pytest.raises(ValueError, match=r"^Material\.hardening = -1500\.0 is not allowed: must be > -2 mu = -1000"):
         we.Material(mu=mu, lam=mu, hardening=-1500.0).replace(mu=500.0)
+
+
+def test_a_lab_value_past_the_models_precision_is_refused_by_the_value_given():
+    """``Material.from_rheology``'s yield stress and flow rate derive from the lab's values: one
+    past float32's range was refused as ``Material.yield_stress = 1.41421e+39``, a value the
+    caller never gave; it is named as given, with the conversion."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1),
+              we.Material.from_rheology(1e5, 0.3, uniaxial_yield_stress=1e39, plastic_viscosity=10.0))
+    with pytest.raises(ValueError, match=r"^uniaxial_yield_stress = 1e\+39 \(material 0\) is not allowed in float32: it "
+                                         r"gives yield_stress = sqrt\(2/3\) uniaxial_yield_stress = 8\.16497e\+38: must be "
+                                         r"at most 3\.4e\+38; use dtype=float64 or a smaller value$"):
+        b.finalize(dtype=wp.float32)
+    assert b.finalize(dtype=wp.float64).materials[0].uniaxial_yield_stress == pytest.approx(1e39)

@@ -315,7 +315,10 @@ class Material:
                              "(give yield_stress and flow_rate to Material for the others)")
         flow_rate = lab_flow_rate(plastic_viscosity, cls.from_young(E, nu).mu,
                                   f"E = {checks.shorten(E)!r}, nu = {checks.shorten(nu)!r}")
-        return cls.from_young(E, nu, yield_stress=Y, flow_rate=flow_rate, **kwargs)
+        yield_given = (("shear_yield_stress", shear_yield_stress) if shear_yield_stress is not None
+                       else ("uniaxial_yield_stress", uniaxial_yield_stress))
+        return from_lab(cls.from_young(E, nu, yield_stress=Y, flow_rate=flow_rate, **kwargs),
+                        {"yield_stress": yield_given, "flow_rate": ("plastic_viscosity", plastic_viscosity)})
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "Material":
@@ -418,6 +421,20 @@ def _from_young(material: Material, E: float, nu: float) -> Material:
     them: ``E = 1e-39`` in float32 was refused as ``Material.mu = 3.84615e-40``, a value never given."""
     object.__setattr__(material, "_young", (E, nu))
     return material
+
+
+def from_lab(material: Material, given: dict) -> Material:
+    """``material``, noting the lab's values (``LAB_QUANTITIES``) its fields came from,
+    ``{field: (lab name, value given)}`` (not a field, as ``_from_young``'s note), so that a
+    model's precision check names them: ``shear_yield_stress = 1e39`` in float32 was refused as
+    ``Material.yield_stress = 1.41421e+39``, a value never given."""
+    object.__setattr__(material, "_lab", dict(given))
+    return material
+
+
+def lab_given(material: Material) -> dict:
+    """``from_lab``'s note of ``material``, ``{}`` where it has none (a copy, ``replace``'s, is made anew)."""
+    return getattr(material, "_lab", {})
 
 
 def young_given(material: Material) -> tuple[float, float] | None:

@@ -22,8 +22,8 @@ from ._types import type_set
 from .sim.fields import CompressionField
 from .sim.fields import precision_problem as field_precision_problem
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
-from .material import (DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS, Material,
-                       SPIKY_DENSITY_FORCES, p_wave_speed, young_given)
+from .material import (DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAB_QUANTITIES, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS,
+                       Material, SPIKY_DENSITY_FORCES, lab_given, p_wave_speed, young_given)
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -164,6 +164,11 @@ def material_precision_problem(material: Material, scalar, cli: bool = False) ->
 def _named_as_given(material: Material, name: str, value: float, why: str) -> tuple[str, float, str]:
     """The problem of a modulus derived from the ``E`` and ``nu`` given (``young_given``) as
     theirs: ``("E", E, ...)``; field names stay prefixed ``Material.``, ``E`` is no field."""
+    if name == "yield_stress" and name in lab_given(material):
+        # A lab's yield stress (Material.from_rheology's, a scene file's), which grows with it as
+        # the advice says; a flow rate falls as its plastic viscosity grows, and stays named so.
+        given, v = lab_given(material)[name]
+        return given, v, f"it gives {LAB_QUANTITIES[given][1]} = {value:g}: {why}"
     young = young_given(material)
     if young is None or name not in LAME_FORMULAS:
         return f"Material.{name}", value, why

@@ -25,7 +25,8 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 
 from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
-from .material import PRESETS, Material, _following_force, _from_young, _lame, lab_flow_rate, lab_yield_stress
+from .material import (LAB_QUANTITIES, PRESETS, Material, _following_force, _from_young, _lame, from_lab, lab_flow_rate,
+                       lab_yield_stress)
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -366,7 +367,8 @@ def _with_rheology(material: Material, table: dict) -> Material:
                          f"{'preset' + chr(39) + 's' if 'preset' in table else 'default'} flow_rate is 0, so the material "
                          "never flows and the yield stress has no effect; give plastic_viscosity (Pa s), or "
                          "plastic_viscosity = inf for a material that never flows")
-    return material.replace(**changes)
+    return from_lab(material.replace(**changes), {field: (key, table[key]) for key in given
+                                                  for field in [LAB_QUANTITIES[key][0]]})
 
 
 def _tagged(file: str, where: str, table, tag: str, kinds: dict) -> tuple[str, str]:
