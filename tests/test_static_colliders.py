@@ -140,8 +140,9 @@ def test_block_on_a_tilted_box_slides_below_tan_phi_and_stays_above(mu):
     M = m.particle_mass.numpy().sum()
     reaction = (p[-1] - p[steps // 2]) / (DT * (steps - steps // 2)) - M * np.array(m.gravity)
     print(f"mu={mu}: acceleration {acc:.4f} m/s^2, reaction {reaction} N, weight {M * G:.4f} N")
-    # The reported force is the momentum balance's, step by step (float32 round-off apart).
-    np.testing.assert_allclose(np.mean(fs[steps // 2:], axis=0), reaction, atol=1e-3 * M * G)
+    # The reported force is the momentum balance's, step by step (float32 round-off apart: measured
+    # 7e-8 N, 3e-8 M g; at 1e-3 M g a force reported 0.1 % too large passed).
+    np.testing.assert_allclose(np.mean(fs[steps // 2:], axis=0), reaction, atol=1e-5 * M * G)
     assert reaction[1] == pytest.approx(M * G * np.cos(th), rel=0.02)
     if mu < np.tan(th):
         assert acc == pytest.approx(G * (np.sin(th) - mu * np.cos(th)), rel=0.01)
