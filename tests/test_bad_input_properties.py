@@ -663,7 +663,8 @@ def test_a_huge_wrong_value_is_named_in_one_short_line(parameter, value):
 
 def test_fit_refuses_frames_beside_a_target_with_its_own_steps_and_names_what_it_is_given():
     """``fit(model, {2: x}, frames=[5])``: a mapping (or a Loss) carries its steps, and
-    ``frames`` beside it was ignored without a word, any value (NaN, 'x', an object) taken.
+    ``frames`` beside it was ignored without a word, any value (NaN, 'x', an object) taken;
+    the target's own steps given again are taken.
     A 2-D array of parameter names met numpy's 'truth value ... is ambiguous'; a material
     index past the floats was written whole, and a 2-D array as callback or log on lines of
     their own."""
@@ -675,13 +676,15 @@ def test_fit_refuses_frames_beside_a_target_with_its_own_steps_and_names_what_it
     x = model.particle_x0.copy()
     run = {"steps": 2, "dt": 1e-4, "progress": False, "iterations": 0, "diagnostics": False}
     for target, what in (({2: x}, "a {step: positions} mapping"), (losses.PositionLoss({2: x}), "a PositionLoss")):
-        for frames in ([5], [2], float("nan"), "x"):
+        for frames in ([5], [2, 5], float("nan"), "x"):
             with pytest.raises(ValueError, match=rf"^frames = {re.escape(repr(frames))} is not allowed with a target that "
                                                  rf"carries its own steps \({re.escape(what)}, steps \[2\]\): give the steps there, "
                                                  r"or leave frames out$"):
                 fit(model, target, steps=2, dt=1e-4, frames=frames, progress=False)
         with pytest.raises(ValueError, match=r"^frames = \[5\] is not allowed with a target that carries its own steps"):
             fit([Experiment(model, target, steps=2, dt=1e-4, frames=[5])], None, progress=False)
+        # The target's own steps given again say the same, and are taken.
+        assert set(fit(model, target, frames=[2], **run).params) == {"yield_stress", "flow_rate"}
     for kwargs, message in (({"params": np.array([["mu"], ["lam"]])}, r"^params entry array\(\['mu'\], dtype='<U3'\) is not allowed"),
                             ({"materials": [10**400]}, r"^material 1\.000e\+400 is not allowed: indices are 0\.\.0$"),
                             ({"callback": np.zeros((2, 3))}, r"^callback = array\(\[\[0\., 0\., 0\.\], \[0\., 0\., 0\.\]\]\) is not allowed"),
@@ -757,9 +760,10 @@ def test_a_tiny_density_is_named_for_the_pressure_stiffness_it_derives():
 @pytest.mark.parametrize("dtype, density, message", [
     ("float32", 1e-25, r"the pressure force multiplies two densities, so it must be at least 1\.08e-19 "),
     ("float64", 1e-200, r"the pressure force multiplies two densities, so it must be at least 1\.49e-154 "),
-    ("float32", 1e18, r"the pressure force multiplies a pressure of up to the p-wave modulus M = 3\.77e\+04 Pa by two "
-                      r"densities, so it must be at most sqrt\(3\.4e\+38 / M\) = 9\.5e\+16; use dtype=float64"),
-    ("float64", 1e155, r"must be at most sqrt\(1\.8e\+308 / M\) = 6\.91e\+151; use a smaller value"),
+    ("float32", 1e18, r"the pressure force multiplies its pressure, up to density pressure_stiffness = 7\.67e\+03 Pa, "
+                      r"by two densities, so it must be at most sqrt\(3\.4e\+38 / 7\.67e\+03 Pa\) = 2\.11e\+17; "
+                      r"use dtype=float64"),
+    ("float64", 1e155, r"must be at most sqrt\(1\.8e\+308 / 7\.67e\+03 Pa\) = 1\.53e\+152; use a smaller value"),
     ("float32", 1.1e-19, None), ("float64", 1.5e-154, None), ("float32", 9e16, None), ("float64", 1e150, None),
 ])
 def test_a_density_whose_square_the_precision_cannot_hold_is_refused(dtype, density, message):
@@ -767,7 +771,8 @@ def test_a_density_whose_square_the_precision_cannot_hold_is_refused(dtype, dens
     density whose square underflowed to 0 wrote NaN positions in the first steps at half the
     stable step, without a word (float32 from 4e-23 kg/m^3 down, float64 from 2e-162;
     measured by bisection, the same at spacings 0.01, 0.1 and 1), and one whose square times a
-    pressure overflowed did so in a block squeezed by a tenth (float32 1e18, float64 1e155).
+    pressure (density pressure_stiffness, the default pressure_stiffness here)
+    overflowed did so in a block squeezed by a tenth (float32 1e18, float64 1e155).
     Refused at finalize; within the bounds a squeezed block steps to finite velocities."""
     import warp as wp
 

@@ -2412,7 +2412,7 @@ def test_cli_fit_bounds_past_float32_advise_the_commands_dtype_option(tmp_path, 
 def test_cli_fit_a_start_held_to_bounds_past_float32_advises_the_commands_dtype_option(tmp_path, capsys, dough_scene,
                                                                                        stage):
     """Lower ends of lam and mu each allowed alone (an elastic material) but together past
-    what float32 holds of the p-wave modulus times two densities (the pressure force's product): the guess held to them is refused where the fit starts, and its
+    what float32 holds of the pressure at a strain of 1 (about K / 2 by default) times two densities: the guess held to them is refused where the fit starts, and its
     advice said 'use dtype=float64', which the command does not take."""
     from warp_esph.cli import main
     from warp_esph.scenes import load_scene
@@ -2424,28 +2424,28 @@ def test_cli_fit_a_start_held_to_bounds_past_float32_advises_the_commands_dtype_
     target = tmp_path / "t.npz"
     np.savez(target, positions=np.stack([x0]), frames=[2])
     capsys.readouterr()
-    assert main(["fit", str(guess), "--target", str(target), "--params", "lam,mu", "--bounds", "lam=1.4e32:1.5e32",
-                 "--bounds", "mu=6.5e31:8e31", "--dtype", "float32", "--iterations", "1", "--no-progress", "--no-usd",
+    assert main(["fit", str(guess), "--target", str(target), "--params", "lam,mu", "--bounds", "lam=5e32:5.5e32",
+                 "--bounds", "mu=4e32:4.5e32", "--dtype", "float32", "--iterations", "1", "--no-progress", "--no-usd",
                  "--output-dir", str(tmp_path / "fit"), *stage]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
     assert len(err) == 1 and err[0].startswith("warp-esph: error: the initial values are not allowed within the bounds: "), err
-    assert "p-wave modulus" in err[0] and err[0].endswith("use dtype=float64 (--dtype float64) or smaller values"), err
+    assert "the pressure force" in err[0] and err[0].endswith("use dtype=float64 (--dtype float64) or smaller values"), err
     # Named as typed, not as the class field Material.mu, which the command's user never wrote.
-    assert "Material." not in err[0] and "--bounds mu=6.5e31:8e31 holds mu's guess, 2000, at its lower end" in err[0], err
-    assert "--bounds lam=1.4e32:1.5e32 holds lam's guess, 3000, at its lower end" in err[0], err
-    assert "lam's lower end, 1.4e+32, is a lam the material refuses in float32: " in err[0], err
+    assert "Material." not in err[0] and "--bounds mu=4e32:4.5e32 holds mu's guess, 2000, at its lower end" in err[0], err
+    assert "--bounds lam=5e32:5.5e32 holds lam's guess, 3000, at its lower end" in err[0], err
+    assert "lam's lower end, 5e+32, is a lam the material refuses in float32: " in err[0], err
     if stage:
         return
     from warp_esph.fit import fit
 
     model = load_scene(str(guess)).builder.finalize(dtype=wp.float32, requires_grad=True)
     with pytest.raises(ValueError, match=r"^the initial values are not allowed within the bounds: bounds\['lam'\] = "
-                                         r"\(1\.4e\+32, 1\.5e\+32\) holds lam's guess, 3000, at its lower end; bounds\['mu'\] = "
-                                         r"\(6\.5e\+31, 8e\+31\) holds mu's guess, 2000, at its lower end"
-                                         r": lam's lower end, 1\.4e\+32, is a lam the material refuses in float32: .*"
+                                         r"\(5e\+32, 5\.5e\+32\) holds lam's guess, 3000, at its lower end; bounds\['mu'\] = "
+                                         r"\(4e\+32, 4\.5e\+32\) holds mu's guess, 2000, at its lower end"
+                                         r": lam's lower end, 5e\+32, is a lam the material refuses in float32: .*"
                                          r"use dtype=float64 or smaller values$") as raised:
         fit(model, PositionLoss(x0[None], frames=[2]), ["lam", "mu"], steps=2, dt=1e-4, iterations=1, progress=False,
-            bounds={"lam": (1.4e32, 1.5e32), "mu": (6.5e31, 8e31)}, diagnostics=False)
+            bounds={"lam": (5e32, 5.5e32), "mu": (4e32, 4.5e32)}, diagnostics=False)
     assert "Material." not in str(raised.value)
 
 

@@ -379,11 +379,17 @@ def _material_indices(model: Model, materials, what: str = "material", material_
 
 def _target_loss(target, frames) -> Loss:
     if isinstance(target, (Loss, Mapping)) and frames is not None:
-        # Ignored without a word: frames = [5] beside {2: x} fitted step 2, any value taken.
+        # Ignored without a word: frames = [5] beside {2: x} fitted step 2, any value taken. The
+        # target's own steps, given again, say the same and are taken.
         loss = target if isinstance(target, Loss) else PositionLoss(target)
         what = f"a {type(target).__name__}" if isinstance(target, Loss) else "a {step: positions} mapping"
-        raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed with a target that carries its own steps "
-                         f"({what}, steps {list(loss.frames)}): give the steps there, or leave frames out")
+        try:
+            same = sorted(int(f) for f in frames) == sorted(int(f) for f in loss.frames) and len(frames) > 0
+        except (TypeError, ValueError, OverflowError):
+            same = False
+        if not same:
+                raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed with a target that carries its own "
+                             f"steps ({what}, steps {list(loss.frames)}): give the steps there, or leave frames out")
     if isinstance(target, Loss):
         return target
     if isinstance(target, (str, os.PathLike)):

@@ -101,28 +101,29 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
     # The pressure pair force multiplies a pressure by two densities (sim/pressure.py): where
     # their product underflowed to 0 the force was 0 / 0, NaN positions in the first steps at
     # half the stable step (float32 from 4e-23 kg/m^3 down, float64 from 2e-162, measured);
-    # where a pressure of M (a strain of 1) times it overflowed, NaN in a squeezed block
-    # (float32 1e18, float64 1e155).
+    # where the pressure at a strain of 1, density pressure_stiffness, times it overflowed, NaN
+    # in a squeezed block (float32 density 1e18, float64 1e155, default pressure_stiffness).
     tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
     if material.density < math.sqrt(tiny):
         return ("density", float(material.density),
                 f"the pressure force multiplies two densities, so it must be at least {math.sqrt(tiny):.3g} (their "
                 f"product below the smallest {scalar.__name__} is 0, and the force 0 / 0); "
                 f"{wider_precision(scalar, 'a larger value', cli)}")
-    if modulus > 0.0 and material.density > math.sqrt(big / modulus):
-        # Name the factor out of range: the modulus's largest term where the modulus alone is
-        # past sqrt(max) (lam = 1.5e38 beside a density of 1000), else the density.
-        if modulus > math.sqrt(big):
-            field = max(terms, key=lambda k: terms[k])
-            return (field, float(getattr(material, field)),
-                    f"the pressure force multiplies a pressure of up to the p-wave modulus lam + 2 mu + density "
-                    f"pressure_stiffness = {modulus:.3g} Pa by two densities of {float(material.density):.3g} kg/m^3, "
-                    f"so with that density M must be at most {big:.3g} / density^2 = "
-                    f"{big / float(material.density) ** 2:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
-        return ("density", float(material.density),
-                f"the pressure force multiplies a pressure of up to the p-wave modulus M = {modulus:.3g} Pa by two "
-                f"densities, so it must be at most sqrt({big:.3g} / M) = {math.sqrt(big / modulus):.3g}; "
-                f"{wider_precision(scalar, 'a smaller value', cli)}")
+    density, pressure = float(material.density), float(material.density) * float(material.pressure_stiffness)
+    if pressure > 0.0 and math.log(pressure) + 2.0 * math.log(density) > math.log(big):
+        if pressure <= math.sqrt(big):  # the density is what is out of range
+            return ("density", density,
+                    f"the pressure force multiplies its pressure, up to density pressure_stiffness = {pressure:.3g} Pa, "
+                    f"by two densities, so it must be at most sqrt({big:.3g} / {pressure:.3g} Pa) = "
+                    f"{math.sqrt(big / pressure):.3g}; {wider_precision(scalar, 'a smaller value', cli)}")
+        # The pressure is: named by the value given, lam or mu where the stiffness is K / (4 density).
+        field = (("lam" if material.lam >= 2.0 * material.mu / 3.0 else "mu")
+                 if material.has_default_pressure_stiffness else "pressure_stiffness")
+        default = " (pressure_stiffness by default, from lam and mu)" if material.has_default_pressure_stiffness else ""
+        return (field, float(getattr(material, field)),
+                f"the pressure force multiplies its pressure, up to density pressure_stiffness = {pressure:.3g} Pa"
+                f"{default}, by two densities of {density:.3g} kg/m^3, so that pressure must be at most "
+                f"{big:.3g} / density^2 = {big / density ** 2:.3g} Pa; {wider_precision(scalar, 'smaller values', cli)}")
     # The flow rule compares squares, 4 mu^2 |dev sigma|^2 against the yield stress's
     # (plasticity.flow_fraction): past the precision's range the square was inf, the rate NaN,
     # and every flow removed the whole deviatoric strain in one step whatever the flow rate
