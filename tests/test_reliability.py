@@ -1163,6 +1163,9 @@ def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_th
     # Taken, it split the run's one-line reports ('wrote .../a', 'b.usdc: 3 frames').
     (["run", "dough_drop", "-o", "a\nb.usdc"], ["--output = 'a\\nb.usdc' is not allowed", "one line of text"]),
     (["export", "IN", "-o", "frames\x1b[31m"], ["--output = 'frames\\x1b[31m' is not allowed", "no control characters"]),
+    # Taken, a bidi override shown the name reversed past it in every one-line report ('wrote evil').
+    (["run", "dough_drop", "-o", "evil\u202eadcsu.usdc"], ["--output = 'evil\\u202eadcsu.usdc' is not allowed",
+                                                         "no bidirectional embeddings, overrides or isolates"]),
     (["export", "IN", "-o", "y" * 300], ["--output = ", "bytes long"]),
 ])
 def test_output_names_a_file_system_cannot_hold_are_refused_by_name(tmp_path, monkeypatch, capsys, argv, needles):

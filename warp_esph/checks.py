@@ -784,12 +784,13 @@ def output_place(what: str, path, folder: bool = False) -> str:
     p = os.fspath(path)
     if not p or "\0" in p:
         raise ValueError(f"{what} = {p!r} is not allowed: must be a path (not empty, no NUL character)")
-    if breaks_line(p):
+    if breaks_line(p) or any(c in BIDI_CONTROLS for c in p):
         # As a scene's name, which names its default output: a newline split the commands'
         # one-line reports ('wrote a<newline>b.usdc: ...', the reaction log's), a tab or an
-        # escape acted on the terminal.
+        # escape acted on the terminal, a bidi override showed the rest of the line reversed.
         raise ValueError(f"{what} = {p!r} is not allowed: the commands name their outputs in one-line messages, so it "
-                         "must be one line of text (no control characters, no line breaks)")
+                         "must be one line of text (no control characters, no line breaks, no bidirectional "
+                         "embeddings, overrides or isolates, U+202A-U+202E and U+2066-U+2069)")
     try:
         name = os.fsencode(os.path.basename(os.path.normpath(p)))
     except UnicodeError:
