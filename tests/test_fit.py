@@ -474,8 +474,27 @@ def _thin_star(mu, clamp_pressure=True):
     return model
 
 
+@pytest.fixture(scope="module")
+def thin_star_truth():
+    """``thin_star_truth(clamp_pressure=True)``: ``(mu, dt, steps, frames, positions)``, the
+    thin star's run at the dough's ``mu`` (the target of the tests below), run once per
+    module for each ``clamp_pressure``."""
+    runs = {}
+
+    def truth(clamp_pressure=True):
+        if clamp_pressure not in runs:
+            mu = we.Material.preset("dough").mu
+            dt = 0.5 * _thin_star(2.0 * mu).stable_dt()
+            steps, frames = 300, [100, 200, 300]
+            runs[clamp_pressure] = (mu, dt, steps, frames,
+                                    Rollout(_thin_star(mu, clamp_pressure), steps, dt, frames=frames).forward())
+        return runs[clamp_pressure]
+
+    return truth
+
+
 @pytest.mark.parametrize("factor", [1.5, 1.8])
-def test_thin_star_loss_matches_central_differences_where_fits_lack_neighbours(factor):
+def test_thin_star_loss_matches_central_differences_where_fits_lack_neighbours(factor, thin_star_truth):
     """The thin star's tips have fits at the few-neighbours guard of paper §4 (about 2700
     particle-steps of 300 without one). The guard fades (``sim/guards.py``, a smooth neighbour
     count), so the loss of a fit of ``mu`` from ``factor`` times the truth matches central
@@ -489,27 +508,26 @@ def test_thin_star_loss_matches_central_differences_where_fits_lack_neighbours(f
     (``guards.COUNT_FADE`` 1.0, or 0.99999: the same slopes) is not seen here (1.9e-5 and
     1.1e-5): no fit's neighbour crosses ``h`` between the two runs (with 1e-3 dx, one that
     did at a ``mu`` bisected on the guard's count moved the slope by 2e-7); the cluster's
-    scan in test_gradients.py sees the switch."""
-    mu = we.Material.preset("dough").mu
-    dt = 0.5 * _thin_star(2.0 * mu).stable_dt()
-    steps, frames = 300, [100, 200, 300]
-    target = Rollout(_thin_star(mu), steps, dt, frames=frames).forward()
+    scan in test_gradients.py sees the switch. The central difference's runs are untaped
+    (``forward(taped=False)``: the taped run's steps, in the same bits)."""
+    mu, dt, steps, frames, target = thin_star_truth()
+    loss = PositionLoss(target, frames=frames)
 
-    def value_and_grad(m):
-        rollout = Rollout(_thin_star(m), steps, dt, frames=frames)
-        value, grads = rollout.value_and_grad(PositionLoss(target, frames=frames))
-        return value, grads["mu"][0], rollout.solver.guard_counts()["few_neighbors"]
+    def value(m):
+        return loss(dict(zip(frames, Rollout(_thin_star(m), steps, dt, frames=frames).forward(taped=False))))
 
     m = factor * mu
-    _, slope, guarded = value_and_grad(m)
+    rollout = Rollout(_thin_star(m), steps, dt, frames=frames)
+    slope = rollout.value_and_grad(loss)[1]["mu"][0]
+    guarded = rollout.solver.guard_counts()["few_neighbors"]
     assert guarded > 1000, guarded
     eps = 1e-4 * m
-    fd = (value_and_grad(m + eps)[0] - value_and_grad(m - eps)[0]) / (2.0 * eps)
+    fd = (value(m + eps) - value(m - eps)) / (2.0 * eps)
     assert slope == pytest.approx(fd, rel=1e-4, abs=0.0)
 
 
 @pytest.mark.parametrize("clamp_pressure", [False, True])
-def test_thin_star_x0_gradient_is_smooth_only_without_the_pressure_clamp(clamp_pressure):
+def test_thin_star_x0_gradient_is_smooth_only_without_the_pressure_clamp(clamp_pressure, thin_star_truth):
     """The loss of the thin star (its fit of ``mu`` at 1.5 times the truth) in ``x0``, the
     start with the rest density held (docs/fitting.md, "Making the loss smooth", item 5).
     The rest density is the jittered start's own and the star falls 18 mm before it touches
@@ -524,10 +542,8 @@ def test_thin_star_x0_gradient_is_smooth_only_without_the_pressure_clamp(clamp_p
     within 5e-8 through the fall, the touchdown, the contact and the guards: the gap is the
     clamp's kink, not an adjoint's error. Mutation: the count's slope left out of the
     adjoints (``dn = 0`` in ``guards.guard``) puts the inner particle's 2.2e-3 off."""
-    mu = we.Material.preset("dough").mu
-    dt = 0.5 * _thin_star(2.0 * mu).stable_dt()
-    steps, frames = 300, [100, 200, 300]
-    loss = PositionLoss(Rollout(_thin_star(mu, clamp_pressure), steps, dt, frames=frames).forward(), frames=frames)
+    mu, dt, steps, frames, target = thin_star_truth(clamp_pressure)
+    loss = PositionLoss(target, frames=frames)
     rollout = Rollout(_thin_star(1.5 * mu, clamp_pressure), steps, dt, frames=frames)
     value, grads = rollout.value_and_grad(loss)
     x0 = rollout.model.particle_x0.astype(np.float64)
