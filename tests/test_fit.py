@@ -1698,6 +1698,21 @@ def test_ctrl_c_before_the_first_evaluation_carries_no_result(dough_target, monk
     assert type(info.value) is KeyboardInterrupt and info.value.result is None
 
 
+def test_a_seed_the_fit_draws_nothing_from_is_refused_and_one_evaluation_is_said_as_one():
+    """``fit(seed=10**400)`` was taken without a word where nothing draws from the seed (no
+    samples, one start), as ``--seed`` is refused; and the start-up line said 'up to 1
+    evaluations per start'."""
+    target = np.zeros((1, _block_with().particle_count, 3))
+    kw = dict(steps=4, iterations=0, progress=False, diagnostics=False)
+    for seed in (10**400, 3):
+        with pytest.raises(ValueError, match=r"^seed = (1\.000e\+400|3) is not allowed without samples or starts > 1: it "
+                                             r"seeds the global stage's draws, and this fit draws nothing$"):
+            fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], seed=seed, **kw)
+    said = []
+    fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], log=said.append, **kw)
+    assert any("up to 1 evaluation per start" in line for line in said), said
+
+
 @pytest.mark.parametrize("worlds", [False, True])
 def test_every_start_runs_at_the_stable_step_of_the_stiffest_start(worlds):
     """With ``dt`` left to the fit, the starts ran at the guess's stable step: the start at

@@ -187,7 +187,7 @@ def run_fit(args, out=None, err=None) -> int:
                          "box of the global stage's samples and the extra starts, and this fit has neither")
     if given_seed is not None and not jitter and opts["samples"] == 0 and opts["starts"] == 1:
         # Nothing else draws from it (the diagnostics' noise is a number, not a draw).
-        raise ValueError(f"--seed = {given_seed!r} is not allowed without --jitter, --samples or --starts: it seeds the "
+        raise ValueError(f"--seed = {checks.shorten(given_seed)!r} is not allowed without --jitter, --samples or --starts: it seeds the "
                          "lattice's jitter and the global stage's draws, and this fit draws nothing")
     if _arg(args, "noise") is not None and _arg(args, "no_diagnostics", False):
         raise ValueError(f"--noise = {args.noise!r} is not allowed with --no-diagnostics: it is the observation noise "
@@ -400,7 +400,7 @@ def run_fit(args, out=None, err=None) -> int:
                      lr=lr, bounds=bounds, param_scales=param_scales, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
-                     sample_range=sample_range, seed=seed,
+                     sample_range=sample_range, seed=seed if opts["samples"] or opts["starts"] > 1 else None,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
     except ParamScaleRefused as e:
@@ -510,10 +510,6 @@ def run_fit(args, out=None, err=None) -> int:
     return 0
 
 
-def _plural(n: int, word: str) -> str:
-    return f"{n} {word}" if n == 1 else f"{n} {word}s"
-
-
 def _evaluations_said(result) -> str:
     """What ran, as fit.json counts it: ``sample_evaluations`` (the global stage, loss only,
     the guess first), ``evaluations`` (the descent's, every start's) and the diagnostics'
@@ -524,12 +520,12 @@ def _evaluations_said(result) -> str:
     starts = len(result.starts)
     of_descent = "of the descent" + (f" ({starts} starts)" if starts > 1 else "")
     if samples:
-        said = (f"{_plural(samples + descent, 'evaluation')}: {samples} of the global stage (loss only: the guess and "
-                f"{_plural(samples - 1, 'sample')}), {descent} {of_descent}")
+        said = (f"{checks.plural(samples + descent, 'evaluation')}: {samples} of the global stage (loss only: the guess and "
+                f"{checks.plural(samples - 1, 'sample')}), {descent} {of_descent}")
     else:
-        said = f"{_plural(descent, 'evaluation')} {of_descent}"
+        said = f"{checks.plural(descent, 'evaluation')} {of_descent}"
     if result.diagnostics is not None:
-        said += f"; then {_plural(result.diagnostics.evaluations, 'run')} of the diagnostics"
+        said += f"; then {checks.plural(result.diagnostics.evaluations, 'run')} of the diagnostics"
     return said
 
 

@@ -61,6 +61,11 @@ def shorten_text(text, limit: int = 300) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
+def plural(n: int, word: str) -> str:
+    """``n word`` or ``n words``: a count in a message ('1 evaluations' read wrong)."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 #: Default upper bound of ``positive_int``: Warp indexes arrays with int32.
 MAX_INT = 2**31 - 1
 

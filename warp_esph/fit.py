@@ -1962,7 +1962,7 @@ def fit(
     starts: int = 1,
     worlds: bool = False,
     sample_range: float = 4.0,
-    seed: int = 0,
+    seed: int | None = None,
     diagnostics: bool = True,
     noise: float | None = None,
     fd_step: float = 1e-3,
@@ -2029,7 +2029,8 @@ def fit(
       at ``N`` Latin-hypercube points of optimiser space, within a factor ``sample_range``
       of the guess (log space; linear ones +-``sample_range`` times their scale) and within
       ``bounds`` where they are narrower, plus the guess; gradient descent then starts from the best
-      ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG).
+      ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG, an
+      integer >= 0, default 0; refused where the fit draws nothing, as ``--seed`` is).
       Without ``samples``, ``starts = K > 1`` descends from the guess and ``K - 1``
       Latin-hypercube points of the same box.
     - ``worlds``: with several starts, run them at once as the worlds of one model per
@@ -2056,8 +2057,13 @@ def fit(
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
                       optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
-                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol,
+                      seed=0 if seed is None else seed, noise=noise, memory_limit=memory_limit, xtol=xtol,
                       param_scales=param_scales)
+    if seed is not None and o["samples"] == 0 and o["starts"] == 1:
+        # Refused, not ignored, as the command refuses --seed: the fit ran exactly as without it
+        # (fit(seed=10**400) was taken without a word).
+        raise ValueError(f"seed = {checks.shorten(seed)!r} is not allowed without samples or starts > 1: it seeds the "
+                         "global stage's draws, and this fit draws nothing")
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
     noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]
@@ -2223,7 +2229,7 @@ def fit(
             rounds = (iterations + 1) * (1 if use_worlds else track_count)
             passes = "forward only" if gz is None else "forward + backward"
             say(f"one evaluation ({passes}{per}) took {seconds:.3g} s: "
-                f"up to {iterations + 1} evaluations per start, ~{_duration(seconds * rounds)}")
+                f"up to {checks.plural(iterations + 1, 'evaluation')} per start, ~{_duration(seconds * rounds)}")
         # The first finite value is an improvement: inf - 1e-9 * inf is NaN, which had counted
         # the guess itself as a stalled evaluation (patience = 1 stopped every fit there).
         if finite and (track.best == math.inf or value < track.best - 1e-9 * abs(track.best)):
