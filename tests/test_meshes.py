@@ -610,6 +610,26 @@ def test_bad_files_are_rejected(tmp_path):
     rejects((1, 2, 3), "source with 3 items", "(points, triangles)")
 
 
+def test_a_missing_or_unreadable_source_is_refused_naming_the_callers_parameter(tmp_path):
+    """``add_mesh("x")`` was refused as ``mesh 'x' is not allowed: file not found``, where
+    add_mesh's parameter is ``source``; a mesh tool's and a MeshLoss's is ``mesh``."""
+    from warp_esph.losses import MeshLoss
+
+    material = warp_esph.Material(mu=1e3, lam=1e3)
+    missing = str(tmp_path / "nope.obj")
+    (tmp_path / "points.xyz").write_text("0 0 0\n")
+    for source, reason in ((missing, "file not found"), (str(tmp_path), "it is not a file"),
+                           (str(tmp_path / "points.xyz"), "unsupported extension '.xyz'; must be one of .usd")):
+        with pytest.raises(ValueError, match="^source = " + re.escape(repr(source)) + " is not allowed: " + re.escape(reason)):
+            warp_esph.SceneBuilder(spacing=0.05).add_mesh(source, material)
+        with pytest.raises(ValueError, match="^source = " + re.escape(repr(source)) + " is not allowed: "):
+            meshes.load_mesh(source)
+        with pytest.raises(ValueError, match="^mesh = " + re.escape(repr(source)) + " is not allowed: " + re.escape(reason)):
+            warp_esph.SceneBuilder(spacing=0.05).add_tool("mesh", mesh=source)
+        with pytest.raises(ValueError, match="^mesh = " + re.escape(repr(source)) + " is not allowed: " + re.escape(reason)):
+            MeshLoss(source, frames=[1])
+
+
 def test_a_source_of_arrays_that_is_not_the_pair_is_refused_on_one_line():
     """A list ``[points, triangles]`` (not the tuple) was refused with numpy's repr of both
     arrays, a message of twenty lines; it is one line, cut as other values are."""

@@ -703,7 +703,7 @@ class SceneBuilder:
         if kind == "mesh":
             if mesh is None:
                 raise ValueError("mesh = None is not allowed: a mesh tool needs a mesh file or (points, triangles)")
-            points, triangles = meshes.load_mesh(mesh, prim_path=prim_path)
+            points, triangles = meshes.load_mesh(mesh, prim_path=prim_path, name="mesh")
             s = checks.positive("scale", scale)
             with np.errstate(over="ignore", invalid="ignore"):
                 points = points * s

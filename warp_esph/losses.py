@@ -1269,7 +1269,7 @@ class MeshLoss(Loss):
         if isinstance(mesh, (str, bytes, os.PathLike)):
             from . import meshes  # noqa: PLC0415
 
-            points, tris = meshes.load_mesh(mesh)
+            points, tris = meshes.load_mesh(mesh, name="mesh")
         else:
             try:
                 points, tris = mesh

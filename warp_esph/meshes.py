@@ -64,7 +64,7 @@ def mesh_name(source) -> str:
     return stem or name
 
 
-def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_mesh(source, prim_path: str | None = None, *, name: str = "source") -> tuple[np.ndarray, np.ndarray]:
     """A closed triangle mesh as ``(points (N, 3) float64, triangles (M, 3) int32)``.
 
     ``source`` is a file meshio reads, a USD file, or a tuple ``(points, triangles)``.
@@ -78,6 +78,9 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
     prim's local-to-world transform and the stage's metres per unit are applied and the up
     axis is kept; a stage that does not author ``metersPerUnit`` is read in USD's fallback
     unit, centimetres, with a ``UserWarning``.
+
+    ``name``: how a refusal of ``source`` itself (no such file, no known extension, not a path
+    or tuple) names it, as the caller's parameter (``add_mesh``'s ``source``, a tool's ``mesh``).
     """
     if prim_path is not None and not isinstance(prim_path, str):
         raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: must be a string such as '/root/bunny' or None")
@@ -92,9 +95,9 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
         path = os.fsdecode(os.fspath(source))
         label = repr(path)
         if not os.path.exists(path):
-            _reject(label, "file not found")
+            raise ValueError(f"{name} = {label} is not allowed: file not found")
         if not os.path.isfile(path):
-            _reject(label, "it is not a file")
+            raise ValueError(f"{name} = {label} is not allowed: it is not a file")
         meshio_ext = _meshio_extensions()
         if _extension(path, USD_EXTENSIONS):
             points, triangles, prim = _read_usd(label, path, prim_path)
@@ -106,10 +109,10 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
         else:
             suffix = pathlib.Path(path).suffix or "(none)"
             allowed = ", ".join(USD_EXTENSIONS + meshio_ext)
-            _reject(label, f"unsupported extension {suffix!r}; must be one of {allowed}")
+            raise ValueError(f"{name} = {label} is not allowed: unsupported extension {suffix!r}; must be one of {allowed}")
     else:
         raise ValueError(
-            f"source = {checks.shorten(source)!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"
+            f"{name} = {checks.shorten(source)!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"
         )
     return _clean(label, points, triangles)
 
