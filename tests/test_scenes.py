@@ -678,10 +678,13 @@ def test_a_material_table_takes_a_rheometers_values_as_from_rheology_does(tmp_pa
     # As Material.from_rheology's, by the value given: a yield stress past the floats had
     # made an elastic material without a word, a viscosity of 1e-320 was refused as
     # 'flow_rate = inf', a value the file never gave.
+    # The advice in the file's terms (it had advised Material.from_young to a scene file).
     ('preset = "dough"\nshear_yield_stress = 1.5e308', r"\[materials.m\]: shear_yield_stress = 1.5e\+308 is not "
-     r"allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number"),
+     r"allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number \(for a material that never yields, "
+     r"leave shear_yield_stress and plastic_viscosity out of the table and give yield_stress = inf\)$"),
     ('E = 1e5\nnu = 0.3\nshear_yield_stress = 1.3e308', r"\[materials.m\]: shear_yield_stress = 1.3e\+308 is "
-     r"not allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number"),
+     r"not allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite number \(for a material that never "
+     r"yields, leave shear_yield_stress and plastic_viscosity out of the table\)$"),
     ('E = 1e5\nnu = 0.3\nplastic_viscosity = 1e-320', r"\[materials.m\]: plastic_viscosity = 1e-320 is not allowed "
      r"with E = 100000.0, nu = 0.3: flow_rate = mu / plastic_viscosity = 38461.5 / 9.99989e-321 = inf must be a finite"),
     # Without a flow rate the yield stress given had no effect (flow_rate 0: elastic), as a

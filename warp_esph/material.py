@@ -515,16 +515,17 @@ LAB_QUANTITIES = {
 }
 
 
-def lab_yield_stress(name: str, value) -> float:
+def lab_yield_stress(name: str, value, elastic: str = "use Material.from_young") -> float:
     """The ``yield_stress`` of a lab's ``shear_yield_stress`` or ``uniaxial_yield_stress``
     (``name``) of ``value`` (``LAB_QUANTITIES``), refused by the value given where it is past
-    the floats (``Material.from_rheology`` and a scene file's material table)."""
+    the floats (``Material.from_rheology`` and a scene file's material table). ``elastic``: the
+    refusal's advice for a material that never yields, in the caller's terms."""
     factor = {"shear_yield_stress": math.sqrt(2.0), "uniaxial_yield_stress": math.sqrt(2.0 / 3.0)}[name]
     Y = factor * checks.non_negative(name, value)
     if not math.isfinite(Y):
         # sqrt(2) x 1.5e308 is inf: an elastic material, the yield stress given without effect.
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: {LAB_QUANTITIES[name][1]} must be a finite "
-                         "number (for a material that never yields, use Material.from_young)")
+                         f"number (for a material that never yields, {elastic})")
     return Y
 
 

@@ -353,7 +353,9 @@ def _with_rheology(material: Material, table: dict) -> Material:
         return material
     # The Bingham relation holds for these models alone (Material.from_rheology).
     material._check_bingham(given[0])
-    changes = {"yield_stress": lab_yield_stress(key, table[key])
+    # The advice in the file's terms: Material.from_young had been advised to a scene file.
+    changes = {"yield_stress": lab_yield_stress(key, table[key], f"leave {key} and plastic_viscosity out of the table"
+                                                + (" and give yield_stress = inf" if "preset" in table else ""))
                for key in ("shear_yield_stress", "uniaxial_yield_stress") if key in table}
     if "plastic_viscosity" in table:
         moduli = (f"E = {table['E']!r}, nu = {table['nu']!r}" if "E" in table else f"mu = {material.mu:g}" if "mu" in table
