@@ -189,6 +189,11 @@ def test_parse_frames():
     assert parse_frames("-1", have) == [10] and parse_frames("3", have) == [3]
     assert parse_frames("0:10:5", have) == [0, 5, 10] and parse_frames(":2", have) == [0, 1, 2]
     assert parse_frames("1,4,-2", have) == [1, 4, 9]
+    assert parse_frames("8:", have) == [8, 9, 10] and parse_frames("0:10:4", have) == [0, 4, 8]
+    for past in ("0:11", "5:100:2", "3,9:12"):  # cut at frame 10 before, without a word
+        with pytest.raises(ValueError, match=rf"^frames = '{past}' is not allowed: '{past.split(',')[-1]}' runs past the "
+                                             r"file's last frame, 10: it holds 11 frames, 0\.\.10"):
+            parse_frames(past, have)
     for bad in ("11", "x", "0:10:0", "", "1:2:3:4", "-0", "-0:5"):  # -0: frame 0 or the end? (read as 0)
         with pytest.raises(ValueError, match="frames"):
             parse_frames(bad, have)
@@ -390,6 +395,9 @@ def test_render_command(tmp_path, capsys):
     (["--azimuth", "nan"], "--azimuth = nan is not allowed"),
     (["--width", "10"], "--width x --height = 10 x 600 is not allowed"),
     (["--frames", "7"], "--frames = '7' is not allowed: frame 7 is not in the file"),
+    # A range past the end was cut at the last frame without a word.
+    (["--frames", "0:100"], "--frames = '0:100' is not allowed: '0:100' runs past the file's last frame, 1: it holds 2 "
+                            "frames, 0..1; end the range at 1 or leave its end out"),
     (["-o", "{d}/a.png", "--fps", "10"], "--fps = 10.0 is not allowed with --output = '{d}/a.png'"),
     # No -o typed: the default output is said as such (it said "with --output = '.../cli.usdc.png'").
     (["--fps", "10"], "--fps = 10.0 is not allowed with the default output {d}/cli.usdc.png: it is the playback rate"),
