@@ -24,7 +24,9 @@ from hypothesis import strategies as st
 import warp_esph as we
 from warp_esph import losses, silhouette, tools
 from warp_esph.fit import Experiment, fit
-from warp_esph.scenes import load_scene_file
+from warp_esph.render import RenderOptions
+from warp_esph.sweep import sample_points, sweep
+from warp_esph.scenes import load_scene, load_scene_file
 
 # Values of every wrong kind: wrong types, NaN, inf, negative, zero, huge, empty.
 ANY_VALUE = st.one_of(
@@ -637,12 +639,50 @@ NAMED_WHOLE = {
     "callback": lambda v: we.simulate(_small_model(), 1, callback=v, progress=False),
     "model (replicate_worlds)": lambda v: we.replicate_worlds(v, 2),
     "model (WorldLoss)": lambda v: losses.WorldLoss(v, losses.PositionLoss({1: [[0.0, 0.0, 0.0]]})),
+    # More that wrote the value whole, found by a search of the refusals that bypassed shorten.
+    "rollout (RolloutModule)": lambda v: _torch_module(v),
+    "params (RolloutModule)": lambda v: _torch_module(_tiny_rollout(), params=v),
+    "log_space": lambda v: _torch_module(_tiny_rollout(), log_space=v),
+    "check": lambda v: _tiny_rollout().forward(check=v),
+    "taped": lambda v: _tiny_rollout().forward(taped=v),
+    "model (Rollout)": lambda v: _tiny_rollout().__class__(v, 2, 1e-4),
+    "surface": lambda v: _usd_writer(surface=v),
+    "view": lambda v: _usd_writer(view=v),
+    "label": lambda v: RenderOptions(label=v),
+    "shadows": lambda v: RenderOptions(shadows=v),
+    "surfaces": lambda v: RenderOptions(surfaces=v),
+    "retry_failed": lambda v: sweep("dough_drop", ["yield_stress=100:200:lin:2"], retry_failed=v),
+    "--seed (sample_points)": lambda v: sample_points(["yield_stress=100:200:lin"], "random", 2, seed=v),
+    "fn": lambda v: tools.Scripted(v),
+    "components": lambda v: losses.ReactionForceLoss([1.0], tool="t", steps=[1], components=v),
+    "scene (load_scene)": lambda v: load_scene(v),
 }
 
 
 @functools.cache
 def _small_model():
     return _one_box().finalize()
+
+
+@functools.cache
+def _tiny_rollout():
+    from warp_esph.rollout import Rollout
+
+    return Rollout(_one_box().finalize(requires_grad=True), 2, 1e-4)
+
+
+def _torch_module(rollout, **kw):
+    from warp_esph.torch import RolloutModule
+
+    return RolloutModule(rollout, **kw)
+
+
+def _usd_writer(**kw):
+    import tempfile
+
+    from warp_esph.usd import UsdWriter
+
+    return UsdWriter(os.path.join(tempfile.gettempdir(), "never_written.usdc"), _small_model(), **kw)
 
 
 @pytest.mark.parametrize("value", [list(range(100000)), np.arange(300.0).reshape(-1, 3), "x" * 100000],
@@ -654,7 +694,10 @@ def test_a_huge_wrong_value_is_named_in_one_short_line(parameter, value):
     worlds, and a 2-D array's rows on lines of their own."""
     if parameter == "name" and isinstance(value, str):
         value = ["x" * 100000]  # a long text is a name like any other
-    with pytest.raises(ValueError, match=rf"^{re.escape(parameter.split()[0])} = .* is not allowed") as info:
+    head = re.escape(parameter.split()[0]) + " ="
+    if parameter == "params (RolloutModule)" and isinstance(value, str):
+        head = "parameter"  # one text is one parameter's name, refused as such
+    with pytest.raises(ValueError, match=rf"^{head} .* is not allowed") as info:
         NAMED_WHOLE[parameter](value)
     assert len(str(info.value)) < 1000 and "\n" not in str(info.value), str(info.value)[:300]
 
@@ -1256,3 +1299,15 @@ def test_a_fits_materials_as_bytes_or_a_dict_are_refused_by_name(value):
                                          r"index, a body name \(blk\) or a list of them"):
         _material_indices(model, value)
     assert _material_indices(model, [0]) == [0] and _material_indices(model, "blk") == [0]
+
+
+@pytest.mark.parametrize("spec", ["x" * 10000 + "=1:2:lin:2", "yield_stress=" + "1" * 10000 + "x:2:lin:2",
+                                  "yield_stress=1:2:" + "x" * 10000, "yield_stress=1:2:lin:" + "9" * 10000 + "x",
+                                  "yield_stress=1:2:lin:2:" + "x" * 10000, "yield_stress=" + "1," * 10000 + "x"],
+                         ids=["name", "lo", "scale", "n", "parts", "values"])
+def test_a_huge_sweep_param_spec_is_named_in_one_short_line(spec):
+    """A ``--param`` spec (``sample_points``' and ``sweep``'s ``params``) of 10 kB was written
+    whole into its refusal, as text or in its parts."""
+    with pytest.raises(ValueError, match=r"^--param .* is not allowed") as info:
+        sample_points([spec])
+    assert len(str(info.value)) < 400 and "\n" not in str(info.value), str(info.value)[:500]

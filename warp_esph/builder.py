@@ -145,13 +145,13 @@ class SceneBuilder:
         # finite: at 1e308 they overflowed to inf and the neighbour cap raised OverflowError.
         widest = float(np.finfo(np.float64).max) / SUPPORT_RANGE[1]
         if self.spacing > widest:
-            raise ValueError(f"spacing = {spacing!r} is not allowed: must be at most {widest:.3g} (the support radius, up "
+            raise ValueError(f"spacing = {checks.shorten(spacing)!r} is not allowed: must be at most {widest:.3g} (the support radius, up "
                              f"to {SUPPORT_RANGE[1]:g} spacings, must be a finite number)")
         # Below what finalize's precision check takes even in float64: at 1e-320 the coincidence
         # check's cell underflowed to 0, and two particles two spacings apart were refused as one.
         narrowest = float(np.finfo(np.float64).tiny) ** (1 / 9) / SUPPORT_RANGE[0]
         if self.spacing < narrowest:
-            raise ValueError(f"spacing = {spacing!r} is not allowed: must be at least {narrowest:.2g} (the kernels' "
+            raise ValueError(f"spacing = {checks.shorten(spacing)!r} is not allowed: must be at least {narrowest:.2g} (the kernels' "
                              f"constants, 1 / h^9 of a support radius of at least {SUPPORT_RANGE[0]:g} spacings, must fit "
                              "float64)")
         #: ``Model.fit_weight`` of the model ``finalize`` makes.
@@ -176,7 +176,7 @@ class SceneBuilder:
         lo, hi = SUPPORT_RANGE
         if not lo * self.spacing <= h <= hi * self.spacing:
             raise ValueError(
-                f"support_radius = {support_radius!r} is not allowed: must be in "
+                f"support_radius = {checks.shorten(support_radius)!r} is not allowed: must be in "
                 f"[{lo} * spacing, {hi} * spacing] = [{lo * self.spacing:g}, {hi * self.spacing:g}]"
             )
         self.support_radius = h
@@ -184,7 +184,7 @@ class SceneBuilder:
             max_neighbors = default_max_neighbors(h / self.spacing)
         elif isinstance(max_neighbors, str):
             if max_neighbors != "paper":
-                raise ValueError(f"max_neighbors = {max_neighbors!r} is not allowed: must be a positive integer, "
+                raise ValueError(f"max_neighbors = {checks.shorten(max_neighbors)!r} is not allowed: must be a positive integer, "
                                  f"None (the default width) or 'paper' ({PAPER_MAX_NEIGHBORS})")
             max_neighbors = PAPER_MAX_NEIGHBORS
         self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors, maximum=MAX_NEIGHBORS)
@@ -217,7 +217,7 @@ class SceneBuilder:
         c = np.array(checks.vector("center", center))
         far = self._far()
         if np.abs(c).max() > far:
-            raise ValueError(f"center = {tuple(center)!r} is not allowed: must be within {far:.3g} of the origin "
+            raise ValueError(f"center = {checks.shorten(tuple(center))!r} is not allowed: must be within {far:.3g} of the origin "
                              f"(farther out float64 does not resolve the spacing {self.spacing:g})")
         return c
 
@@ -235,7 +235,7 @@ class SceneBuilder:
             cells = np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / self.spacing + 1e-9))
         if cells > MAX_PARTICLES_PER_BODY:
             raise ValueError(
-                f"{name} = {value!r} is not allowed: at spacing {self.spacing:g} the body would need {cells:.3g} "
+                f"{name} = {checks.shorten(value)!r} is not allowed: at spacing {self.spacing:g} the body would need {cells:.3g} "
                 f"lattice cells, more than {MAX_PARTICLES_PER_BODY:.3g}"
             )
 
@@ -285,7 +285,7 @@ class SceneBuilder:
             raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: must be a non-empty string")
         checks.one_line("name", name, "it names the body in messages, in the USD file and in a sweep's --param")
         if name in (b.name for b in self._bodies):
-            raise ValueError(f"name = {name!r} is not allowed: a body of that name exists already")
+            raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: a body of that name exists already")
         if len(pts) == 0 and kind == "particles":
             # The shapes' words ('it is smaller than the spacing') for positions given as none.
             raise ValueError(f"positions with shape {pts.shape} is not allowed: body {name!r} would have no particles; give "
@@ -352,7 +352,7 @@ class SceneBuilder:
         ro = checks.positive("outer_radius", outer_radius)
         ri = checks.positive("inner_radius", inner_radius)
         if ri >= ro:
-            raise ValueError(f"inner_radius = {inner_radius!r} is not allowed: must be < outer_radius = {ro:g}")
+            raise ValueError(f"inner_radius = {checks.shorten(inner_radius)!r} is not allowed: must be < outer_radius = {ro:g}")
         t = checks.positive("thickness", thickness)
         npts = checks.positive_int("points", points, maximum=MAX_STAR_POINTS, minimum=3)
         p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
@@ -394,7 +394,7 @@ class SceneBuilder:
         reach, far = float(np.abs(points).max()), self._far()
         if not reach <= far:
             # Named by what put it there: the translation given, or the mesh's own coordinates.
-            what = (f"translation = {t!r} is not allowed for mesh {label}: it places the mesh's points" if any(t) else
+            what = (f"translation = {checks.shorten(t)!r} is not allowed for mesh {label}: it places the mesh's points" if any(t) else
                     f"mesh {label} is not allowed: its points (scale {s:g}, no translation) lie")
             raise ValueError(f"{what} up to {reach:.3g} m from the origin; they must be within {far:.3g} m (farther out "
                              f"float64 does not resolve the spacing {self.spacing:g}); pass a translation that brings them nearer")
@@ -487,11 +487,11 @@ class SceneBuilder:
         reach_f = math.floor(m + 1e-9) * 1.0 if math.isfinite(m) else math.inf
         span = [float(c) + 1.0 + 2.0 * reach_f for c in cols.max(axis=0) - cols.min(axis=0)]
         if span[0] * span[1] * layers > MAX_PARTICLES_PER_BODY:
-            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} the floor would need "
+            raise ValueError(f"margin = {checks.shorten(margin)!r} is not allowed: at spacing {dx:g} the floor would need "
                              f"{span[0] * span[1] * layers:.3g} particles, more than {MAX_PARTICLES_PER_BODY:.3g}")
         work = (2.0 * reach_f + 1.0) * span[0] * span[1]
         if work > MAX_FLOOR_WORK:
-            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} it reaches {reach_f:.0f} spacings beyond "
+            raise ValueError(f"margin = {checks.shorten(margin)!r} is not allowed: at spacing {dx:g} it reaches {reach_f:.0f} spacings beyond "
                              f"the body, and the footprint test would take {work:.3g} column operations, more than {MAX_FLOOR_WORK:.3g}")
         reach = int(reach_f)
         lo, hi = cols.min(axis=0) - reach, cols.max(axis=0) + reach
@@ -520,7 +520,7 @@ class SceneBuilder:
         if where is not None:
             floor = floor[checks.selection("where", where, floor, "floor_positions")]
         if len(floor) == 0:
-            raise ValueError(f"where = {where!r} is not allowed: it keeps none of the floor's positions")
+            raise ValueError(f"where = {checks.shorten(where)!r} is not allowed: it keeps none of the floor's positions")
         start = self._count
         own = self._materials[bd.material]
         floor_material = bd.material
@@ -613,12 +613,12 @@ class SceneBuilder:
             if name in [t.name for t in items]:
                 # Said only 'must be a new non-empty string': a scene file's tool named like a
                 # body's floor ('<body>_floor') clashed with a set the file never named.
-                raise ValueError(f"name = {name!r} is not allowed: a {what} of that name exists already; tools and "
+                raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: a {what} of that name exists already; tools and "
                                  "pinned sets share one set of names (the force log's rows)")
         checks.one_line("name", name, "it names the tool or pinned set in messages, in the force log's rows and in the "
                         "USD file")
         if re.fullmatch(r"(plane|sphere|box)[0-9]+", name):
-            raise ValueError(f"name = {name!r} is not allowed: plane<k>, sphere<k> and box<k> name the static colliders' "
+            raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: plane<k>, sphere<k> and box<k> name the static colliders' "
                              f"reaction rows; choose another name")
 
     def add_tool(self, shape: str, *, motion=None, position=(0.0, 0.0, 0.0), orientation=tools.IDENTITY,
@@ -647,7 +647,7 @@ class SceneBuilder:
         mu_k = checks.non_negative("friction", friction)
         mu_s = mu_k if static_friction is None else checks.non_negative("static_friction", static_friction)
         if mu_s < mu_k:
-            raise ValueError(f"static_friction = {static_friction!r} is not allowed: must be >= friction = {mu_k:g}")
+            raise ValueError(f"static_friction = {checks.shorten(static_friction)!r} is not allowed: must be >= friction = {mu_k:g}")
         # Options of another shape, and a place a motion of absolute poses overrides, were
         # ignored without a word.
         given = {"normal": normal, "half_extents": half_extents, "radius": radius, "half_height": half_height,
@@ -1646,10 +1646,10 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     """
     requires_grad = checks.boolean("requires_grad", requires_grad)
     if isinstance(builders, SceneBuilder) or not isinstance(builders, Sequence) or len(builders) < 1:
-        raise ValueError(f"builders = {builders!r} is not allowed: must be a non-empty list of SceneBuilder")
+        raise ValueError(f"builders = {checks.shorten(builders)!r} is not allowed: must be a non-empty list of SceneBuilder")
     for k, b in enumerate(builders):
         if not isinstance(b, SceneBuilder):
-            raise ValueError(f"builders[{k}] = {b!r} is not allowed: must be a SceneBuilder")
+            raise ValueError(f"builders[{k}] = {checks.shorten(b)!r} is not allowed: must be a SceneBuilder")
         if not b._bodies:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
     first = builders[0]
@@ -1657,7 +1657,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         for name in _SHARED:
             if getattr(b, name) != getattr(first, name):
                 raise ValueError(
-                    f"builders[{k}].{name} = {getattr(b, name)!r} is not allowed: every world must have the "
+                    f"builders[{k}].{name} = {checks.shorten(getattr(b, name))!r} is not allowed: every world must have the "
                     f"{name} of builders[0] ({getattr(first, name)!r})"
                 )
     for k, b in enumerate(builders[1:], start=1):

@@ -183,25 +183,25 @@ def run_fit(args, out=None, err=None) -> int:
     params = opts["params"]
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:
-        raise ValueError(f"--sample-range = {given_range!r} is not allowed without --samples or --starts: it sizes the "
+        raise ValueError(f"--sample-range = {checks.shorten(given_range)!r} is not allowed without --samples or --starts: it sizes the "
                          "box of the global stage's samples and the extra starts, and this fit has neither")
     if given_seed is not None and not jitter and opts["samples"] == 0 and opts["starts"] == 1:
         # Nothing else draws from it (the diagnostics' noise is a number, not a draw).
         raise ValueError(f"--seed = {checks.shorten(given_seed)!r} is not allowed without --jitter, --samples or --starts: it seeds the "
                          "lattice's jitter and the global stage's draws, and this fit draws nothing")
     if _arg(args, "noise") is not None and _arg(args, "no_diagnostics", False):
-        raise ValueError(f"--noise = {args.noise!r} is not allowed with --no-diagnostics: it is the observation noise "
+        raise ValueError(f"--noise = {checks.shorten(args.noise)!r} is not allowed with --no-diagnostics: it is the observation noise "
                          "the diagnostics assume, and they are skipped")
     if _arg(args, "force_noise") is not None:
         if _arg(args, "no_diagnostics", False):
-            raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed with --no-diagnostics: it is the force "
+            raise ValueError(f"--force-noise = {checks.shorten(args.force_noise)!r} is not allowed with --no-diagnostics: it is the force "
                              "noise the diagnostics assume, and they are skipped")
         checks.noise("--force-noise", args.force_noise)
     if _arg(args, "force_components") is not None:
         given = args.force_components
         axes = given.strip().lower()
         if not axes or any(c not in "xyz" for c in axes) or len(set(axes)) != len(axes):
-            raise ValueError(f"--force-components = {given!r} is not allowed: give distinct axes among x, y, z (e.g. z, "
+            raise ValueError(f"--force-components = {checks.shorten(given)!r} is not allowed: give distinct axes among x, y, z (e.g. z, "
                              "or xz)")
         args.force_components = axes
     if _arg(args, "worlds", False) and opts["starts"] < 2:
@@ -218,21 +218,21 @@ def run_fit(args, out=None, err=None) -> int:
         if value is not None and (not isinstance(value, (str, os.PathLike)) or not os.fspath(value) or "\0" in os.fspath(value)):
             # '' (an unset shell variable) was taken as not given: the experiments or cameras
             # were dropped and the fit ran without them, the results went to the default place.
-            raise ValueError(f"{flag} = {value!r} is not allowed: must be a path (not empty, no NUL character)")
+            raise ValueError(f"{flag} = {checks.shorten(value)!r} is not allowed: must be a path (not empty, no NUL character)")
     dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
     if ck != "auto":
         ck = checks.positive_int("--checkpoint-every", ck)
         if given_memory is not None:
             # Only the automatic choice reads the limit: a fixed segment ran as without it.
-            raise ValueError(f"--memory-limit = {given_memory!r} is not allowed with --checkpoint-every = {ck}: it sizes "
+            raise ValueError(f"--memory-limit = {checks.shorten(given_memory)!r} is not allowed with --checkpoint-every = {ck}: it sizes "
                              "the automatic checkpointing (--checkpoint-every auto, the default); give one of the two")
     if _arg(args, "optimizer") == "gauss-newton":
         # Its runs go forward only (the Jacobian by forward differences), two states each: there
         # is no tape to checkpoint, and either option ran as if it had not been given.
         for flag, given in (("--memory-limit", given_memory), ("--checkpoint-every", None if ck == "auto" else ck)):
             if given is not None:
-                raise ValueError(f"{flag} = {given!r} is not allowed with --optimizer gauss-newton: it sizes the "
+                raise ValueError(f"{flag} = {checks.shorten(given)!r} is not allowed with --optimizer gauss-newton: it sizes the "
                                  "checkpointing of the tape that gradient runs record, and a Gauss-Newton fit records "
                                  f"none (its runs go forward only, two states each); leave {flag} out")
 
@@ -271,15 +271,15 @@ def run_fit(args, out=None, err=None) -> int:
     # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
     # their own, and a force-only fit had dropped '--noise 0.05' (meant as newtons) without a word.
     if _arg(args, "noise") is not None and not any(e.geometric for e in exps):
-        raise ValueError(f"--noise = {args.noise!r} is not allowed: it is the noise of position, point-cloud and mesh "
+        raise ValueError(f"--noise = {checks.shorten(args.noise)!r} is not allowed: it is the noise of position, point-cloud and mesh "
                          f"targets (m), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}"
                          + ("; give a force log's noise in newtons as --force-noise" if any(e.forces for e in exps)
                             else ""))
     if _arg(args, "force_components") is not None and not any(e.forces for e in exps):
-        raise ValueError(f"--force-components = {args.force_components!r} is not allowed: it picks the columns of "
+        raise ValueError(f"--force-components = {checks.shorten(args.force_components)!r} is not allowed: it picks the columns of "
                          f"force-log targets, and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}")
     if _arg(args, "force_noise") is not None and not any(e.forces for e in exps):
-        raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed: it is the noise of force-log targets "
+        raise ValueError(f"--force-noise = {checks.shorten(args.force_noise)!r} is not allowed: it is the noise of force-log targets "
                          f"(N), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}")
     if opts["samples"] or opts["starts"] > 1:
         # The steps per frame chosen from the guess's stable step were too long for every
@@ -614,7 +614,7 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
         chosen = spec.get("material")
         if isinstance(chosen, bool) or isinstance(chosen, list) and any(isinstance(m, bool) for m in chosen):
             # true read as a body named 'True'
-            raise ValueError(f"{where}material = {chosen!r} is not allowed: give a material index or a body name, "
+            raise ValueError(f"{where}material = {checks.shorten(chosen)!r} is not allowed: give a material index or a body name, "
                              "or a list of them")
         if isinstance(chosen, (str, int)):
             spec["material"] = [str(chosen)]
@@ -723,13 +723,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                      f"{', '.join(map(str, sorted(t.frames)))} (-N counts frame numbers back from the "
                                      "last)") from None
             if missing:
-                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: the target {path} holds frames "
+                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: the target {path} holds frames "
                                  f"{', '.join(map(str, sorted(t.frames)))} (its 'frames'), not {', '.join(map(str, missing))}")
             twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
             if twice is not None:
                 # Fitted twice, the frame weighed twice in the loss ('last,6' named frame 6 once
                 # here, while a run's USD target fitted it twice).
-                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names frame {twice} twice; name "
+                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names frame {twice} twice; name "
                                  "each frame once")
             t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
@@ -748,7 +748,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                             raise ValueError
                         span = range(a, b + 1, step)
                         if len(chosen) + len(span) > MAX_TARGET_FRAMES:  # counted before the list is made
-                            raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names more than "
+                            raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names more than "
                                              f"{MAX_TARGET_FRAMES} frames")
                         chosen.extend(span)
                     else:
@@ -759,7 +759,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 if str(e).startswith(f"{where}{key('target_frames')}"):
                     raise
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
-                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: use comma-separated frame "
+                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: use comma-separated frame "
                                  "indices >= 0 or ranges A:B[:STEP] (B included)") from None
             if t.kind != "positions":
                 seen = set()
@@ -767,7 +767,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 if twice is not None:
                     # A force log's or a cloud's loss keys its frames: '2,2' was observed once
                     # while fit.json recorded [2, 2], where every other target refuses it.
-                    raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names frame {twice} twice; "
+                    raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names frame {twice} twice; "
                                      "name each frame once")
             t.frames = chosen
             numbered.add(id(t))
@@ -776,7 +776,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                  f"holds {np.asarray(t.data).shape[0]} (one frame number per entry, in order)")
             if t.kind == "positions" and len(set(t.frames)) != len(t.frames):
                 # Two entries named as one frame: the later one silently replaced the earlier.
-                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names a frame twice, and "
+                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names a frame twice, and "
                                  f"each entry of the target {path} is one frame")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
@@ -790,7 +790,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         fps = checks.positive(f"{where}{flag}", fps)
         for path, rate in stored:
             if not math.isclose(fps, rate, rel_tol=1e-9):
-                raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
+                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
                                  f"leave {flag} out or give {rate:g}")
     rate = fps if fps is not None else next((r for _, r in stored), scene.fps)
     for path, other in stored:
@@ -810,7 +810,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             units = ("times are seconds, frame / fps (a log timed in milliseconds implies 1000 times fewer frames a "
                      "second)")
             if fps is not None:
-                raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the force log {t.path} says otherwise: "
+                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the force log {t.path} says otherwise: "
                                  f"{implied}; {units}")
             if stored:
                 raise ValueError(f"{where}target {t.path} is not allowed: {implied}, not the {rate:g} fps the target "
@@ -854,7 +854,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         t.check_particle_count(model)
     if spec.get("frames") is None and shown and max(shown) < 1:
         # It blamed --frames, which was not given.
-        raise ValueError(f"{where}{key('target_frames')} = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
+        raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(tframes[0] if tframes else 0)!r} is not allowed: the targets hold "
                          "only frame 0, the initial state, which says nothing about the material")
     frames = spec.get("frames")
     if frames is None and shown and max(shown) > checks.MAX_INT:
@@ -882,7 +882,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if len(coverages) > 1:
                 from .fit import _partial_refused  # noqa: PLC0415
 
-                raise ValueError(f"{where}{coverage_name} #{k + 1} = {coverage!r} is not allowed: "
+                raise ValueError(f"{where}{coverage_name} #{k + 1} = {checks.shorten(coverage)!r} is not allowed: "
                                  f"{_partial_refused(path, 'silhouettes' if kind == 'silhouette' else t.kind)}")
             coverage = "full"  # given once for all targets: the point clouds' alone
         if kind == "silhouette":
@@ -937,31 +937,31 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # Options of a kind of target none of these is: refused, not ignored.
     file_kinds = {t.kind for kind, _, t in loaded if kind == "file"}
     if _arg(args, "radius") is not None and "points" not in file_kinds:
-        raise ValueError(f"{where}--radius = {args.radius!r} is not allowed: it is the search radius of point-cloud "
+        raise ValueError(f"{where}--radius = {checks.shorten(args.radius)!r} is not allowed: it is the search radius of point-cloud "
                          f"targets, and the targets are {kinds}")
     if _arg(args, "mesh_mode") is not None and "mesh" not in file_kinds:
-        raise ValueError(f"{where}--mesh-mode = {args.mesh_mode!r} is not allowed: it is how mesh targets are compared, "
+        raise ValueError(f"{where}--mesh-mode = {checks.shorten(args.mesh_mode)!r} is not allowed: it is how mesh targets are compared, "
                          f"and the targets are {kinds}")
     if coverages and "points" not in file_kinds:
         said = coverages[0] if len(coverages) == 1 else coverages
-        raise ValueError(f"{where}{coverage_name} = {said!r} is not allowed: it is how much of the body "
+        raise ValueError(f"{where}{coverage_name} = {checks.shorten(said)!r} is not allowed: it is how much of the body "
                          f"point-cloud targets show, and the targets are {kinds}")
     if _arg(args, "cloud_offset") is not None and "points" not in file_kinds:
-        raise ValueError(f"{where}--cloud-offset = {args.cloud_offset!r} is not allowed: it is how far outside the "
+        raise ValueError(f"{where}--cloud-offset = {checks.shorten(args.cloud_offset)!r} is not allowed: it is how far outside the "
                          f"particles' centres point-cloud targets lie, and the targets are {kinds}")
     if spec.get("target_body") is not None and not any_usd:
-        raise ValueError(f"{where}{key('target_body')} = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
+        raise ValueError(f"{where}{key('target_body')} = {checks.shorten(spec['target_body'])!r} is not allowed: it picks a body of a run's USD "
                          f"target, and the targets are {kinds}")
     if spec.get("target_tool") is not None and "forces" not in file_kinds:
-        raise ValueError(f"{where}{key('target_tool')} = {spec['target_tool']!r} is not allowed: it picks the tool of a "
+        raise ValueError(f"{where}{key('target_tool')} = {checks.shorten(spec['target_tool'])!r} is not allowed: it picks the tool of a "
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
     if where and spec.get("force_noise") is not None and "forces" not in file_kinds:
-        raise ValueError(f"{where}force_noise = {spec['force_noise']!r} is not allowed: it is the noise of force-log "
+        raise ValueError(f"{where}force_noise = {checks.shorten(spec['force_noise'])!r} is not allowed: it is the noise of force-log "
                          f"targets (N), and the targets are {kinds}")
     geometric = bool(file_kinds & {"positions", "points", "mesh"})
     noise = spec.get("noise")
     if where and noise is not None and not geometric:
-        raise ValueError(f"{where}noise = {noise!r} is not allowed: it is the noise of position, point-cloud and mesh "
+        raise ValueError(f"{where}noise = {checks.shorten(noise)!r} is not allowed: it is the noise of position, point-cloud and mesh "
                          f"targets (m), and the targets are {kinds}"
                          + ("; give a force log's noise in newtons as force_noise" if "forces" in file_kinds else ""))
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,

@@ -131,7 +131,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     from . import checks  # noqa: PLC0415
 
     if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"checkpoint path = {path!r} is not allowed: must be a file path ending in .npz")
+        raise ValueError(f"checkpoint path = {checks.shorten(path)!r} is not allowed: must be a file path ending in .npz")
     path = pathlib.Path(path)
     # Any case, as every other reader of .npz here takes it (fit targets, masks): 'STATE.NPZ'
     # was refused. The file is written through a handle, so numpy appends no second '.npz'
@@ -144,7 +144,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     # -1 or 1.7 (stored as 1), a run record that is no table, or parameters no material takes.
     for name, value in (("step", step), ("frame", frame)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < -1 or (name == "frame" and value < 0):
-            raise ValueError(f"{name} = {value!r} is not allowed: must be an integer >= {0 if name == 'frame' else -1}"
+            raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be an integer >= {0 if name == 'frame' else -1}"
                              + (" (-1: not a function of the frame)" if name == "step" else ""))
     if run is not None and not isinstance(run, dict):
         raise ValueError(f"run = {checks.shorten(run)!r} is not allowed: must be a dict (the run record) or None")

@@ -785,26 +785,26 @@ def output_place(what: str, path, folder: bool = False) -> str:
     cannot take a new file, or where ``path`` is not one line of text (``breaks_line``).
     Creates nothing."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
-        raise ValueError(f"{what} = {path!r} is not allowed: must be a path")
+        raise ValueError(f"{what} = {shorten(path)!r} is not allowed: must be a path")
     p = os.fspath(path)
     if not p or "\0" in p:
-        raise ValueError(f"{what} = {p!r} is not allowed: must be a path (not empty, no NUL character)")
+        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: must be a path (not empty, no NUL character)")
     if breaks_line(p) or any(c in BIDI_CONTROLS for c in p):
         # As a scene's name, which names its default output: a newline split the commands'
         # one-line reports ('wrote a<newline>b.usdc: ...', the reaction log's), a tab or an
         # escape acted on the terminal, a bidi override showed the rest of the line reversed.
-        raise ValueError(f"{what} = {p!r} is not allowed: the commands name their outputs in one-line messages, so it "
+        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: the commands name their outputs in one-line messages, so it "
                          "must be one line of text (no control characters, no line breaks, no bidirectional "
                          "embeddings, overrides or isolates, U+202A-U+202E and U+2066-U+2069)")
     try:
         name = os.fsencode(os.path.basename(os.path.normpath(p)))
     except UnicodeError:
-        raise ValueError(f"{what} = {p!r} is not allowed: it is not a name this file system can hold") from None
+        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: it is not a name this file system can hold") from None
     # The writers keep a working copy beside the file, its name the file's and up to
     # OUTPUT_NAME_SLACK more bytes: a longer name failed mid-run with a bare 'File name too long'.
     longest = _name_max(os.path.dirname(os.path.abspath(p)) or ".") - OUTPUT_NAME_SLACK
     if len(name) > longest:
-        raise ValueError(f"{what} = {p!r} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
+        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
                          "this folder's file names leave room for")
     if os.path.exists(p) and os.path.isdir(p) != folder:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "

@@ -309,6 +309,7 @@ def _init_warp(device: str) -> None:
     """Initialise Warp without its banner; the native note a CPU machine prints about the
     missing CUDA driver is held back for a CPU run and reported as a warning for a CUDA run
     (``warp_esph.startup.init_warp``)."""
+    from . import checks  # noqa: PLC0415
     from .startup import init_warp  # noqa: PLC0415
 
     notes = init_warp(device, echo=False)
@@ -318,7 +319,7 @@ def _init_warp(device: str) -> None:
         if not wp.is_cuda_available():
             # The driver's note is the reason: one line, not the note and then the error.
             why = next((_one_line(n) for n in notes if "CUDA" in n), "Warp finds no CUDA device on this machine")
-            raise ValueError(f"--device = {device!r} is not allowed: {why} (use --device cpu)")
+            raise ValueError(f"--device = {checks.shorten(device)!r} is not allowed: {why} (use --device cpu)")
     for note in notes:
         if device != "cpu" or "CUDA" not in note:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
@@ -377,14 +378,14 @@ def _cmd_scenes() -> int:
 
 def _dt_arg(text: str):
     """``--dt``: seconds, or ``auto`` for the adaptive step."""
-    from .checks import read_number  # noqa: PLC0415
+    from .checks import read_number, shorten  # noqa: PLC0415
 
     if text.strip().lower() == "auto":
         return "auto"
     try:
         return read_number(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
+        raise argparse.ArgumentTypeError(f"--dt = {shorten(text)!r} is not allowed: must be a number of seconds or 'auto'") from None
 
 
 def _stdout_closed() -> bool:

@@ -89,6 +89,7 @@ import statistics
 import numpy as np
 import warp as wp
 
+from . import checks
 from .losses import Loss, SumLoss
 from .material import UNITS
 
@@ -450,7 +451,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     """
     z = np.asarray(z, dtype=np.float64)
     if method not in ("auto", "gauss-newton", "hessian"):
-        raise ValueError(f"method = {method!r} is not allowed: must be auto, gauss-newton or hessian")
+        raise ValueError(f"method = {checks.shorten(method)!r} is not allowed: must be auto, gauss-newton or hessian")
     if method == "auto":
         method = "gauss-newton" if _has_residuals(prob) else "hessian"
     elif method == "gauss-newton" and not _has_residuals(prob):

@@ -103,7 +103,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     flag = flag or (lambda name: name)
     fmt = checks.choice(flag("format"), fmt, EXPORT_FORMATS)
     if progress is not None and not callable(progress):  # 5 failed after the first frame was written
-        raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
+        raise ValueError(f"progress = {checks.shorten(progress)!r} is not allowed: must be callable as progress(k, n)")
     out = checks.output_place(flag("output"), output_dir, folder=True)
     data = UsdFrames(usd_path)
     # One file per frame: a frame named twice is refused (it was written once and counted twice).

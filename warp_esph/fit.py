@@ -327,7 +327,7 @@ def _as_model(model_or_factory, dtype) -> Model:
                              f"the precision it was finalized in; finalize it with dtype=wp.{dtype.__name__}, pass "
                              "the SceneBuilder, or leave dtype out")
         return obj
-    raise ValueError(f"model = {model_or_factory!r} is not allowed: give a Model, a SceneBuilder or a callable returning one")
+    raise ValueError(f"model = {checks.shorten(model_or_factory)!r} is not allowed: give a Model, a SceneBuilder or a callable returning one")
 
 
 def _material_indices(model: Model, materials, what: str = "material", material_names=()) -> list[int]:
@@ -632,10 +632,10 @@ def _refuse_unread_noise(runs, noise) -> None:
     for r in runs:
         if r.noise is not None and not reads(r):
             where = "" if r.name == "the experiment" else f"{r.name}: "
-            raise ValueError(f"{where}noise = {r.noise!r} is not allowed: it is the noise (m) of position, cloud, mesh "
+            raise ValueError(f"{where}noise = {checks.shorten(r.noise)!r} is not allowed: it is the noise (m) of position, cloud, mesh "
                              f"and slump terms, and {own([r])}")
     if noise is not None and not any(reads(r) for r in runs):
-        raise ValueError(f"noise = {noise!r} is not allowed: it is the noise (m) of position, cloud, mesh and slump terms, "
+        raise ValueError(f"noise = {checks.shorten(noise)!r} is not allowed: it is the noise (m) of position, cloud, mesh and slump terms, "
                          f"and in every experiment {own(runs)}")
 
 
@@ -669,7 +669,7 @@ def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _siz
     if not isinstance(taped, bool):
         raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
     if not taped and checkpoint_every is not None:
-        raise ValueError(f"checkpoint_every = {checkpoint_every!r} is not allowed with taped = False: an untaped "
+        raise ValueError(f"checkpoint_every = {checks.shorten(checkpoint_every)!r} is not allowed with taped = False: an untaped "
                          "rollout keeps no checkpoints; give None")
     heavy, light, ck = _sizes or _state_bytes(model)
     # 4 kB for the few small arrays besides (the loss's accumulator and its gradient: 8 bytes
@@ -1068,7 +1068,7 @@ class _Run(_Values):
         ck = auto = exp.checkpoint_every
         if isinstance(ck, str):
             if ck != "auto":
-                raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
+                raise ValueError(f"checkpoint_every = {checks.shorten(ck)!r} is not allowed: give 'auto', None or a number of steps")
             ck = choose_checkpointing(self.model, self.steps, memory_limit, taped=self.taped,
                                       frames=len(loss.frames))
         if not self.taped:
@@ -1788,7 +1788,7 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             raise ValueError(f"{flag('params')} entry {checks.shorten(p)!r} is not allowed: must be one of "
                              f"{', '.join(PARAMETERS)}{lab}")
     if len(set(params)) != len(params):
-        raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
+        raise ValueError(f"{flag('params')} = {checks.shorten(params)!r} is not allowed: names must be distinct")
     out = {"params": params, "iterations": _count(flag("iterations"), iterations),
            "lr": LR if lr is None else _step_size(flag("lr"), lr),
            "lr_end": None if lr_end is None else _step_size(flag("lr_end"), lr_end),
@@ -1848,7 +1848,7 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
         try:
             lo, hi = (float(v) for v in rng)
         except (TypeError, ValueError):
-            raise ValueError(f"{flag('bounds')}[{name!r}] = {rng!r} is not allowed: must be (lo, hi) numbers") from None
+            raise ValueError(f"{flag('bounds')}[{name!r}] = {checks.shorten(rng)!r} is not allowed: must be (lo, hi) numbers") from None
         if math.isnan(lo) or math.isnan(hi):
             # It said 'need lo < hi' of (nan, 1.0), which reads as a wrong order.
             raise ValueError(f"{said(name, lo, hi)} is not allowed: a bound must be a number, not NaN (an "
@@ -2120,7 +2120,7 @@ def fit(
             # list of Experiment)', which the caller had given.
             bad = next((k for k, e in enumerate(model) if not isinstance(e, Experiment)), None)
             if bad is None:
-                raise ValueError(f"model = {model!r} is not allowed: give a Model and a target, or a non-empty list "
+                raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: give a Model and a target, or a non-empty list "
                                  "of Experiment")
             raise ValueError(f"model[{bad}] = {checks.shorten(model[bad])!r} is not allowed: a list of experiments holds "
                              "only Experiment (each its model, loss, steps and dt)")
@@ -3648,7 +3648,7 @@ class Target:
         cloud (``_partial_refused``): a mesh's loss had taken it without a word."""
         coverage = checks.choice("coverage", coverage, ChamferLoss.COVERAGES)
         if coverage != "full" and not (self.kind == "points" or self._read_as_cloud(model)):
-            raise ValueError(f"coverage (--cloud-coverage) = {coverage!r} is not allowed: "
+            raise ValueError(f"coverage (--cloud-coverage) = {checks.shorten(coverage)!r} is not allowed: "
                              f"{_partial_refused(self.path, self.kind)}")
         steps = [frame_steps[f] for f in sorted(frame_steps)]
         if self.kind == "forces":
@@ -4261,7 +4261,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
                              f"{', '.join(names)}")
         tool = names[0]
     if tool not in names:
-        raise ValueError(f"--target-tool = {tool!r} is not allowed: {path} holds the forces of {', '.join(names)}")
+        raise ValueError(f"--target-tool = {checks.shorten(tool)!r} is not allowed: {path} holds the forces of {', '.join(names)}")
     mine = [r for r in rows if r["tool"] == tool]
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:

@@ -282,7 +282,7 @@ def _frames(frames) -> tuple[int, ...]:
     try:
         frames = list(frames)
     except TypeError:  # 2.0, True, a 0-d array: Python's "'float' object is not iterable", naming no parameter
-        raise ValueError(f"frames = {frames!r} is not allowed: give a step index (an integer >= 0) or a list of them") from None
+        raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed: give a step index (an integer >= 0) or a list of them") from None
     out = []
     for f in frames:
         if isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 0:
@@ -395,20 +395,20 @@ class Loss:
             if mask:
                 if idx.ndim != 1:
                     # Flattened: True selected particle 0, a 2 x 2 mask on 4 particles 0 and 3.
-                    raise ValueError(f"particles = {shown!r} is not allowed: a boolean mask is one-dimensional, one "
+                    raise ValueError(f"particles = {checks.shorten(shown)!r} is not allowed: a boolean mask is one-dimensional, one "
                                      f"entry per particle; this one has shape {idx.shape}")
                 self._mask_size = idx.size  # checked against the positions (a wrong length blamed the targets)
                 idx = np.flatnonzero(idx)
             elif isinstance(given, (list, tuple)) and any(isinstance(v, (bool, np.bool_)) for v in given):
                 # numpy made [True, 2] the indices [1, 2].
-                raise ValueError(f"particles = {shown!r} is not allowed: it mixes True/False with indices; give "
+                raise ValueError(f"particles = {checks.shorten(shown)!r} is not allowed: it mixes True/False with indices; give "
                                  "particle indices or a boolean mask")
             if idx.ndim == 1 and len(idx) == 0:
                 # An all-False mask and an empty list were told to give what they were.
                 what = f"particles (a boolean mask of {self._mask_size} entries, all False)" if mask else f"particles = {shown!r}"
                 raise ValueError(f"{what} is not allowed: it selects no particle")
             if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
-                raise ValueError(f"particles = {shown!r} is not allowed: give non-negative particle indices "
+                raise ValueError(f"particles = {checks.shorten(shown)!r} is not allowed: give non-negative particle indices "
                                  "or a boolean mask")
             if int(idx.max()) > checks.MAX_INT:
                 # int32 wrapped it: 2**31 crashed the process, 2**32 + 1 read particle 1.
@@ -418,7 +418,7 @@ class Loss:
             if (counts > 1).any():
                 # A repeat counted that particle twice in the loss's mean, without a word.
                 k = int(np.argmax(counts > 1))
-                raise ValueError(f"particles = {shown!r} is not allowed: particle {int(values[k])} is listed "
+                raise ValueError(f"particles = {checks.shorten(shown)!r} is not allowed: particle {int(values[k])} is listed "
                                  f"{int(counts[k])} times; list each particle once")
             particles = idx.astype(np.int32)
         self.particles = particles
@@ -696,7 +696,7 @@ class SumLoss(Loss):
         for k, loss in flat:
             # Scales of nested sums multiply: two legal ones can overflow or underflow.
             if not 0.0 < k < math.inf:
-                raise ValueError(f"the scale of {loss!r} in a sum = {k!r} is not allowed: the nested scales multiply to "
+                raise ValueError(f"the scale of {loss!r} in a sum = {checks.shorten(k)!r} is not allowed: the nested scales multiply to "
                                  "it; must be finite and > 0")
         self.terms = flat
         frames = sorted({f for _, loss in flat for f in loss.frames})
@@ -999,7 +999,7 @@ class ChamferLoss(Loss):
         self.coverage = checks.choice("coverage", coverage, self.COVERAGES)
         self.surface_offset = checks.non_negative("surface_offset", surface_offset)
         if self.surface_offset >= self.radius:
-            raise ValueError(f"surface_offset = {surface_offset!r} is not allowed: must be below radius = {self.radius:g} "
+            raise ValueError(f"surface_offset = {checks.shorten(surface_offset)!r} is not allowed: must be below radius = {self.radius:g} "
                              "(a match is searched within the radius, and the scan lies surface_offset from the particles)")
         self.targets = {}
         for f, t in per.items():
@@ -1529,14 +1529,14 @@ class ReactionForceLoss(Loss):
         steps = list(_frames(np.ravel(steps).tolist() if isinstance(steps, np.ndarray) else steps))
         super().__init__(steps, weight)
         if list(self.frames) != steps:
-            raise ValueError(f"steps = {steps!r} is not allowed: window end steps must be distinct and increasing")
+            raise ValueError(f"steps = {checks.shorten(steps)!r} is not allowed: window end steps must be distinct and increasing")
         self.window = checks.positive_int("window", window)
         if steps[0] < self.window:
             raise ValueError(f"steps[0] = {steps[0]} is not allowed: the first window of {self.window} steps must end "
                              f"at step >= {self.window}")
         comps = str(components).lower()
         if not comps or any(c not in _AXES for c in comps) or len(set(comps)) != len(comps):
-            raise ValueError(f"components = {components!r} is not allowed: give distinct axes among x, y, z (e.g. 'y')")
+            raise ValueError(f"components = {checks.shorten(components)!r} is not allowed: give distinct axes among x, y, z (e.g. 'y')")
         self.components = comps
         self._axes = [_AXES[c] for c in comps]
         targets = checks.host_values("targets", targets)
@@ -1552,7 +1552,7 @@ class ReactionForceLoss(Loss):
         bad = np.argwhere(~np.isfinite(t))
         if len(bad):
             j, c = (int(i) for i in bad[0])
-            raise ValueError(f"targets[{j}][{c}] = {float(t[j, c])!r} is not allowed: must be a finite force (N) (window ending "
+            raise ValueError(f"targets[{j}][{c}] = {checks.shorten(float(t[j, c]))!r} is not allowed: must be a finite force (N) (window ending "
                              f"at step {steps[j]}, component {comps[c]})")
         # Before the default noise squares them (its RMS overflowed past 1.3e154 N and the force
         # was refused as 'noise = inf', a value the caller never gave).
@@ -1560,7 +1560,7 @@ class ReactionForceLoss(Loss):
                                      f"component {comps[w[1]]}", quantity="force", unit="N", hint="give forces in newtons")
         self.targets = t
         if isinstance(tool, bool) or not isinstance(tool, (str, int, np.integer)):
-            raise ValueError(f"tool = {tool!r} is not allowed: give the tool's or static collider's name, or the tool's index")
+            raise ValueError(f"tool = {checks.shorten(tool)!r} is not allowed: give the tool's or static collider's name, or the tool's index")
         self.tool = tool
         #: Whether ``noise`` was given (else it is the floor of the diagnostics' estimate).
         self.noise_stated = noise is not None
@@ -1594,11 +1594,11 @@ class ReactionForceLoss(Loss):
                 return FORCES, tools.index(self.tool)
             if self.tool in static:
                 return COLLIDER_FORCES, static.index(self.tool)
-            raise ValueError(f"tool = {self.tool!r} is not allowed: the scene's tools are {', '.join(tools) or 'none'}, "
+            raise ValueError(f"tool = {checks.shorten(self.tool)!r} is not allowed: the scene's tools are {', '.join(tools) or 'none'}, "
                              f"its static colliders {', '.join(static) or 'none'}")
         if not 0 <= int(self.tool) < len(tools):
-            raise ValueError(f"tool = {self.tool!r} is not allowed: tool indices are 0..{len(tools) - 1}"
-                             if tools else f"tool = {self.tool!r} is not allowed: the scene has no tools (give a static "
+            raise ValueError(f"tool = {checks.shorten(self.tool)!r} is not allowed: tool indices are 0..{len(tools) - 1}"
+                             if tools else f"tool = {checks.shorten(self.tool)!r} is not allowed: the scene has no tools (give a static "
                              f"collider's name: {', '.join(static)})")
         return FORCES, int(self.tool)
 
@@ -1701,12 +1701,12 @@ class ReactionForceLoss(Loss):
         rows = read_tools_csv(path)
         mine = [r for r in rows if r["tool"] == tool]
         if not mine:
-            raise ValueError(f"tool = {tool!r} is not allowed: {path} holds the forces of "
+            raise ValueError(f"tool = {checks.shorten(tool)!r} is not allowed: {path} holds the forces of "
                              f"{', '.join(dict.fromkeys(r['tool'] for r in rows))}")
         by_frame = {r["frame"]: r for r in mine}  # one row per frame: read_tools_csv refuses a repeat
         chosen = sorted(f for f in by_frame if f > 0) if frames is None else list(_frames(frames))
         if any(f < 1 for f in chosen):
-            raise ValueError(f"frames = {chosen!r} is not allowed: frames are >= 1 (frame 0's row has no frame before "
+            raise ValueError(f"frames = {checks.shorten(chosen)!r} is not allowed: frames are >= 1 (frame 0's row has no frame before "
                              "it to average over)")
         missing = [f for f in chosen if f not in by_frame]
         if missing:
@@ -1870,7 +1870,7 @@ def read_tools_csv(path) -> list[dict]:
                         unit = f" ({TOOLS_CSV_UNITS[c]})" if c in TOOLS_CSV_UNITS else ""
                         if c in ("fx", "fy", "fz") and (not cell or cell.lower() in ("na", "n/a", "-", "null", "none")):
                             unit += "; a frame not measured is left out of the log (no row)"
-                        raise ValueError(f"{p}, row {line}: {c} = {cell!r} is not allowed: {why}{unit}") from None
+                        raise ValueError(f"{p}, row {line}: {c} = {checks.shorten(cell)!r} is not allowed: {why}{unit}") from None
                 frame = values.pop("frame")
                 if frame < 0:
                     raise ValueError(f"{p}, row {line}: frame = {frame} is not allowed: frames are rendered frame "
@@ -1950,7 +1950,7 @@ class SlumpLoss(Loss):
         self.center = c
         self.tau = 0.05 * self.spacing if tau is None else checks.positive("tau", tau)
         if self.tau < 1e-6 * self.spacing:  # the smooth maximum's exponentials overflow: NaN gradients at 5e-324
-            raise ValueError(f"tau = {tau!r} is not allowed: must be at least 1e-6 spacing = {1e-6 * self.spacing:g}")
+            raise ValueError(f"tau = {checks.shorten(tau)!r} is not allowed: must be at least 1e-6 spacing = {1e-6 * self.spacing:g}")
         self.noise = None if noise is None else checks.noise("noise", noise)
 
     def launch(self, frame, x, out, scale: float = 1.0):

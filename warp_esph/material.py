@@ -253,7 +253,7 @@ class Material:
         E = checks.positive("E", E)
         nu = checks.number("nu", nu)
         if not -1.0 < nu < 0.5:
-            raise ValueError(f"nu = {nu!r} is not allowed: must be in (-1, 0.5)")
+            raise ValueError(f"nu = {checks.shorten(nu)!r} is not allowed: must be in (-1, 0.5)")
         _check_fields("Material.from_young", kwargs)
         if {"mu", "lam"} & kwargs.keys():
             raise ValueError(f"{', '.join(sorted({'mu', 'lam'} & kwargs.keys()))} is not allowed in Material.from_young: "

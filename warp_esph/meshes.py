@@ -94,6 +94,7 @@ def load_mesh(source, prim_path: str | None = None, *, name: str = "source") -> 
     elif _is_path(source):
         path = os.fsdecode(os.fspath(source))
         label = repr(path)
+        # Named as the caller's parameter: 'mesh' had been named to add_mesh("x"), whose is source.
         if not os.path.exists(path):
             raise ValueError(f"{name} = {label} is not allowed: file not found")
         if not os.path.isfile(path):
@@ -174,10 +175,10 @@ def _read_usd(label: str, path: str, prim_path: str | None):
             raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: must be an absolute prim path such as '/root/bunny'")
         prim = stage.GetPrimAtPath(prim_path)
         if not prim.IsValid():
-            raise ValueError(f"prim_path = {prim_path!r} is not allowed: {label} has no prim there")
+            raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: {label} has no prim there")
         if not prim.IsA(UsdGeom.Mesh):
             raise ValueError(
-                f"prim_path = {prim_path!r} is not allowed: it is a {prim.GetTypeName() or 'typeless'} prim, not a Mesh"
+                f"prim_path = {checks.shorten(prim_path)!r} is not allowed: it is a {prim.GetTypeName() or 'typeless'} prim, not a Mesh"
             )
     mesh = UsdGeom.Mesh(prim)
     where = f"{label} (prim {str(prim.GetPath())!r})"
@@ -603,7 +604,7 @@ def sample_inside(points, triangles, spacing: float, device=None) -> np.ndarray:
     if not keep.any():
         size = ", ".join(f"{s:g}" for s in hi - lo)
         raise ValueError(
-            f"spacing = {spacing!r} is not allowed for this mesh: no lattice point falls inside it "
+            f"spacing = {checks.shorten(spacing)!r} is not allowed for this mesh: no lattice point falls inside it "
             f"(its bounding box is {size}); use a smaller spacing or a larger scale"
         )
     return grid[keep] + centre

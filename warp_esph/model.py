@@ -220,7 +220,7 @@ def check_contact_ramp(name: str, value) -> float:
     """A contact ramp: a number in [0, ``MAX_CONTACT_RAMP``] (0: the instant law; 1: the continuous one)."""
     v = checks.non_negative(name, value)
     if not v <= MAX_CONTACT_RAMP:
-        raise ValueError(f"{name} = {value!r} is not allowed: must be at most {MAX_CONTACT_RAMP:g} "
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be at most {MAX_CONTACT_RAMP:g} "
                          "(0: the whole inward velocity removed; 1: the continuous contact)")
     return v
 
@@ -400,7 +400,7 @@ class State:
         for name in self.STATE_FIELDS:
             a, b = getattr(self, name), getattr(other, name, None)
             if not isinstance(b, wp.array):  # a State, or anything holding its fields (rollout checkpoints)
-                raise ValueError(f"other = {other!r} is not allowed: must be a warp_esph.State (its {name} is {b!r})")
+                raise ValueError(f"other = {checks.shorten(other)!r} is not allowed: must be a warp_esph.State (its {name} is {b!r})")
             if a.shape != b.shape or a.dtype is not b.dtype:
                 raise ValueError(
                     f"other is not allowed: its {name} is {b.shape} {getattr(b.dtype, '__name__', b.dtype)}, this state's "
@@ -877,7 +877,7 @@ class Model:
             w = self._world_index(world)
             first, end = self.world_material_start[w], self.world_material_start[w + 1]
             if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < end - first:
-                raise ValueError(f"index = {index!r} is not allowed: world {w} has materials 0..{end - first - 1}")
+                raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: world {w} has materials 0..{end - first - 1}")
             index = int(first + index)
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
             raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
@@ -887,7 +887,7 @@ class Model:
         if material.deformation != old.deformation:
             # The deformation model decides the solver's stages (a Solver made before ran the
             # new one as the old) and the rest neighbours, which finalize sets up.
-            raise ValueError(f"material.deformation = {material.deformation!r} is not allowed here: material {index} is "
+            raise ValueError(f"material.deformation = {checks.shorten(material.deformation)!r} is not allowed here: material {index} is "
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
         check_material_precision(material, self.scalar)
@@ -898,7 +898,7 @@ class Model:
             # The particles' masses and rest densities come from it when the model is built:
             # a new density changed the stable step and the wave speeds but not the motion, and
             # a copy (replicate_worlds, split_materials, so a fit with worlds=True) ran with it.
-            raise ValueError(f"material.density = {material.density!r} is not allowed here: material {index} has "
+            raise ValueError(f"material.density = {checks.shorten(material.density)!r} is not allowed here: material {index} has "
                              f"density {old.density!r}, and a model's particle masses are set when it is built "
                              "(finalize a model with the new one)")
         # The rest density is the pressure density's: its kernel may change with the force.
@@ -947,7 +947,7 @@ class Model:
 
     def _world_index(self, world) -> int:
         if isinstance(world, bool) or not isinstance(world, (int, np.integer)) or not 0 <= world < self.world_count:
-            raise ValueError(f"world = {world!r} is not allowed: must be an integer in [0, {self.world_count - 1}]")
+            raise ValueError(f"world = {checks.shorten(world)!r} is not allowed: must be an integer in [0, {self.world_count - 1}]")
         return int(world)
 
     def world_particles(self, world: int) -> slice:
@@ -975,7 +975,7 @@ class Model:
         where the two lengths are equal; by default the length decides, particles first."""
         a = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
         if kind not in (None, "particles", "materials"):
-            raise ValueError(f"kind = {kind!r} is not allowed: must be None, 'particles' or 'materials'")
+            raise ValueError(f"kind = {checks.shorten(kind)!r} is not allowed: must be None, 'particles' or 'materials'")
         if a.ndim == 0:  # a number has no entries: a.shape[0] was an IndexError
             raise ValueError(f"values = {checks.shorten(values)!r} is not allowed: must have one entry per particle "
                              f"({self.particle_count}) or one per material ({len(self.materials)})")
@@ -1105,7 +1105,7 @@ class Model:
 
     @spacing.setter
     def spacing(self, value):
-        raise ValueError(f"Model.spacing = {value!r} is not allowed: the particles, their masses and the neighbour grid "
+        raise ValueError(f"Model.spacing = {checks.shorten(value)!r} is not allowed: the particles, their masses and the neighbour grid "
                          f"were built on {self._spacing!r}; set SceneBuilder(spacing=...) and finalize again")
 
     @property
@@ -1115,7 +1115,7 @@ class Model:
 
     @support_radius.setter
     def support_radius(self, value):
-        raise ValueError(f"Model.support_radius = {value!r} is not allowed: the volumes, densities and neighbour rows "
+        raise ValueError(f"Model.support_radius = {checks.shorten(value)!r} is not allowed: the volumes, densities and neighbour rows "
                          f"were built on {self._support_radius!r}; set SceneBuilder(support_radius=...) and finalize again")
 
     @property
@@ -1129,7 +1129,7 @@ class Model:
         g = checks.vector("gravity", value)
         big = float(np.finfo(self.types.np_dtype).max)
         if max(abs(c) for c in g) > big:
-            raise ValueError(f"gravity = {value!r} is not allowed in {self.scalar.__name__}: must be at most {big:.3g}")
+            raise ValueError(f"gravity = {checks.shorten(value)!r} is not allowed in {self.scalar.__name__}: must be at most {big:.3g}")
         self._gravity = g
 
     def stable_dt(self, courant: float = 0.3, hourglass: float | None = None) -> float:

@@ -129,14 +129,14 @@ class Camera:
         self.height = checks.positive_int("height", self.height)
         self.fov = checks.positive("fov", self.fov)
         if not self.fov < 170:
-            raise ValueError(f"fov = {self.fov!r} is not allowed: must be in (0, 170) degrees")
+            raise ValueError(f"fov = {checks.shorten(self.fov)!r} is not allowed: must be in (0, 170) degrees")
         far = np.abs(np.concatenate([self.eye, self.target])).max()
         if not far <= MAX_CAMERA_REACH:  # the projection squares distances: 1e300 m was NaN pixels
             raise ValueError(f"eye = {tuple(self.eye.tolist())!r}, target = {tuple(self.target.tolist())!r} are not "
                              f"allowed: each coordinate must be within {MAX_CAMERA_REACH:g} m of the origin")
         f = self.target - self.eye
         if not np.linalg.norm(f) > 0.0:
-            raise ValueError(f"eye = {tuple(self.eye.tolist())!r} is not allowed: it is the target; the camera looks "
+            raise ValueError(f"eye = {checks.shorten(tuple(self.eye.tolist()))!r} is not allowed: it is the target; the camera looks "
                              f"from the eye towards the target, so they must differ")
         self.forward = f / np.linalg.norm(f)
         r = np.cross(self.forward, np.asarray(self.up, dtype=np.float64))
@@ -514,7 +514,7 @@ class RenderOptions:
         checks.choice(flag("color"), self.color, COLOR_MODES)
         self.supersample = checks.positive_int(flag("supersample"), self.supersample)
         if self.supersample > 4:
-            raise ValueError(f"{flag('supersample')} = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
+            raise ValueError(f"{flag('supersample')} = {checks.shorten(self.supersample)!r} is not allowed: must be 1, 2, 3 or 4")
         # Beyond these a particle is far below a pixel or covers the picture; 1e300 overflowed
         # the float32 radii and failed as 'cannot convert float NaN to integer'.
         self.radius_scale = checks.in_range(flag("radius_scale"), self.radius_scale, 1e-3, 1e3)
@@ -523,16 +523,16 @@ class RenderOptions:
         self.zoom = checks.in_range(flag("zoom"), self.zoom, 1e-3, 1e3)
         for name in ("surfaces", "label", "shadows"):  # label='no' drew the label
             if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{flag(name)} = {getattr(self, name)!r} is not allowed: must be True or False")
+                raise ValueError(f"{flag(name)} = {checks.shorten(getattr(self, name))!r} is not allowed: must be True or False")
         self.fov = checks.positive(flag("fov"), self.fov)
         if not self.fov < 170:
-            raise ValueError(f"{flag('fov')} = {self.fov!r} is not allowed: must be in (0, 170) degrees")
+            raise ValueError(f"{flag('fov')} = {checks.shorten(self.fov)!r} is not allowed: must be in (0, 170) degrees")
         for name in ("azimuth", "elevation"):
             value = getattr(self, name)
             if value is not None:
                 setattr(self, name, checks.number(flag(name), value))
         if self.elevation is not None and not -89.0 <= self.elevation <= 89.0:
-            raise ValueError(f"{flag('elevation')} = {self.elevation!r} is not allowed: must be in [-89, 89] degrees")
+            raise ValueError(f"{flag('elevation')} = {checks.shorten(self.elevation)!r} is not allowed: must be in [-89, 89] degrees")
 
 
 class Renderer:
@@ -1147,10 +1147,10 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     if output is None:
         output = data.path + ".png"  # the whole name: a.usdc and a.usda must not share a.png
     if not isinstance(output, (str, os.PathLike)):  # 123: a TypeError before
-        raise ValueError(f"{flag('output')} = {output!r} is not allowed: must be a path")
+        raise ValueError(f"{flag('output')} = {checks.shorten(output)!r} is not allowed: must be a path")
     out = os.fspath(output)
     if progress is not None and not callable(progress):  # 5 failed after the first frame was written
-        raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
+        raise ValueError(f"progress = {checks.shorten(progress)!r} is not allowed: must be callable as progress(k, n)")
     kind = output_kind(out, flag("output"))
     if kind == "mp4" and ffmpeg_path() is None:
         raise ValueError(f"{flag('output')} = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
@@ -1161,10 +1161,10 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     # been ('with --output = ...' to a command line that typed no --output).
     named = f"{flag('output')} = {out!r}" if given else f"the default output {out}"
     if fps is not None and kind not in ("gif", "mp4"):
-        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed with {named}: it is the playback rate of a .gif or "
+        raise ValueError(f"{flag('fps')} = {checks.shorten(fps)!r} is not allowed with {named}: it is the playback rate of a .gif or "
                          f".mp4, and {'a folder of PNG frames' if kind == 'dir' else 'a .png'} has none")
     if columns is not None and kind != "png":
-        raise ValueError(f"{flag('columns')} = {columns!r} is not allowed with {named}: it lays several frames out "
+        raise ValueError(f"{flag('columns')} = {checks.shorten(columns)!r} is not allowed with {named}: it lays several frames out "
                          f"side by side in one .png, and a {'folder' if kind == 'dir' else '.' + kind} holds them "
                          f"one after another")
     if frames is None and kind == "png":
@@ -1187,7 +1187,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         rows = math.ceil(len(chosen) / sheet_columns)
         size = (sheet_columns * options.width, rows * options.height)
         if size[0] * size[1] > MAX_SHEET_PIXELS:
-            raise ValueError(f"{flag('frames')} = {frames!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
+            raise ValueError(f"{flag('frames')} = {checks.shorten(frames)!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
                              f"{options.height} in {sheet_columns} columns make a {size[0]} x {size[1]} picture, more than "
                              f"{MAX_SHEET_PIXELS:.0e} pixels; choose fewer frames, or write a folder, a .gif or an .mp4")
     _check_pixels(options, flag)

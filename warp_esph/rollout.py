@@ -526,7 +526,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
         one = v.reshape(shape)
         v = np.broadcast_to(one, (n, *shape)).copy()
         shown = np.asarray(value, dtype=np.float64).reshape(shape).tolist()  # as given, not rounded to the model's precision
-        given = f"{name} = {shown!r} is not allowed: the one {name} given for every particle"
+        given = f"{name} = {checks.shorten(shown)!r} is not allowed: the one {name} given for every particle"
     if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
         if one is not None:
             raise ValueError(f"{given} has non-finite values")
@@ -649,7 +649,7 @@ class Rollout:
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
                  checkpoint_every: int | None = None, solver: Solver | None = None, taped: bool = True):
         if not isinstance(model, Model):
-            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+            raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
         if not model.requires_grad:
             raise ValueError("model is not allowed: it was finalized without requires_grad=True, so its "
                              "parameter arrays have no gradients; use builder.finalize(requires_grad=True)")
@@ -673,7 +673,7 @@ class Rollout:
         if not isinstance(taped, bool):
             raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
         if not taped and checkpoint_every is not None:
-            raise ValueError(f"checkpoint_every = {checkpoint_every!r} is not allowed with taped = False: an untaped "
+            raise ValueError(f"checkpoint_every = {checks.shorten(checkpoint_every)!r} is not allowed with taped = False: an untaped "
                              "rollout keeps no checkpoints (nothing goes back through it); give checkpoint_every = None")
         #: Whether this rollout's runs may record a tape (``taped=False``: loss values alone).
         self.taped = taped
@@ -751,7 +751,7 @@ class Rollout:
         new = {}
         for name, value in values.items():
             if name not in PARAMETERS:
-                raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+                raise ValueError(f"parameter {checks.shorten(name)!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
             arr = getattr(m, name)
             value = checks.host_values(name, value)
             try:
@@ -768,7 +768,7 @@ class Rollout:
             if not (np.isfinite(v) | ((v == np.inf) if name == "yield_stress" else False)).all():
                 # yield_stress = inf is an elastic material's (a torch backward restoring every
                 # parameter of one failed on it)
-                raise ValueError(f"{name} = {v!r} is not allowed: values must be finite"
+                raise ValueError(f"{name} = {checks.shorten(v)!r} is not allowed: values must be finite"
                                  + (" (or inf: no yield)" if name == "yield_stress" else ""))
             # Checked as given: 1e39 Pa cast to float32 first was refused as inf ('values must be
             # finite'), and 1e-50 became 0 without a word.
@@ -892,11 +892,11 @@ class Rollout:
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
         if not isinstance(check, bool):
-            raise ValueError(f"check = {check!r} is not allowed: must be True or False")
+            raise ValueError(f"check = {checks.shorten(check)!r} is not allowed: must be True or False")
         if taped is None:
             taped = self.taped
         elif not isinstance(taped, bool):
-            raise ValueError(f"taped = {taped!r} is not allowed: must be True or False (or None: the rollout's own)")
+            raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False (or None: the rollout's own)")
         return self._forward_checked(given, initial_state, check, taped)
 
     def _forward_checked(self, given: Mapping[str, np.ndarray], initial_state: State | None = None,
@@ -1544,7 +1544,7 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     ``particle_x0`` / ``particle_v0``.
     """
     if not isinstance(model, Model):
-        raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
     names = [b.name for b in model.bodies]
     if isinstance(bodies, (str, int, np.integer)) and not isinstance(bodies, bool):
         # One body, as fit's materials= takes it: a name was split into its letters

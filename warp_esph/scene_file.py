@@ -365,7 +365,7 @@ def _with_rheology(material: Material, table: dict) -> Material:
         # An elastic material, the yield stress given without effect: from_rheology refuses
         # this (plastic_viscosity is its required keyword).
         key = given[0]
-        raise ValueError(f"{key} = {table[key]!r} is not allowed without plastic_viscosity or flow_rate: the "
+        raise ValueError(f"{key} = {checks.shorten(table[key])!r} is not allowed without plastic_viscosity or flow_rate: the "
                          f"{'preset' + chr(39) + 's' if 'preset' in table else 'default'} flow_rate is 0, so the material "
                          "never flows and the yield stress has no effect; give plastic_viscosity (Pa s), or "
                          "plastic_viscosity = inf for a material that never flows")
@@ -405,7 +405,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
     try:
         for key in FLOOR_KEYS[1:]:
             if key in table and "floor_margin" not in table:
-                raise ValueError(f"{key} = {table[key]!r} is not allowed without floor_margin: "
+                raise ValueError(f"{key} = {checks.shorten(table[key])!r} is not allowed without floor_margin: "
                                  f"give floor_margin (m) to put a particle floor under the body")
         if shape == "box":
             index = builder.add_box(material=material, **args)

@@ -163,7 +163,7 @@ def _check_only(scene: str, only, builder: SceneBuilder):
     built = {body.name for body in builder._bodies}
     missing = [n for n in only if n not in built]
     if missing or not built:
-        raise ValueError(f"only = {tuple(only)!r} is not allowed: scene {scene!r} has no body {missing[0] if missing else only!r}")
+        raise ValueError(f"only = {checks.shorten(tuple(only))!r} is not allowed: scene {scene!r} has no body {missing[0] if missing else only!r}")
 
 
 def _asset(name: str) -> str:
@@ -655,7 +655,7 @@ def _unknown(name, file: str | None = None) -> ValueError:
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     if file is not None:
         hint += f"; the scene file {file!r} is here: give its path, {file!r}"
-    return ValueError(f"scene = {name!r} is not allowed: unknown scene{hint}; the built-in scenes are {', '.join(SCENES)}, "
+    return ValueError(f"scene = {checks.shorten(name)!r} is not allowed: unknown scene{hint}; the built-in scenes are {', '.join(SCENES)}, "
                       f"or give the path of a .toml scene file")
 
 
@@ -678,7 +678,7 @@ def _load(name_or_path, scale) -> Scene:
         name_or_path = DEFAULT_SCENE
     if not isinstance(name_or_path, (str, bytes, os.PathLike)):
         # 3 or a list met a TypeError from os.fspath, naming no parameter.
-        raise ValueError(f"scene = {name_or_path!r} is not allowed: must be a built-in scene name or the path of a .toml "
+        raise ValueError(f"scene = {checks.shorten(name_or_path)!r} is not allowed: must be a built-in scene name or the path of a .toml "
                          "scene file")
     text = os.fsdecode(name_or_path)  # a path in bytes failed at str.endswith
     if text in SCENES:

@@ -631,7 +631,7 @@ def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, 
             frame = int(frames_spec) if frames_spec is not None else None
         except (TypeError, ValueError):
             # '2,3' or 'last' was an int() error: an image is one frame.
-            raise ValueError(f"--target-frames = {frames_spec!r} is not allowed with the mask image {masks_path}: an image "
+            raise ValueError(f"--target-frames = {checks.shorten(frames_spec)!r} is not allowed with the mask image {masks_path}: an image "
                              "is one rendered frame, give one frame index") from None
         masks = load_masks(masks_path, cameras, frame)
     if "radius" not in options:

@@ -659,7 +659,7 @@ def _scripted_speed(model: Model, x0: np.ndarray, x: np.ndarray, t0: float, dt, 
     if not any(isinstance(mo, tools.Scripted) for mo in motions):
         return None
     if seen is None and (dt is None or steps is None):
-        raise ValueError(f"dt = {dt!r}, steps = {steps!r} is not allowed: a scene with a Scripted tool or pinned set "
+        raise ValueError(f"dt = {dt!r}, steps = {checks.shorten(steps)!r} is not allowed: a scene with a Scripted tool or pinned set "
                          "needs the run's step (s) and step count to be checked for a blow-up")
     xs = np.concatenate([x0, x])
     lo, hi = xs.min(axis=0), xs.max(axis=0)
@@ -788,11 +788,11 @@ def check_fps(name: str, fps) -> float:
     fps = checks.positive(name, fps)
     if fps > MAX_FPS:
         # 1e300 frames a second ran with dt = 1e-300 s, 0 in float32, and exited 0.
-        raise ValueError(f"{name} = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
+        raise ValueError(f"{name} = {checks.shorten(fps)!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
     if not math.isfinite(1.0 / fps):
         # 5e-324 frames a second: a frame of inf s, refused as needing 'inf steps' or with the
         # advice 'use dt >= inf s'.
-        raise ValueError(f"{name} = {fps!r} is not allowed: it is too small to step, a frame (1/fps) being longer "
+        raise ValueError(f"{name} = {checks.shorten(fps)!r} is not allowed: it is too small to step, a frame (1/fps) being longer "
                          f"than a float holds; must be above {1.0 / sys.float_info.max:.3g}")
     return fps
 
@@ -855,7 +855,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     ratio = frame_dt / dt
     if not ratio <= MAX_STEPS_PER_FRAME:
         raise ValueError(
-            f"{flag('dt')} = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
+            f"{flag('dt')} = {checks.shorten(dt)!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
             f"more than {MAX_STEPS_PER_FRAME:.0e}; use {flag('dt')} >= {frame_dt / MAX_STEPS_PER_FRAME:.3g} s"
         )
     n = round(ratio)
@@ -867,7 +867,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         hint = (f"{give}{frame_dt / lo:.6g}" if n < 1 else
                 f"{give}{frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}")
         raise ValueError(
-            f"{flag('dt')} = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
+            f"{flag('dt')} = {checks.shorten(dt)!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
             f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or leave {flag('dt')} out (the stable step, rounded to fill a frame)"
         )
     return n, frame_dt / n
@@ -1478,7 +1478,7 @@ def simulate(
         adaptive = isinstance(dt, str)
         if adaptive:
             if dt != AUTO:
-                raise ValueError(f"dt = {dt!r} is not allowed: must be a number of seconds or {AUTO!r}")
+                raise ValueError(f"dt = {checks.shorten(dt)!r} is not allowed: must be a number of seconds or {AUTO!r}")
             if substeps is not None:
                 raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
             n_sub, dt = 1, model.stable_dt(hourglass=hourglass)

@@ -113,7 +113,7 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
         # out empty without a word. From R >= h on, every particle's nearest node (at most
         # sqrt(3) / 2 cells away) lies inside its kernel.
         cell_text = "2/sqrt(3) x radius" if fitted else "spacing / 2" if cell is None else "cell"
-        raise ValueError(f"kernel_radius = {kernel_radius!r} is not allowed: must be >= the grid cell, {h:.4g} "
+        raise ValueError(f"kernel_radius = {checks.shorten(kernel_radius)!r} is not allowed: must be >= the grid cell, {h:.4g} "
                          f"({cell_text}), else the kernels fall between the grid's nodes and the surface is empty")
     # A particle alone within its kernel has the field |x - x_j| - r around it, negative only at
     # nodes within r of it: a smaller radius than half a cell's diagonal (the farthest a point
@@ -123,10 +123,10 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     need = _HALF_DIAGONAL * h
     if r < min(need, float(f"{need:.4g}")):  # only with a cell given: else the cell was fitted to the radius
         if radius is None:  # the default radius (0.55 dx) falls short only of a cell chosen coarser than dx / 2
-            raise ValueError(f"cell = {cell!r} is not allowed with the default radius, {r:g} (0.55 x spacing): must be <= "
+            raise ValueError(f"cell = {checks.shorten(cell)!r} is not allowed with the default radius, {r:g} (0.55 x spacing): must be <= "
                              f"{_down4(r / _HALF_DIAGONAL):.4g} (2/sqrt(3) x radius), else a particle alone within the kernel can "
                              "fall between the grid's nodes and leave no surface; give a smaller cell or a radius")
-        raise ValueError(f"radius = {radius!r} is not allowed with cell = {cell!r}: must be >= half the grid cell's "
+        raise ValueError(f"radius = {checks.shorten(radius)!r} is not allowed with cell = {cell!r}: must be >= half the grid cell's "
                          f"diagonal, {need:.4g} (sqrt(3)/2 x cell), else a particle alone within the kernel can fall "
                          "between the grid's nodes and leave no surface; give a larger radius, or a smaller cell (or "
                          "none: it is then fitted to the radius)")
@@ -156,7 +156,7 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     counts = np.maximum(np.ceil((hi - lo) / h) + 1.0, 2.0)
     if not float(np.prod(counts)) <= 256.0**3:
         if fitted:
-            raise ValueError(f"radius = {radius!r} is not allowed for these points: it needs a grid cell of at most {h:.4g} "
+            raise ValueError(f"radius = {checks.shorten(radius)!r} is not allowed for these points: it needs a grid cell of at most {h:.4g} "
                              f"(2/sqrt(3) x radius, else a particle alone within the kernel can fall between the grid's "
                              f"nodes), and the grid would have {float(np.prod(counts)):.4g} nodes, more than 256^3; give a "
                              "larger radius")

@@ -140,9 +140,9 @@ def _number(name: str, spec: str, text: str, what: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"--param {spec!r}: {what} = {text!r} is not allowed: must be a number") from None
+        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be a number") from None
     if not math.isfinite(v):
-        raise ValueError(f"--param {spec!r}: {what} = {text!r} is not allowed: must be finite")
+        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be finite")
     return v
 
 
@@ -160,25 +160,25 @@ def parse_param(spec) -> Param:
         name, sep, rng = text.partition("=")
         name = name.strip()
         if not sep or not name or not rng.strip():
-            raise ValueError(f"--param {text!r} is not allowed: use NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8), "
+            raise ValueError(f"--param {checks.shorten(text)!r} is not allowed: use NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8), "
                              f"NAME=LO:HI:SCALE for random/lhs sampling, NAME=A,B,C or NAME=V")
         rng = rng.strip()
         if ":" in rng:
             parts = [s.strip() for s in rng.split(":")]
             if len(parts) not in (2, 3, 4):
-                raise ValueError(f"--param {text!r} is not allowed: a range is LO:HI, LO:HI:SCALE or LO:HI:SCALE:N "
+                raise ValueError(f"--param {checks.shorten(text)!r} is not allowed: a range is LO:HI, LO:HI:SCALE or LO:HI:SCALE:N "
                                  f"(SCALE lin or log), not {len(parts)} fields")
             lo = _number(name, text, parts[0], "LO")
             hi = _number(name, text, parts[1], "HI")
             scale = parts[2] if len(parts) > 2 else "lin"
             if scale not in SCALES:
-                raise ValueError(f"--param {text!r}: SCALE = {scale!r} is not allowed: must be lin or log")
+                raise ValueError(f"--param {checks.shorten(text)!r}: SCALE = {checks.shorten(scale)!r} is not allowed: must be lin or log")
             n = None
             if len(parts) == 4:
                 try:
                     n = int(parts[3])
                 except ValueError:
-                    raise ValueError(f"--param {text!r}: N = {parts[3]!r} is not allowed: must be an integer >= 1") from None
+                    raise ValueError(f"--param {checks.shorten(text)!r}: N = {checks.shorten(parts[3])!r} is not allowed: must be an integer >= 1") from None
             p = Param(name, lo, hi, scale, n)
         else:
             values = tuple(_number(name, text, s.strip(), "value") for s in rng.split(","))
@@ -189,7 +189,7 @@ def parse_param(spec) -> Param:
 
         lab = (f"{lab_value_note(p.field, 'parameter')} (sweep {LAB_QUANTITIES[p.field][0]})"
                if isinstance(p.name, str) and p.field in LAB_QUANTITIES else "")
-        raise ValueError(f"--param {p.name!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
+        raise ValueError(f"--param {checks.shorten(p.name)!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
                          f"optionally prefixed by a body name, a material index or a scene file's material name (e.g. dough.yield_stress, "
                          f"0.yield_stress)"
                          f"{lab}")
@@ -198,41 +198,41 @@ def parse_param(spec) -> Param:
             raise ValueError(f"--param {p.name}: values = () is not allowed: give at least one value")
         for v in p.values:  # None, 'x' and NaN failed in numpy or ran as failed samples
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-                raise ValueError(f"--param {p.name}: value {v!r} is not allowed: must be a finite number")
+                raise ValueError(f"--param {p.name}: value {checks.shorten(v)!r} is not allowed: must be a finite number")
         twice = next((v for k, v in enumerate(p.values) if v in p.values[:k]), None)
         if twice is not None:
             # Each value is a sample (a grid's level): 1,1 ran the same sample twice.
-            raise ValueError(f"--param {p.name}: value {twice!r} is not allowed twice: each value is a sample; give it once")
+            raise ValueError(f"--param {p.name}: value {checks.shorten(twice)!r} is not allowed twice: each value is a sample; give it once")
         lows = list(p.values)
     else:
         if p.scale not in SCALES:
-            raise ValueError(f"--param {p.name}: scale = {p.scale!r} is not allowed: must be lin or log")
+            raise ValueError(f"--param {p.name}: scale = {checks.shorten(p.scale)!r} is not allowed: must be lin or log")
         real = (int, float, np.integer, np.floating)
         if isinstance(p.lo, bool) or isinstance(p.hi, bool) or not (isinstance(p.lo, real) and isinstance(p.hi, real)):
             # np.int64(1) and np.float32(10) were refused as 'need LO < HI'.
-            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: LO and HI must be numbers")
+            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: LO and HI must be numbers")
         p = dataclasses.replace(p, lo=float(p.lo), hi=float(p.hi))
         if not p.lo < p.hi:
-            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need LO < HI")
+            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need LO < HI")
         if p.scale == "log" and p.lo <= 0.0:
-            raise ValueError(f"--param {p.name}: LO = {p.lo!r} is not allowed on a log scale: need LO > 0 (or use lin)")
+            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r} is not allowed on a log scale: need LO > 0 (or use lin)")
         if not (math.isfinite(p.lo) and math.isfinite(p.hi)) or (p.scale == "log" and p.lo < sys.float_info.min):
             # 1e-320 ran every sample, then its log axis failed to draw (and no table was kept).
-            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need finite bounds, and on a "
+            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need finite bounds, and on a "
                              f"log scale LO >= {sys.float_info.min:.3g}")
         if p.scale == "lin" and not math.isfinite(p.hi - p.lo):
             # Every value drawn from -1.7e308:1.7e308 was inf (lo + u (hi - lo)), the grid's nan and inf.
-            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: on a lin scale HI - LO must "
+            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: on a lin scale HI - LO must "
                              f"be a finite number (at most {sys.float_info.max:.3g})")
         if p.n is not None and (isinstance(p.n, bool) or not isinstance(p.n, (int, np.integer)) or p.n < 1):
-            raise ValueError(f"--param {p.name}: N = {p.n!r} is not allowed: must be an integer >= 1")
+            raise ValueError(f"--param {p.name}: N = {checks.shorten(p.n)!r} is not allowed: must be an integer >= 1")
         lows = [p.lo]
     if p.field in _MINIMUM:
         bound, inclusive = _MINIMUM[p.field]
         bad = [v for v in lows if v < bound or (v == bound and not inclusive)]
         if bad:
             op = ">=" if inclusive else ">"
-            raise ValueError(f"--param {p.name}: value {bad[0]!r} is not allowed: {p.field} must be {op} {bound:g}")
+            raise ValueError(f"--param {p.name}: value {checks.shorten(bad[0])!r} is not allowed: {p.field} must be {op} {bound:g}")
     return p
 
 
@@ -240,7 +240,7 @@ def _as_params(params) -> list[Param]:
     if isinstance(params, (str, Param)):
         params = [params]
     if params is None or not hasattr(params, "__iter__"):  # None, 123: a TypeError before
-        raise ValueError(f"params = {params!r} is not allowed: give specs ('yield_stress=100:1000:log:8'), Params "
+        raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: give specs ('yield_stress=100:1000:log:8'), Params "
                          "or a mapping {name: values}")
     if isinstance(params, Mapping):
         params = [Param(k, values=tuple(np.atleast_1d(np.asarray(v, dtype=object)).tolist())) if not isinstance(v, str)
@@ -272,7 +272,7 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
     names = [p.name for p in params]
     if sample == "grid":
         if samples is not None:
-            raise ValueError(f"--samples = {samples!r} is not allowed with --sample grid: the grid has the product of "
+            raise ValueError(f"--samples = {checks.shorten(samples)!r} is not allowed with --sample grid: the grid has the product of "
                              f"the levels of each --param; use --sample random or lhs to choose the count")
         # The count before the levels: N = 1e9 allocated 7.5 GiB before it was compared.
         counts = [len(p.values) if p.values is not None else p.n if p.n is not None else len(p.levels())
@@ -287,7 +287,7 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
     if samples is None:
         raise ValueError(f"--samples is required with --sample {sample}: the number of samples to draw")
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
-        raise ValueError(f"--samples = {samples!r} is not allowed: must be an integer >= 1")
+        raise ValueError(f"--samples = {checks.shorten(samples)!r} is not allowed: must be an integer >= 1")
     if samples > max_samples:
         raise ValueError(f"--samples = {samples} is not allowed: more than --max-samples = {max_samples}")
     for p in params:
@@ -295,7 +295,7 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
             raise ValueError(f"--param {p.name}: N = {p.n} levels is not allowed with --sample {sample}: the count is "
                              f"--samples; write {p.name}={p.lo:g}:{p.hi:g}:{p.scale}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"--seed = {seed!r} is not allowed: must be an integer >= 0")
+        raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     rng = np.random.default_rng(int(seed))
     n = int(samples)
     cols = []
@@ -424,7 +424,7 @@ class SweepTable:
             types = dict(types)
             for c, kind in types.items():
                 if kind not in _TYPES:
-                    raise ValueError(f"types[{c!r}] = {kind!r} is not allowed: must be one of {', '.join(map(repr, _TYPES))}")
+                    raise ValueError(f"types[{c!r}] = {checks.shorten(kind)!r} is not allowed: must be one of {', '.join(map(repr, _TYPES))}")
         return cls._from_cells(path, columns, cells, types)
 
     @classmethod
@@ -1104,13 +1104,13 @@ def _check_reachable(address: str, timeout: float = 5.0, name: str = "ray") -> N
     hostport = text.split("://", 1)[1] if "://" in text else text
     host, _, port = hostport.rpartition(":")
     if not host or not port.isdigit():
-        raise ValueError(f"{name} = {text!r} is not allowed: give 'auto', HOST:PORT or ray://HOST:PORT")
+        raise ValueError(f"{name} = {checks.shorten(text)!r} is not allowed: give 'auto', HOST:PORT or ray://HOST:PORT")
     import socket  # noqa: PLC0415
 
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()
     except OSError as e:
-        raise ValueError(f"{name} = {text!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
+        raise ValueError(f"{name} = {checks.shorten(text)!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
 
 
 @contextlib.contextmanager
@@ -1124,7 +1124,7 @@ def _ray_session(address, name: str = "ray"):
     try:
         import ray  # noqa: PLC0415
     except ModuleNotFoundError:
-        raise ValueError(f"{name} = {str(address)!r} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
+        raise ValueError(f"{name} = {checks.shorten(str(address))!r} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
     if ray.is_initialized():
         yield ray
         return
@@ -1141,7 +1141,7 @@ def _ray_session(address, name: str = "ray"):
                 ("ray = 'HOST:PORT' or 'ray://HOST:PORT'", "ray = 'auto'")
             why = (f"{why.rstrip('.')}; give {give} of a running cluster, or with {auto} start one on this machine "
                    "first ('ray start --head') or name its address in the RAY_ADDRESS environment variable")
-        raise ValueError(f"{name} = {str(address)!r} is not allowed: cannot connect to a Ray cluster there: {why}") from None
+        raise ValueError(f"{name} = {checks.shorten(str(address))!r} is not allowed: cannot connect to a Ray cluster there: {why}") from None
     try:
         yield ray
     finally:
@@ -1220,7 +1220,7 @@ def _load(scene, scale):
         return Scene("scene", "a SceneBuilder", scene)
     if isinstance(scene, (str, os.PathLike)) or scene is None:
         return load_scaled_scene(scene, checks.positive("--scale", scale))
-    raise ValueError(f"scene = {scene!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
+    raise ValueError(f"scene = {checks.shorten(scene)!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
 
 
 def _table(rows: list[dict], names: list[str], identity: dict | None = None) -> SweepTable:
@@ -1305,6 +1305,8 @@ def sweep(
                          "the draws of sample = 'random' and 'lhs' and the sample seeds handed to extra, and a grid "
                          "without extra reads neither")
     seed = 0 if seed is None else seed
+    # Before the plan, which builds the scene: a flag needs no model to be refused.
+    retry_failed = checks.boolean("retry_failed", retry_failed)
     plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
                  max_samples, extra, ray)
     kept = _resumed_rows(resume, plan, retry_failed, "resume", "retry_failed")
@@ -1338,7 +1340,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     plist = _as_params(params)
     points = sample_points(plist, sample, samples, seed, max_samples)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"--seed = {seed!r} is not allowed: must be an integer >= 0")
+        raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     if frames is not None and duration is not None:
         raise ValueError(f"--frames = {frames!r} and --duration = {duration!r} are not allowed together: give one")
     if frames is not None:
@@ -1362,7 +1364,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if workers is not None:
         workers = checks.positive_int("--workers", workers)
     if extra is not None and not callable(extra):
-        raise ValueError(f"extra = {extra!r} is not allowed: must be callable as extra(model, state, seed)")
+        raise ValueError(f"extra = {checks.shorten(extra)!r} is not allowed: must be callable as extra(model, state, seed)")
     sc = _load(scene, scale)
     if options:
         from .cli import _apply_solver_options  # noqa: PLC0415
@@ -1381,7 +1383,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         # Checked here, before any sample runs: 1e300 s failed every sample and then the table.
         if not duration * fps <= MAX_STEPS:
             # A frame is at least one step: more frames than a run may take steps is too long.
-            raise ValueError(f"--duration = {duration!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames "
+            raise ValueError(f"--duration = {checks.shorten(duration)!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames "
                              f"of at least one step each, more than the {MAX_STEPS:.0e} steps a run may take")
         frames = max(1, round(duration * fps))
     frames = frames if frames is not None else sc.frames
@@ -1641,7 +1643,7 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
     folder) to keep: every one, or with ``retry_failed`` the ``ok`` ones. Refuses a table
     that is not of this sweep, naming what differs."""
     if not isinstance(retry_failed, bool):
-        raise ValueError(f"{retry_name} = {retry_failed!r} is not allowed: must be True or False")
+        raise ValueError(f"{retry_name} = {checks.shorten(retry_failed)!r} is not allowed: must be True or False")
     if source is None:
         if retry_failed:
             raise ValueError(f"{retry_name} is not allowed without {name}: it runs again the failed samples of the "
@@ -1928,7 +1930,7 @@ def sweep_cli(args, out=None) -> int:
         # Refused, not ignored, as fit refuses it where nothing is drawn: a grid's samples ran
         # exactly as without it, only the table's seed column differed (the CLI passes no extra
         # column function, the only user of the samples' seeds).
-        raise ValueError(f"--seed = {args.seed!r} is not allowed with --sample grid: it seeds the draws of --sample "
+        raise ValueError(f"--seed = {checks.shorten(args.seed)!r} is not allowed with --sample grid: it seeds the draws of --sample "
                          "random and lhs, and a grid draws nothing")
     # Every task holds the plan's scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,

@@ -232,7 +232,7 @@ class Scripted:
 
     def __post_init__(self):
         if not callable(self.fn):
-            raise ValueError(f"fn = {self.fn!r} is not allowed: must be callable as fn(t) -> (position, quaternion)")
+            raise ValueError(f"fn = {checks.shorten(self.fn)!r} is not allowed: must be callable as fn(t) -> (position, quaternion)")
 
     def pose(self, t: float, owner: str = "tools.Scripted"):
         """``fn(t)`` checked; ``owner`` (``"tool 'press'"``) is what messages name: an
@@ -1306,7 +1306,7 @@ class ToolSet:
             if isinstance(mo, Keyframes):
                 ts = kt[self.keyframe_start[k]:self.keyframe_start[k] + len(mo.times)]
                 if not np.isfinite(ts).all() or np.any(np.diff(ts) <= 0.0):
-                    raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
+                    raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {checks.shorten(ts.tolist())!r} is not allowed: must be finite and increasing")
         self._checked_times = key
         return kt
 
@@ -1351,7 +1351,7 @@ class ToolSet:
 
         def refuse(name, k, value, allowed):
             shown = checks.shorten(np.round(value, 12).tolist())
-            raise ValueError(f"{name} of {self._owner(k)} = {shown!r} is not allowed: {allowed}")
+            raise ValueError(f"{name} of {self._owner(k)} = {checks.shorten(shown)!r} is not allowed: {allowed}")
 
         for k in range(len(self.colliders)):  # a pinned set has no friction
             for name in ("friction", "static_friction"):
@@ -1409,7 +1409,7 @@ class ToolSet:
 
     def index(self, name: str) -> int:
         if name not in self.names:
-            raise ValueError(f"name = {name!r} is not allowed: must be one of the tools {self.names!r}")
+            raise ValueError(f"name = {checks.shorten(name)!r} is not allowed: must be one of the tools {self.names!r}")
         return self.names.index(name)
 
     # ------------------------------------------------------------------ per step
@@ -1807,7 +1807,7 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
             raise ValueError(f"region = {checks.shorten(region)!r} is not allowed: must be (lo, hi), two 3-vectors of "
                              "finite numbers") from None
         if np.any(hi < lo):
-            raise ValueError(f"region = {region!r} is not allowed: lo must be <= hi in every axis")
+            raise ValueError(f"region = {checks.shorten(region)!r} is not allowed: lo must be <= hi in every axis")
         mask &= np.all((points >= lo) & (points <= hi), axis=1)
     if where is not None:
         mask &= checks.selection("where", where, points, "rest_positions")

@@ -277,7 +277,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     """
     torch = require_torch()
     if not isinstance(rollout, Rollout):
-        raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
+        raise ValueError(f"rollout = {checks.shorten(rollout)!r} is not allowed: must be a warp_esph.rollout.Rollout")
     if params is not None and not isinstance(params, Mapping):
         # A list of names was read as pairs of characters ("parameter 'm' is not allowed").
         raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: must be a mapping {{name: tensor of one "
@@ -382,11 +382,11 @@ def _check_name(name) -> None:
     if name in TOOL_GRADIENTS:
         # A tool's array is no input here ('must be one of mu, ...' did not say where it goes);
         # its gradient is on model.tools after a backward.
-        raise ValueError(f"parameter {name!r} is not allowed: it is a tool parameter, not an input of the torch "
+        raise ValueError(f"parameter {checks.shorten(name)!r} is not allowed: it is a tool parameter, not an input of the torch "
                          f"bridge (set model.tools.{name} before the forward; the backward leaves its gradient on "
                          f"model.tools.{name}.grad); the bridge takes {', '.join(PARAMETERS)}")
     if name not in PARAMETERS:
-        raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+        raise ValueError(f"parameter {checks.shorten(name)!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
 
 
 def _check_dense(torch, name: str, t) -> None:
@@ -420,17 +420,17 @@ def _module_class():
         def __init__(self, rollout: Rollout, params=("yield_stress", "flow_rate"), log_space: bool = True):
             super().__init__()
             if not isinstance(rollout, Rollout):
-                raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
+                raise ValueError(f"rollout = {checks.shorten(rollout)!r} is not allowed: must be a warp_esph.rollout.Rollout")
             self.rollout = rollout
             if not isinstance(params, str) and not (isinstance(params, (list, tuple)) and params
                                                     and all(isinstance(n, str) for n in params)):
-                raise ValueError(f"params = {params!r} is not allowed: give a parameter name or a non-empty list of "
+                raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: give a parameter name or a non-empty list of "
                                  f"them ({', '.join(PARAMETERS)})")
             self.names = [params] if isinstance(params, str) else list(params)
             if len(set(self.names)) != len(self.names):  # registered once, its second entry dropped
-                raise ValueError(f"params = {params!r} is not allowed: a parameter is named twice")
+                raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: a parameter is named twice")
             if not isinstance(log_space, bool):  # "no" read as True
-                raise ValueError(f"log_space = {log_space!r} is not allowed: must be True or False")
+                raise ValueError(f"log_space = {checks.shorten(log_space)!r} is not allowed: must be True or False")
             self.log_space = log_space
             current = rollout.get_parameters()
             for name in self.names:

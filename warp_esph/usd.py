@@ -250,11 +250,11 @@ class UsdWriter:
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
                  surface: bool = False, view=None, run_id: str | None = None):
         if not isinstance(model, Model):
-            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+            raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model")
         try:
             self.path = os.path.abspath(os.fspath(path))
         except TypeError:
-            raise ValueError(f"path = {path!r} is not allowed: must be a file path") from None
+            raise ValueError(f"path = {checks.shorten(path)!r} is not allowed: must be a file path") from None
         folder, name = os.path.split(self.path)
         ext = os.path.splitext(name)[1].lower()
         if ext not in USD_EXTENSIONS:
@@ -273,17 +273,17 @@ class UsdWriter:
         self.append = checks.boolean("append", append)  # 'no' reopened the file to continue it
         self._plane_size = None if plane_size is None else checks.positive("plane_size", plane_size)
         if not isinstance(surface, bool):
-            raise ValueError(f"surface = {surface!r} is not allowed: must be True or False")
+            raise ValueError(f"surface = {checks.shorten(surface)!r} is not allowed: must be True or False")
         self.surface = surface
         if view is not None:
             try:
                 az, el = (float(v) for v in view)
             except (TypeError, ValueError):
-                raise ValueError(f"view = {view!r} is not allowed: must be (azimuth, elevation) in degrees") from None
+                raise ValueError(f"view = {checks.shorten(view)!r} is not allowed: must be (azimuth, elevation) in degrees") from None
             view = (checks.number("view azimuth", az), checks.in_range("view elevation", el, -VIEW_ELEVATION, VIEW_ELEVATION))
         self.view = view
         if run_id is not None and (not isinstance(run_id, str) or not run_id):
-            raise ValueError(f"run_id = {run_id!r} is not allowed: must be a non-empty string or None")
+            raise ValueError(f"run_id = {checks.shorten(run_id)!r} is not allowed: must be a non-empty string or None")
         self.run_id = run_id
         self.file_run_id = None
         #: Seconds spent building surfaces, over all frames.
@@ -693,7 +693,7 @@ class UsdWriter:
                 # here, before write_frame's refusal.
                 raise ValueError(f"cannot write frame {frame!r}: the writer of {self.path} is closed")
             if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
-                raise ValueError(f"frame = {frame!r} is not allowed: must be an integer >= 0 (the frame index "
+                raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: must be an integer >= 0 (the frame index "
                                  "write_frame writes next)")
             data = dict(self._stages[0].GetRootLayer().customLayerData or {})
             before = str(data.get(key, ""))
@@ -717,7 +717,7 @@ class UsdWriter:
             # (a later close() finishes it): writing on raised an IndexError from the publish.
             raise ValueError(f"cannot write frame {frame_index!r}: the writer of {self.path} is closed")
         if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or frame_index < 0:
-            raise ValueError(f"frame_index = {frame_index!r} is not allowed: must be an integer >= 0")
+            raise ValueError(f"frame_index = {checks.shorten(frame_index)!r} is not allowed: must be an integer >= 0")
         frame = int(frame_index)
         m = self.model
         checks.same_state(m, "state", state)
@@ -1033,7 +1033,7 @@ class UsdFrames:
     @_held_stderr
     def __init__(self, path):
         if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
-            raise ValueError(f"path = {path!r} is not allowed: must be the path of a warp-esph USD file")
+            raise ValueError(f"path = {checks.shorten(path)!r} is not allowed: must be the path of a warp-esph USD file")
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
             why = "it is a folder" if os.path.isdir(self.path) else "no such file"
@@ -1325,7 +1325,7 @@ class UsdFrames:
 
     def resolve(self, frame: int) -> int:
         if not self._holds(frame):
-            raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
+            raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
         return frame
 
     def _frame(self, frame) -> int:
@@ -1335,7 +1335,7 @@ class UsdFrames:
             return int(frame)
         held = (f"{self.frames[0]}..{self.frames[-1]}" if self.frames == list(range(self.frames[0], self.frames[-1] + 1))
                 else ", ".join(map(str, self.frames[:8])) + (", ..." if len(self.frames) > 8 else ""))
-        raise ValueError(f"frame = {frame!r} is not allowed: must be one of the file's frames ({held})")
+        raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: must be one of the file's frames ({held})")
 
     @_held_stderr
     def arrays(self, frame: int) -> dict:
@@ -1563,7 +1563,7 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
                 out.append(one(p))
         except ValueError:
             raise ValueError(
-                f"{what} = {checks.shorten(shown)!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
+                f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(part)!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
     if past is not None:
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} runs past the file's "

@@ -36,10 +36,10 @@ class CompressionField:
         object.__setattr__(self, "t_on", checks.non_negative("CompressionField.t_on", self.t_on))
         t_off = checks.number("CompressionField.t_off", self.t_off, allow_inf=True)
         if not t_off > self.t_on:
-            raise ValueError(f"CompressionField.t_off = {self.t_off!r} is not allowed: must be > t_on = {self.t_on:g}")
+            raise ValueError(f"CompressionField.t_off = {checks.shorten(self.t_off)!r} is not allowed: must be > t_on = {self.t_on:g}")
         object.__setattr__(self, "t_off", t_off)
         if isinstance(self.body, bool) or not isinstance(self.body, int) or self.body < -1:
-            raise ValueError(f"CompressionField.body = {self.body!r} is not allowed: must be a body index >= 0 or -1 (all)")
+            raise ValueError(f"CompressionField.body = {checks.shorten(self.body)!r} is not allowed: must be a body index >= 0 or -1 (all)")
 
     def active(self, t: float) -> bool:
         return self.t_on <= t < self.t_off
@@ -57,7 +57,7 @@ def precision_problem(fld: CompressionField, scalar) -> str | None:
     T = scalar.__name__
     for label, v in (("center", fld.center), ("strength", fld.strength)):
         if not np.abs(np.asarray(v, dtype=np.float64)).max() <= far:
-            return (f"CompressionField.{label} = {v!r} is not allowed in {T}: must be at most {far:.3g} in size; "
+            return (f"CompressionField.{label} = {checks.shorten(v)!r} is not allowed in {T}: must be at most {far:.3g} in size; "
                     f"{wider_precision(scalar, 'a smaller value')}")
     if max((abs(t) for t in (fld.t_on, fld.t_off) if math.isfinite(t)), default=0.0) > big:
         return f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in {T}: must be at most {big:.3g} s"

@@ -10,6 +10,7 @@ import types
 
 import warp as wp
 
+from .. import checks
 from .._types import type_set
 
 
@@ -226,7 +227,7 @@ def fit_weight_funcs(scalar, weight: str) -> types.SimpleNamespace:
     cancels wherever they enter (``A^-1 B``, and ``w A^-1`` in the forces), so the biweight's
     is ``1 / h^4``, a weight of order 1."""
     if weight not in FIT_WEIGHTS:
-        raise ValueError(f"fit_weight = {weight!r} is not allowed: must be one of {', '.join(map(repr, FIT_WEIGHTS))}")
+        raise ValueError(f"fit_weight = {checks.shorten(weight)!r} is not allowed: must be one of {', '.join(map(repr, FIT_WEIGHTS))}")
     sm = funcs(scalar)
     if weight == "poly6":
         return types.SimpleNamespace(coef=sm.poly6_coef, w_c=sm.w_poly6_c, w_inside=sm.w_poly6_inside)

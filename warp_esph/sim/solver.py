@@ -99,7 +99,7 @@ def representable_dt(scalar, dt) -> float:
     tiny, big, _ = _float_info(scalar)
     if not tiny <= dt <= big:
         # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
-        raise ValueError(f"dt = {dt!r} is not allowed in {scalar.__name__}: must be in "
+        raise ValueError(f"dt = {checks.shorten(dt)!r} is not allowed in {scalar.__name__}: must be in "
                          f"[{tiny:.3g}, {big:.3g}] s")
     return dt
 
@@ -123,7 +123,7 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
         unit = 10.0 ** (math.floor(math.log10(longest)) - 2)
         longest = math.floor(longest / unit) * unit
         raise ValueError(
-            f"{name} = {dt!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
+            f"{name} = {checks.shorten(dt)!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
             f"{model.scalar.__name__} resolves at the spacing {model.spacing:.3g} m (spacing / eps = {model.spacing / eps:.3g} m), "
             f"so the positions after it would be round-off; must be at most {longest:.3g} s (and for a stable run at most "
             f"{stable} {model.stable_dt():.3g} s)")
@@ -166,7 +166,7 @@ def _check_ghost_floor(model: Model, fit: str):
                          f"its ghosts enter the linear fit only ('linear' or 'auto')")
     kinds = sorted({m.elastic_force for m in model.materials} - {"variational"})
     if kinds:
-        raise ValueError(f"Material.elastic_force = {kinds!r} is not allowed with a ghost floor: only 'variational' "
+        raise ValueError(f"Material.elastic_force = {checks.shorten(kinds)!r} is not allowed with a ghost floor: only 'variational' "
                          f"(its ghosts hand on the forces of the fit energy)")
     if model.uses_comparison_models:
         raise ValueError("Material.deformation 'rest' or 'additive' is not allowed with a ghost floor: only 'incremental'")
@@ -180,7 +180,7 @@ def _check_images(model: Model):
     collider's thin-layer strength"). Refused before any kernel runs."""
     kinds = sorted({m.deformation for m in model.materials} - {"incremental"})
     if kinds:
-        raise ValueError(f"Material.deformation = {kinds!r} is not allowed with add_ground(images=True): "
+        raise ValueError(f"Material.deformation = {checks.shorten(kinds)!r} is not allowed with add_ground(images=True): "
                          f"the images enter the incremental fit only ('incremental')")
 
 
@@ -337,7 +337,7 @@ class Solver:
                              f"{neighbors.MIN_NEIGHBORS} (or Solver(min_neighbors=...) at most {model.max_neighbors})")
         if self.min_neighbors > model.max_neighbors:
             # No row holds more: every deformation update would be dropped, every step.
-            raise ValueError(f"min_neighbors = {min_neighbors!r} is not allowed: must be at most the model's max_neighbors = "
+            raise ValueError(f"min_neighbors = {checks.shorten(min_neighbors)!r} is not allowed: must be at most the model's max_neighbors = "
                              f"{model.max_neighbors} (a neighbour row holds no more; the default is "
                              f"{neighbors.MIN_NEIGHBORS})")
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
@@ -360,7 +360,7 @@ class Solver:
         asked = model.fit if fit is None else fit
         if asked == "curvature_corrected" and model.uses_comparison_models and any(
                 mt.deformation != "rest" for mt in model.materials):
-            raise ValueError(f"fit = {asked!r} is not allowed with a comparison deformation model "
+            raise ValueError(f"fit = {checks.shorten(asked)!r} is not allowed with a comparison deformation model "
                              f"(Material.deformation 'rest' or 'additive') unless every material is 'rest' "
                              f"(whose total fit it then corrects): only 'linear'")
         if model.image_plane is not None:
