@@ -674,6 +674,26 @@ def test_a_word_for_a_number_or_a_name_is_one_line_naming_option_value_and_what_
             "export": ["o.usdc"], "sweep": ["dough_drop", "--param", "mu=1:2"]}[command]
     assert main([command, *head, option, "many"]) == 2
     assert_one_line_error(capsys.readouterr().err, f"warp-esph: error: {option} = 'many' is not allowed: {allowed}")
+    # A word of 5000 characters was written whole: a 5 kB line (the value is shortened).
+    assert main([command, *head, option, "m" * 5000]) == 2
+    line = capsys.readouterr().err
+    assert_one_line_error(line, f"warp-esph: error: {option} = 'mmmm")
+    assert f"... is not allowed: {allowed}" in line and len(line) < 400, line[:500]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option, word, said", [
+    ("--bounds", "m" * 5000, "--bounds 'mmm"), ("--param-scales", "m" * 5000, "--param-scales 'mmm"),
+    ("--hourglass", "m" * 5000, "--hourglass = 'mmm"), ("--hourglass", "9" * 5000, "--hourglass = 999"),
+])
+def test_a_long_word_for_an_option_the_command_parses_itself_is_shortened(tmp_path, monkeypatch, capsys, option, word, said):
+    """Found by a fuzz of the commands' options: these wrote a 5000-character word whole into
+    their one line (the options argparse converts: the test above)."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["fit", "dough_drop", "--target", "t.npz", option, word]) == 2
+    line = capsys.readouterr().err
+    assert_one_line_error(line, f"warp-esph: error: {said}", "... is not allowed: ")
+    assert len(line) < 300, line[:500]
     assert list(tmp_path.iterdir()) == []
 
 

@@ -43,11 +43,19 @@ class _UsageError(Exception):
     pass
 
 
+def _typed(text: str):
+    """A word typed after an option, for its refusal: shortened, as every refused value is (a
+    5000-character --width wrote a 5 kB line)."""
+    from .checks import shorten  # noqa: PLC0415
+
+    return shorten(text)
+
+
 def _integer(text: str) -> int:
     try:
         return int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be an integer") from None
+        raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be an integer") from None
 
 
 def _number(text: str) -> float:
@@ -57,7 +65,7 @@ def _number(text: str) -> float:
         # 1e400 said as typed in a refusal, not as the inf it reads as
         return read_number(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a number") from None
+        raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be a number") from None
 
 
 class _Parser(argparse.ArgumentParser):
@@ -79,7 +87,7 @@ class _Parser(argparse.ArgumentParser):
 
     def _check_value(self, action, value):
         if action.choices is not None and value not in action.choices:
-            raise argparse.ArgumentError(action, f"{value!r} is not allowed: must be one of "
+            raise argparse.ArgumentError(action, f"{_typed(value)!r} is not allowed: must be one of "
                                                  + ", ".join(map(repr, action.choices)))
 
     def error(self, message):
@@ -261,8 +269,9 @@ def _as_typed(text) -> str:
     try:
         float(text)
     except (TypeError, ValueError):
-        return repr(text)
-    return str(text).strip()
+        return repr(_typed(text))
+    text = str(text).strip()
+    return text if len(text) <= 60 else text[:57] + "..."  # 5000 digits are a number too
 
 
 def _apply_solver_options(builder, options: dict) -> None:
@@ -378,14 +387,14 @@ def _cmd_scenes() -> int:
 
 def _dt_arg(text: str):
     """``--dt``: seconds, or ``auto`` for the adaptive step."""
-    from .checks import read_number, shorten  # noqa: PLC0415
+    from .checks import read_number  # noqa: PLC0415
 
     if text.strip().lower() == "auto":
         return "auto"
     try:
         return read_number(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--dt = {shorten(text)!r} is not allowed: must be a number of seconds or 'auto'") from None
+        raise argparse.ArgumentTypeError(f"--dt = {_typed(text)!r} is not allowed: must be a number of seconds or 'auto'") from None
 
 
 def _stdout_closed() -> bool:
@@ -1157,7 +1166,7 @@ def _cloud_offset(text):
     except ValueError:
         value = None
     if value is None or not (value >= 0.0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a distance in m (>= 0) or 'surface' "
+        raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be a distance in m (>= 0) or 'surface' "
                                          "(half a spacing)")
     return value
 
@@ -1168,7 +1177,7 @@ def _checkpoint_every(text):
     try:
         return int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a whole number of steps or 'auto'") from None
+        raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be a whole number of steps or 'auto'") from None
 
 
 def _parse_bounds(items) -> dict:
@@ -1181,10 +1190,10 @@ def _parse_bounds(items) -> dict:
             if not name:
                 raise ValueError
         except ValueError:
-            raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
+            raise ValueError(f"--bounds {_typed(item)!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
         if name in out:
             # The last one silently won.
-            raise ValueError(f"--bounds {item!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "
+            raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "
                              "give one range per parameter")
         out[name] = (lo, hi)
     return out
@@ -1199,13 +1208,13 @@ def _parse_param_scales(items) -> dict:
             if not name:
                 raise ValueError
         except ValueError:
-            raise ValueError(f"--param-scales {item!r} is not allowed: use NAME=S, e.g. hardening=1e4") from None
+            raise ValueError(f"--param-scales {_typed(item)!r} is not allowed: use NAME=S, e.g. hardening=1e4") from None
         if not (math.isfinite(size) and size > 0.0):
             # A step of lr moves the value by lr times the size: 0, a negative or a NaN moves it nowhere or backwards.
-            raise ValueError(f"--param-scales {item!r} is not allowed: the size must be > 0 and finite (a step of --lr moves "
+            raise ValueError(f"--param-scales {_typed(item)!r} is not allowed: the size must be > 0 and finite (a step of --lr moves "
                              "the parameter by LR times it)")
         if name in out:
-            raise ValueError(f"--param-scales {item!r} is not allowed: {name} already has size {out[name]:g}; give one "
+            raise ValueError(f"--param-scales {_typed(item)!r} is not allowed: {name} already has size {out[name]:g}; give one "
                              "size per parameter")
         out[name] = size
     return out
