@@ -645,7 +645,7 @@ NAMED_WHOLE = {
     "log_space": lambda v: _torch_module(_tiny_rollout(), log_space=v),
     "check": lambda v: _tiny_rollout().forward(check=v),
     "taped": lambda v: _tiny_rollout().forward(taped=v),
-    "model (Rollout)": lambda v: _tiny_rollout().__class__(v, 2, 1e-4),
+    "model (Rollout)": lambda v: _rollout(v),
     "surface": lambda v: _usd_writer(surface=v),
     "view": lambda v: _usd_writer(view=v),
     "label": lambda v: RenderOptions(label=v),
@@ -664,11 +664,15 @@ def _small_model():
     return _one_box().finalize()
 
 
-@functools.cache
-def _tiny_rollout():
+def _rollout(model):
     from warp_esph.rollout import Rollout
 
-    return Rollout(_one_box().finalize(requires_grad=True), 2, 1e-4)
+    return Rollout(model, 2, 1e-4)
+
+
+@functools.cache
+def _tiny_rollout():
+    return _rollout(_one_box().finalize(requires_grad=True))
 
 
 def _torch_module(rollout, **kw):
