@@ -628,6 +628,9 @@ def test_a_missing_or_unreadable_source_is_refused_naming_the_callers_parameter(
             warp_esph.SceneBuilder(spacing=0.05).add_tool("mesh", mesh=source)
         with pytest.raises(ValueError, match="^mesh = " + re.escape(repr(source)) + " is not allowed: " + re.escape(reason)):
             MeshLoss(source, frames=[1])
+    # A tuple of three items was refused to a mesh tool as 'source with 3 items'.
+    with pytest.raises(ValueError, match=r"^mesh with 3 items is not allowed: a tuple must be \(points, triangles\)"):
+        warp_esph.SceneBuilder(spacing=0.05).add_tool("mesh", mesh=(1, 2, 3))
 
 
 def test_a_source_of_arrays_that_is_not_the_pair_is_refused_on_one_line():

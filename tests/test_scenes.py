@@ -704,6 +704,24 @@ def test_a_material_tables_rheometer_values_are_refused_beside_what_they_set(tmp
         _material_of(tmp_path, table)
 
 
+@pytest.mark.parametrize("table", ["bodies", "tools"])
+def test_a_mesh_file_a_scene_cannot_read_is_refused_by_its_key_file_as_written(tmp_path, table):
+    """A mesh body's or tool's ``file`` of a folder, an extension no reader knows, or an
+    absolute path to nothing was refused as ``source = '/abs/path' ...`` (a body) or
+    ``mesh = ...`` (a tool): add_mesh's and add_tool's parameters, not the file's key."""
+    (tmp_path / "points.xyz").write_text("0 0 0\n")
+    (tmp_path / "folder.obj").mkdir()
+    missing = str(tmp_path / "none.obj")
+    head = 'shape = "mesh"\nmaterial = "m"' if table == "bodies" else 'shape = "mesh"'
+    for typed, reason in (("points.xyz", "unsupported extension '.xyz'; must be one of .usd"),
+                          ("folder.obj", "it is not a file"), (missing, "file not found")):
+        text = BASE + f'\n[[{table}]]\n{head}\nfile = {typed!r}\n'
+        (tmp_path / "s.toml").write_text(text)
+        with pytest.raises(ValueError, match=rf"s\.toml: \[\[{table}\]\] #\d \(shape 'mesh'\): file = "
+                                             + re.escape(repr(typed)) + " is not allowed: " + re.escape(reason)):
+            load_scene_file(str(tmp_path / "s.toml"))
+
+
 def test_a_scene_file_named_without_its_extension_is_refused_naming_the_file(tmp_path, monkeypatch):
     """``warp-esph run mine`` beside ``mine.toml``: a bare name is a built-in scene's (a file is
     read only by a path), and the refusal listed the built-in scenes alone; it now names the

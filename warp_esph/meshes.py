@@ -64,6 +64,28 @@ def mesh_name(source) -> str:
     return stem or name
 
 
+def check_mesh_file(path: str, name: str = "source", typed: str | None = None) -> bool:
+    """Refuses ``path`` where no file is there, it is a folder, or no reader here knows its
+    extension, naming it as the caller's parameter ``name`` (add_mesh's ``source``, a tool's
+    ``mesh``, a scene file's ``file``) and ``typed``, the path as written (default ``path``).
+    True for a USD file, False for one meshio reads."""
+    # Named as the caller's parameter: 'mesh' had been named to add_mesh("x"), whose is source,
+    # and 'source' to a scene file, whose key is file.
+    said = f"{name} = {(path if typed is None else typed)!r}"
+    if not os.path.exists(path):
+        raise ValueError(f"{said} is not allowed: file not found")
+    if not os.path.isfile(path):
+        raise ValueError(f"{said} is not allowed: it is not a file")
+    if _extension(path, USD_EXTENSIONS):
+        return True
+    meshio_ext = _meshio_extensions()
+    if not _extension(path, meshio_ext):
+        suffix = pathlib.Path(path).suffix or "(none)"
+        allowed = ", ".join(USD_EXTENSIONS + meshio_ext)
+        raise ValueError(f"{said} is not allowed: unsupported extension {suffix!r}; must be one of {allowed}")
+    return False
+
+
 def load_mesh(source, prim_path: str | None = None, *, name: str = "source") -> tuple[np.ndarray, np.ndarray]:
     """A closed triangle mesh as ``(points (N, 3) float64, triangles (M, 3) int32)``.
 
@@ -88,29 +110,19 @@ def load_mesh(source, prim_path: str | None = None, *, name: str = "source") -> 
         if prim_path is not None:
             raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: it is only for USD files, not (points, triangles)")
         if len(source) != 2:
-            raise ValueError(f"source with {len(source)} items is not allowed: a tuple must be (points, triangles)")
+            raise ValueError(f"{name} with {len(source)} items is not allowed: a tuple must be (points, triangles)")
         label = "(points, triangles)"
         points, triangles = source
     elif _is_path(source):
         path = os.fsdecode(os.fspath(source))
         label = repr(path)
-        # Named as the caller's parameter: 'mesh' had been named to add_mesh("x"), whose is source.
-        if not os.path.exists(path):
-            raise ValueError(f"{name} = {label} is not allowed: file not found")
-        if not os.path.isfile(path):
-            raise ValueError(f"{name} = {label} is not allowed: it is not a file")
-        meshio_ext = _meshio_extensions()
-        if _extension(path, USD_EXTENSIONS):
+        if check_mesh_file(path, name):
             points, triangles, prim = _read_usd(label, path, prim_path)
             label = f"{label} (prim {prim!r})"
-        elif _extension(path, meshio_ext):
+        else:
             if prim_path is not None:
                 raise ValueError(f"prim_path = {checks.shorten(prim_path)!r} is not allowed: it is only for USD files, not {label}")
             points, triangles = _read_meshio(label, path)
-        else:
-            suffix = pathlib.Path(path).suffix or "(none)"
-            allowed = ", ".join(USD_EXTENSIONS + meshio_ext)
-            raise ValueError(f"{name} = {label} is not allowed: unsupported extension {suffix!r}; must be one of {allowed}")
     else:
         raise ValueError(
             f"{name} = {checks.shorten(source)!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"

@@ -27,6 +27,7 @@ from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
 from .material import (LAB_QUANTITIES, PRESETS, Material, _following_force, _from_young, _lame, from_lab, lab_flow_rate,
                        lab_yield_stress)
+from .meshes import check_mesh_file
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -514,13 +515,15 @@ def _in_folder(source: str, base_dir: str) -> str:
 def _mesh_file(source: str, base_dir: str) -> str:
     """``_in_folder``, refused by the file's key where a relative path names no file there: the
     mesh's refusal named the joined path alone, and did not say it is read from the scene
-    file's folder, not the working folder."""
+    file's folder, not the working folder. A folder, an unknown extension or an absolute path
+    to nothing likewise, as written: it was named by add_mesh's ``source`` or add_tool's ``mesh``."""
     path = _in_folder(source, base_dir)
     if not os.path.isabs(source) and not os.path.lexists(path):
         tilde = "; '~' is not expanded" if source.startswith("~") else ""
         raise ValueError(f"file = {source!r} is not allowed: there is no {path!r}; a relative path is read from the "
                          f"scene file's folder ({base_dir!r}), not the working folder (give an absolute path for another)"
                          f"{tilde}")
+    check_mesh_file(path, "file", source)
     return path
 
 
