@@ -194,6 +194,11 @@ def test_parse_frames():
         with pytest.raises(ValueError, match=rf"^frames = '{past}' is not allowed: '{past.split(',')[-1]}' runs past the "
                                              r"file's last frame, 10: it holds 11 frames, 0\.\.10"):
             parse_frames(past, have)
+    # A range starting past the end was told to end at frame 10 ('12:10' selects nothing).
+    for late in ("12:20", "12:", "0,12:20:2"):
+        with pytest.raises(ValueError, match=rf"^frames = '{late}' is not allowed: '{late.split(',')[-1]}' starts past the "
+                                             r"file's last frame, 10: it holds 11 frames, 0\.\.10$"):
+            parse_frames(late, have)
     for bad in ("11", "x", "0:10:0", "", "1:2:3:4", "-0", "-0:5"):  # -0: frame 0 or the end? (read as 0)
         with pytest.raises(ValueError, match="frames"):
             parse_frames(bad, have)

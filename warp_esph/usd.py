@@ -1554,9 +1554,10 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
                 step = int(bits[2]) if len(bits) == 3 and bits[2] else 1
                 if step < 1:
                     raise ValueError
-                if b > last:
+                if b > last or a > last:
                     # Cut at the last frame without a word: render 0:100 of 11 frames drew 11.
-                    past = part.strip()
+                    # One starting past it was told to end there, which selects nothing.
+                    past, late = part.strip(), a > last
                     break
                 out.extend(f for f in available if a <= f <= b and (f - a) % step == 0)
             else:
@@ -1566,9 +1567,12 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
                 f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(part)!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
     if past is not None:
+        held = f"{last}: it holds {len(available)} frames, {first}..{last}"
+        if late:
+            raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} starts past the "
+                             f"file's last frame, {held}")
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} runs past the file's "
-                         f"last frame, {last}: it holds {len(available)} frames, {first}..{last}; end the range at {last} "
-                         "or leave its end out")
+                         f"last frame, {held}; end the range at {last} or leave its end out")
     missing = [f for f in out if f not in have]
     if missing and missing[0] < 0:  # -N counted back past the first frame
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: it counts back past the first frame (the file holds "
