@@ -270,8 +270,9 @@ def _as_typed(text) -> str:
         float(text)
     except (TypeError, ValueError):
         return repr(_typed(text))
-    text = str(text).strip()
-    return text if len(text) <= 60 else text[:57] + "..."  # 5000 digits are a number too
+    from .checks import shorten_text  # noqa: PLC0415
+
+    return shorten_text(str(text).strip(), 60)  # 5000 digits are a number too
 
 
 def _apply_solver_options(builder, options: dict) -> None:

@@ -1642,8 +1642,7 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
     """The rows of the table ``source`` (``resume``; the CLI's ``--resume``, the ``--output``
     folder) to keep: every one, or with ``retry_failed`` the ``ok`` ones. Refuses a table
     that is not of this sweep, naming what differs."""
-    if not isinstance(retry_failed, bool):
-        raise ValueError(f"{retry_name} = {checks.shorten(retry_failed)!r} is not allowed: must be True or False")
+    retry_failed = checks.boolean(retry_name, retry_failed)
     if source is None:
         if retry_failed:
             raise ValueError(f"{retry_name} is not allowed without {name}: it runs again the failed samples of the "
