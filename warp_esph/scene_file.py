@@ -355,7 +355,10 @@ def _with_rheology(material: Material, table: dict) -> Material:
     # The Bingham relation holds for these models alone (Material.from_rheology).
     material._check_bingham(given[0])
     # The advice in the file's terms: Material.from_young had been advised to a scene file.
-    changes = {"yield_stress": lab_yield_stress(key, table[key], f"leave {key} and plastic_viscosity out of the table"
+    # plastic_viscosity named only where given: it was advised out of tables without it.
+    changes = {"yield_stress": lab_yield_stress(key, table[key], f"leave {key}"
+                                                + (" and plastic_viscosity" if "plastic_viscosity" in table else "")
+                                                + " out of the table"
                                                 + (" and give yield_stress = inf" if "preset" in table else ""))
                for key in ("shear_yield_stress", "uniaxial_yield_stress") if key in table}
     if "plastic_viscosity" in table:
