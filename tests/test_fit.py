@@ -1699,8 +1699,8 @@ def test_ctrl_c_before_the_first_evaluation_carries_no_result(dough_target, monk
 
 
 def test_a_seed_the_fit_draws_nothing_from_is_refused_and_one_evaluation_is_said_as_one():
-    """``fit(seed=10**400)`` was taken without a word where nothing draws from the seed (no
-    samples, one start), as ``--seed`` is refused; and the start-up line said 'up to 1
+    """``fit(seed=10**400)`` (and ``fit(sample_range=8)``) was taken without a word where nothing
+    draws from the seed (no samples, one start), as ``--seed`` is refused; and the start-up line said 'up to 1
     evaluations per start'."""
     target = np.zeros((1, _block_with().particle_count, 3))
     kw = dict(steps=4, iterations=0, progress=False, diagnostics=False)
@@ -1708,6 +1708,11 @@ def test_a_seed_the_fit_draws_nothing_from_is_refused_and_one_evaluation_is_said
         with pytest.raises(ValueError, match=r"^seed = (1\.000e\+400|3) is not allowed without samples or starts > 1: it "
                                              r"seeds the global stage's draws, and this fit draws nothing$"):
             fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], seed=seed, **kw)
+    # sample_range too, by the same rule: fit(sample_range=8) ran as without it.
+    with pytest.raises(ValueError, match=r"^sample_range = 8\.0 is not allowed without samples or starts > 1: it sizes "
+                                         r"the box the global stage's samples and the extra starts are drawn from, and "
+                                         r"this fit draws nothing$"):
+        fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], sample_range=8.0, **kw)
     said = []
     fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], log=said.append, **kw)
     assert any("up to 1 evaluation per start" in line for line in said), said

@@ -77,6 +77,10 @@ def test_grid_is_every_combination_last_parameter_fastest():
     # Explicit values and a fixed value.
     pts = sample_points(["mu=1e3,2e3", "paste.flow_rate=7"])
     assert pts == [{"mu": 1e3, "paste.flow_rate": 7.0}, {"mu": 2e3, "paste.flow_rate": 7.0}]
+    # A grid draws nothing: a seed was taken and ignored (the same points whatever it was).
+    with pytest.raises(ValueError, match=r"^--seed = 3 is not allowed with --sample grid: it seeds the draws of --sample "
+                                         r"random and lhs, and a grid draws nothing$"):
+        sample_points(["mu=1e3,2e3"], "grid", seed=3)
 
 
 @pytest.mark.parametrize("n", [1, 5, 17])

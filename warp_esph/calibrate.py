@@ -395,12 +395,14 @@ def run_fit(args, out=None, err=None) -> int:
                              "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise,
                              "force_noise": e.force_noise}
                             for e in exps]}
+    drawn = opts["samples"] > 0 or opts["starts"] > 1
     try:
         result = fit(experiments, None, params, iterations=args.iterations,
                      lr=lr, bounds=bounds, param_scales=param_scales, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
-                     sample_range=sample_range, seed=seed if opts["samples"] or opts["starts"] > 1 else None,
+                     # Given only where the fit draws (it refuses them elsewhere, as the checks above did).
+                     sample_range=sample_range if drawn else None, seed=seed if drawn else None,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
     except ParamScaleRefused as e:

@@ -1761,6 +1761,24 @@ def _step_size(name: str, value) -> float:
     return v
 
 
+#: What each option that only the draws read does (``_refuse_undrawn``).
+_DRAWN_ONLY = {"seed": "it seeds the global stage's draws",
+               "sample_range": "it sizes the box the global stage's samples and the extra starts are drawn from"}
+
+
+def _refuse_undrawn(checked: dict, **given) -> None:
+    """Refuse each of ``given`` (``seed``, ``sample_range``: None where not given) where the fit
+    draws nothing (``checked``: ``check_options``'s, no samples and one start): refused, not
+    ignored, as the command refuses ``--seed`` and ``--sample-range``; the fit ran exactly as
+    without it (fit(seed=10**400) and fit(sample_range=8) were taken without a word)."""
+    if checked["samples"] or checked["starts"] > 1:
+        return
+    for name, value in given.items():
+        if value is not None:
+            raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed without samples or starts > 1: "
+                             f"{_DRAWN_ONLY[name]}, and this fit draws nothing")
+
+
 def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
                   samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT, xtol=XTOL,
                   flag=lambda name: name, bounds_typed: Mapping | None = None,
@@ -1961,7 +1979,7 @@ def fit(
     samples: int = 0,
     starts: int = 1,
     worlds: bool = False,
-    sample_range: float = 4.0,
+    sample_range: float | None = None,
     seed: int | None = None,
     diagnostics: bool = True,
     noise: float | None = None,
@@ -2027,10 +2045,11 @@ def fit(
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
       at ``N`` Latin-hypercube points of optimiser space, within a factor ``sample_range``
-      of the guess (log space; linear ones +-``sample_range`` times their scale) and within
+      (default 4) of the guess (log space; linear ones +-``sample_range`` times their scale) and within
       ``bounds`` where they are narrower, plus the guess; gradient descent then starts from the best
       ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG, an
-      integer >= 0, default 0; refused where the fit draws nothing, as ``--seed`` is).
+      integer >= 0, default 0). ``seed`` and ``sample_range`` are refused where the fit draws
+      nothing (no ``samples``, one start), as ``--seed`` and ``--sample-range`` are.
       Without ``samples``, ``starts = K > 1`` descends from the guess and ``K - 1``
       Latin-hypercube points of the same box.
     - ``worlds``: with several starts, run them at once as the worlds of one model per
@@ -2056,14 +2075,11 @@ def fit(
       a progress bar on stderr. ``dtype`` and ``tie_pressure``: the module docstring.
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
-                      optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
+                      optimizer=optimizer, patience=patience, samples=samples, starts=starts,
+                      sample_range=4.0 if sample_range is None else sample_range,
                       seed=0 if seed is None else seed, noise=noise, memory_limit=memory_limit, xtol=xtol,
                       param_scales=param_scales)
-    if seed is not None and o["samples"] == 0 and o["starts"] == 1:
-        # Refused, not ignored, as the command refuses --seed: the fit ran exactly as without it
-        # (fit(seed=10**400) was taken without a word).
-        raise ValueError(f"seed = {checks.shorten(seed)!r} is not allowed without samples or starts > 1: it seeds the "
-                         "global stage's draws, and this fit draws nothing")
+    _refuse_undrawn(o, seed=seed, sample_range=sample_range)
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
     noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]

@@ -255,7 +255,7 @@ def _as_params(params) -> list[Param]:
     return out
 
 
-def sample_points(params, sample: str = "grid", samples: int | None = None, seed: int = 0,
+def sample_points(params, sample: str = "grid", samples: int | None = None, seed: int | None = None,
                   max_samples: int = MAX_SAMPLES) -> list[dict[str, float]]:
     """The sample values, ``[{name: value}]`` in sample order.
 
@@ -263,8 +263,9 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
     ``random``: ``samples`` independent uniform draws (uniform in log for ``log``).
     ``lhs``: a Latin hypercube of ``samples`` points: each parameter's range is cut into
     ``samples`` equal strata (equal in log for ``log``) and each stratum holds exactly one
-    sample. Draws come from ``numpy.random.default_rng(seed)``: the same seed, the same
-    points. Parameters with explicit values (``NAME=A,B,C``) pick among them.
+    sample. Draws come from ``numpy.random.default_rng(seed)`` (default 0): the same seed, the
+    same points; a ``seed`` with ``grid``, which draws nothing, is refused. Parameters with
+    explicit values (``NAME=A,B,C``) pick among them.
     """
     params = _as_params(params)
     sample = checks.choice("--sample", sample, SAMPLINGS)
@@ -274,6 +275,10 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
         if samples is not None:
             raise ValueError(f"--samples = {checks.shorten(samples)!r} is not allowed with --sample grid: the grid has the product of "
                              f"the levels of each --param; use --sample random or lhs to choose the count")
+        if seed is not None:
+            # Refused, not ignored, as --seed with --sample grid is: the points were the grid's whatever it was.
+            raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed with --sample grid: it seeds the draws of "
+                             "--sample random and lhs, and a grid draws nothing")
         # The count before the levels: N = 1e9 allocated 7.5 GiB before it was compared.
         counts = [len(p.values) if p.values is not None else p.n if p.n is not None else len(p.levels())
                   for p in params]
@@ -294,6 +299,7 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
         if p.values is None and p.n is not None:
             raise ValueError(f"--param {p.name}: N = {p.n} levels is not allowed with --sample {sample}: the count is "
                              f"--samples; write {p.name}={p.lo:g}:{p.hi:g}:{p.scale}")
+    seed = 0 if seed is None else seed
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     rng = np.random.default_rng(int(seed))
@@ -1338,7 +1344,8 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     """Every check of ``sweep``'s input, and one task per sample. ``options``: solver options
     (the CLI's ``--hourglass``, ...) set on the scene's builder before anything is built."""
     plist = _as_params(params)
-    points = sample_points(plist, sample, samples, seed, max_samples)
+    # A grid's seed is read only by extra's sample seeds (below), never by the points.
+    points = sample_points(plist, sample, samples, None if sample == "grid" else seed, max_samples)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     if frames is not None and duration is not None:
