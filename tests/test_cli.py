@@ -2090,7 +2090,8 @@ def test_the_run_record_and_the_usd_file_say_which_model_auto_ran(tmp_path, caps
     (["run", "--scale", "1e400"], "--scale = 1e400 is not allowed: must be a finite number (it overflows a float)"),
     (["run", "--fps=-1E+999"], "--fps = -1E+999 is not allowed: must be a finite number (it overflows a float)"),
     (["run", "--dt", "2e308"], "--dt = 2e308 is not allowed: must be a finite number (it overflows a float)"),
-    (["run", "--scale", "1e-400"], "--scale = 1e-400 is not allowed: must be > 0"),
+    (["run", "--scale", "1e-400"], "--scale = 1e-400 is not allowed: it is not 0, but no float holds this number: "
+                                   "it reads as 0.0 (the smallest float above 0 is 5e-324)"),
     (["sweep", "dough_drop", "--param", "yield_stress=1:10:lin:2", "--duration", "1e400"],
      "--duration = 1e400 is not allowed: must be a finite number (it overflows a float)"),
 ])
@@ -2099,6 +2100,53 @@ def test_a_number_no_float_holds_is_echoed_as_typed(argv, shown, capsys):
     '0.0'); the overflow is said too."""
     assert main(argv) == 2
     assert_one_line_error(capsys.readouterr().err, shown)
+
+
+UNDERFLOW = "is not allowed: it is not 0, but no float holds this number: it reads as 0.0 (the smallest float above 0 is 5e-324)"
+
+
+@pytest.mark.parametrize("argv, shown", [
+    (["run", "--hourglass", "1e-400"], f"--hourglass = 1e-400 {UNDERFLOW}; --hourglass 0 is off (no hourglass control): give 0 for that"),
+    (["fit", "dough_drop", "--target", "t.npz", "--hourglass", "1e-400"], "--hourglass = 1e-400 "),
+    (["render", "o.usdc", "--azimuth", "1e-400"], f"--azimuth = 1e-400 {UNDERFLOW}"),
+    (["render", "o.usdc", "--elevation=-1e-400"], f"--elevation = -1e-400 {UNDERFLOW}"),
+    (["fit", "dough_drop", "--target", "t.npz", "--jitter", "1e-400"],
+     f"--jitter = 1e-400 {UNDERFLOW}; --jitter 0 is off (the lattice as written): give 0 for that"),
+    (["fit", "dough_drop", "--target", "t.npz", "--cloud-offset", "1e-400"], f"--cloud-offset = 1e-400 {UNDERFLOW}"),
+    (["run", "--dt", "1e-400"], f"--dt = 1e-400 {UNDERFLOW}"),
+    (["fit", "dough_drop", "--target", "t.npz", "--params", "lam", "--bounds", "lam=1e-400:10"],
+     "--bounds 'lam=1e-400:10' is not allowed: 1e-400: it is not 0, but no float holds this number: it reads as 0.0"),
+    (["fit", "dough_drop", "--target", "t.npz", "--params", "mu", "--bounds", "mu=1:1e400"],
+     "--bounds 'mu=1:1e400' is not allowed: 1e400: no float holds this number: it reads as inf (the largest float is "
+     "1.798e+308); write inf or -inf for an open end"),
+    (["sweep", "dough_drop", "--param", "lam=1e-400:10:lin:2"], f"--param 'lam=1e-400:10:lin:2': LO = 1e-400 {UNDERFLOW}"),
+    (["sweep", "dough_drop", "--param", "lam=1e-400,2"], f"--param 'lam=1e-400,2': value = 1e-400 {UNDERFLOW}"),
+])
+def test_a_number_typed_that_reads_as_0_or_as_an_open_end_is_refused(argv, shown, tmp_path, monkeypatch, capsys):
+    """Found by a fuzz of the commands' options: '--hourglass 1e-400' ran with the control off,
+    '--azimuth 1e-400' drew at 0, '--bounds mu=1:1e400' was an open end and a swept 1e-400 a 0:
+    a number typed that is not 0 but reads as 0.0 (or as inf where inf is a choice) is refused."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert_one_line_error(capsys.readouterr().err, shown)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("line, shown", [
+    ("[solver]\nhourglass = 1e-400\n", f"key 'hourglass' in [solver]: 1e-400 {UNDERFLOW}; 0 is off: write 0 for that"),
+    ("[materials.soft]\npreset = 'dough'\nyield_stress = 1e400\n",
+     "key 'yield_stress' in [materials.soft]: 1e400 is not allowed: no float holds this number: it reads as inf (the "
+     "largest float is 1.798e+308); write inf where inf is meant"),
+    ("[scene]\ngravity = [0.0, -9.81, 1e-400]\n", f"key 'gravity' in [scene]: 1e-400 {UNDERFLOW}"),
+])
+def test_a_number_no_float_holds_in_a_scene_file_is_refused(line, shown, tmp_path, capsys):
+    """TOML reads 1e-400 as 0.0 (a [solver] hourglass of 1e-400 ran with the control off) and
+    1e400 as inf (a yield stress that never yields): refused, naming the key."""
+    body = "\n[[bodies]]\nshape = 'box'\nmaterial = 'soft'\ncenter = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\n"
+    scene = tmp_path / "s.toml"
+    scene.write_text(line + ("" if "materials" in line else "[materials.soft]\npreset = 'dough'\n") + body)
+    assert_one_line_error(refused_run(capsys, scene, tmp_path / "x.usdc"), "s.toml: " + shown)
+    assert sorted(os.listdir(tmp_path)) == ["s.toml"]
 
 
 def test_a_number_read_as_typed_computes_as_its_float():

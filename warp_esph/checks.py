@@ -13,6 +13,7 @@ import os
 import re
 import stat
 import struct
+import sys
 import unicodedata
 import zipfile
 import zlib
@@ -107,6 +108,16 @@ def read_number(text: str) -> float:
         if exact.is_finite() and exact != 0:
             return TypedNumber(v, str(text).strip())
     return v
+
+
+def unheld(value) -> str | None:
+    """Why a number ``read_number`` read is not the number typed (a ``TypedNumber``: ``1e-400``
+    reads as 0.0, ``1e400`` as inf); None where a float holds it."""
+    if not isinstance(value, TypedNumber):
+        return None
+    if value == 0.0:
+        return "it is not 0, but no float holds this number: it reads as 0.0 (the smallest float above 0 is 5e-324)"
+    return f"no float holds this number: it reads as {float(value)} (the largest float is {sys.float_info.max:.4g})"
 
 
 def number(name: str, value, *, allow_inf: bool = False) -> float:

@@ -68,6 +68,21 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be a number") from None
 
 
+#: The options whose 0 means off: a number typed that reads as 0.0 would have turned them off.
+ZERO_IS_OFF = {"--hourglass": "off (no hourglass control)", "--jitter": "off (the lattice as written)"}
+
+
+def refuse_underflow(flag: str, value) -> None:
+    """Refuse a number typed that is not 0 but reads as 0.0 (``1e-400``, a ``TypedNumber``):
+    it was taken as 0 without a word (``--hourglass 1e-400`` ran with the control off)."""
+    from .checks import shorten, unheld  # noqa: PLC0415
+
+    if unheld(value) and value == 0.0:
+        off = ZERO_IS_OFF.get(flag)
+        raise ValueError(f"{flag} = {shorten(value)} is not allowed: {unheld(value)}"
+                         + (f"; {flag} 0 is {off}: give 0 for that" if off else ""))
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse that reports a usage error as one line and lets ``main`` exit 2; a value that is
     no number, or none of the names allowed, is said as every other refused value is,
@@ -84,6 +99,17 @@ class _Parser(argparse.ArgumentParser):
         # by name. No option of the CLI looks like a number, so every such word is a value.
         self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$",
                                                    re.IGNORECASE)
+
+    def _get_value(self, action, arg_string):
+        value = super()._get_value(action, arg_string)
+        # Every number option's converter (_number, --dt's) reads a number no float holds as a
+        # TypedNumber: one that underflowed to 0.0 is refused here, where the option is known.
+        if action.option_strings:
+            try:
+                refuse_underflow(action.option_strings[-1], value)
+            except ValueError as e:
+                raise argparse.ArgumentError(action, str(e)) from None
+        return value
 
     def _check_value(self, action, value):
         if action.choices is not None and value not in action.choices:
@@ -249,10 +275,13 @@ def _solver_options(args) -> dict:
 
 def _hourglass_arg(text) -> float:
     """``--hourglass`` as a number >= 0 (argparse's own type error would print the usage too)."""
+    from .checks import read_number  # noqa: PLC0415
+
     try:
-        value = float(text)
+        value = read_number(text)
     except (TypeError, ValueError):
         value = float("nan")
+    refuse_underflow("--hourglass", value)
     shown = _as_typed(text)
     from .checks import HOURGLASS_LIMIT, MAX_HOURGLASS  # noqa: PLC0415
 
@@ -1162,8 +1191,10 @@ def add_fit_arguments(parser):
 def _cloud_offset(text):
     if str(text).strip().lower() == "surface":
         return "surface"
+    from .checks import read_number  # noqa: PLC0415
+
     try:
-        value = float(text)
+        value = read_number(text)  # 1e-400 (0.0) refused by name in _Parser._get_value
     except ValueError:
         value = None
     if value is None or not (value >= 0.0 and math.isfinite(value)):
@@ -1182,16 +1213,23 @@ def _checkpoint_every(text):
 
 
 def _parse_bounds(items) -> dict:
+    from .checks import read_number, shorten, unheld  # noqa: PLC0415
+
     out = {}
     for item in items or []:
         try:
             name, rng = item.split("=", 1)
             lo, hi = rng.split(":", 1)
-            lo, hi, name = float(lo), float(hi), name.strip()
+            lo, hi, name = read_number(lo), read_number(hi), name.strip()
             if not name:
                 raise ValueError
         except ValueError:
             raise ValueError(f"--bounds {_typed(item)!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
+        for end in (lo, hi):
+            # 1e-400 was taken as the bound 0, 1e400 as inf, an open end.
+            if unheld(end):
+                raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {shorten(end)}: {unheld(end)}; write "
+                                 + ("0 where 0 is meant" if end == 0.0 else "inf or -inf for an open end"))
         if name in out:
             # The last one silently won.
             raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "

@@ -262,6 +262,15 @@ def _did_you_mean(key: str, allowed) -> str:
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
+def _unheld_in(value):
+    """The first number in ``value`` (a key's value: a number, an array, an inline table) that
+    no float holds as written (``checks.unheld``), else None."""
+    if checks.unheld(value):
+        return value
+    items = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+    return next((found for found in map(_unheld_in, items) if found is not None), None)
+
+
 def _check_table(file: str, where: str, table, schema: dict) -> dict:
     """Reject unknown keys, missing required keys and wrongly typed values."""
     if not isinstance(table, dict):
@@ -273,6 +282,13 @@ def _check_table(file: str, where: str, table, schema: dict) -> dict:
                 f"(allowed keys: {', '.join(schema)})"
             )
         kind, _ = schema[key]
+        typed = _unheld_in(value)
+        if typed is not None:
+            # 1e-400 was read as 0.0 (hourglass 0: off), 1e400 as inf (an inf-allowed key's "never").
+            off = ("; 0 is off: write 0 for that" if key == "hourglass" and typed == 0.0 else
+                   "; write inf where inf is meant" if getattr(kind, "allow_inf", False) and typed != 0.0 else "")
+            raise ValueError(f"{file}: key {key!r} in {where}: {checks.shorten(typed)} is not allowed: "
+                             f"{checks.unheld(typed)}{off}")
         if not kind.check(value):
             raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
     for key, (_, required) in schema.items():
@@ -555,7 +571,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         raise ValueError(f"cannot read scene file {file!r}: reading TOML needs Python >= 3.11 or the tomli package")
     try:
         with open(file, "rb") as fh:
-            data = tomllib.load(fh)
+            # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
+            data = tomllib.load(fh, parse_float=checks.read_number)
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{file}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:

@@ -138,9 +138,11 @@ class Param:
 
 def _number(name: str, spec: str, text: str, what: str) -> float:
     try:
-        v = float(text)
+        v = checks.read_number(text)
     except ValueError:
         raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be a number") from None
+    if checks.unheld(v):  # 1e-400 was swept as 0
+        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(v)} is not allowed: {checks.unheld(v)}")
     if not math.isfinite(v):
         raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be finite")
     return v
