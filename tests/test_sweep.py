@@ -202,6 +202,28 @@ def test_a_python_caller_s_ray_refusals_name_the_parameter_not_the_option(monkey
         parallel_map(abs, [(1,)], ray="auto")
 
 
+def test_a_worker_count_with_ray_and_ray_resources_without_it_are_refused(tmp_path, monkeypatch, capsys):
+    """Each was taken and ignored: with a Ray address the cluster runs one task per item, so
+    ``workers`` (``--workers``) counted nothing; without one, ``ray_resources`` asked nobody.
+    Refused before any connection (the address here answers nothing)."""
+    from warp_esph.sweep import parallel_map
+
+    said = ("is not allowed with {r} = '127.0.0.1:1': the Ray cluster runs one task per item on its own cores, and {w} "
+            "counts the processes on this machine; give one of them")
+    with pytest.raises(ValueError, match="^workers = 2 " + re.escape(said.format(w="workers", r="ray")) + "$"):
+        parallel_map(abs, [(1,)], workers=2, ray="127.0.0.1:1")
+    with pytest.raises(ValueError, match="^workers = 2 " + re.escape(said.format(w="workers", r="ray")) + "$"):
+        sweep(_box(), ["mu=1e3,1e4"], frames=1, workers=2, ray="127.0.0.1:1")
+    with pytest.raises(ValueError, match=r"^ray_resources = \{'num_cpus': 2\} is not allowed without ray: it is what each "
+                                         r"Ray task asks the cluster for, and without ray the items run in processes here$"):
+        parallel_map(abs, [(1,)], workers=1, ray_resources={"num_cpus": 2})
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["sweep", "dough_drop", "--param", "mu=1e3,2e3", "--workers", "2", "--ray", "127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert err == "warp-esph: error: --workers = 2 " + said.format(w="--workers", r="--ray") + "\n", err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path, monkeypatch):
     """Ray's refusal of 'auto' with no cluster running advises its own command line's
     '`--address` flag', which warp-esph has not; the line says what --ray takes instead.

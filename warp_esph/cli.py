@@ -333,7 +333,7 @@ def _add_sweep_parser(sub) -> None:
     sw.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     sw.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     sw.add_argument("-o", "--output", metavar="FOLDER", help="output folder (default: sweep_<scene>)")
-    sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core)")
+    sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core; not with --ray, whose cluster places the samples)")
     sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
     sw.add_argument("--resume", action="store_true",
                     help="keep the samples of the table in the output folder (a stopped run of this same sweep) and "

@@ -921,6 +921,15 @@ _DIED_ALONE = ("a worker process died running this item alone (a crash in native
                "it may run with more memory or fewer workers")
 
 
+def _refuse_workers_with_ray(workers, ray, workers_name: str, ray_name: str) -> None:
+    """Refuse a worker count given with a Ray address: Ray places the items, one task each, on
+    the cluster's cores, and the count was ignored without a word."""
+    if workers is not None and ray is not None:
+        raise ValueError(f"{workers_name} = {checks.shorten(workers)!r} is not allowed with {ray_name} = "
+                         f"{checks.shorten(ray)!r}: the Ray cluster runs one task per item on its own cores, and "
+                         f"{workers_name} counts the processes on this machine; give one of them")
+
+
 def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = None, ray: str | None = None,
                  on_result: Callable | None = None, on_error: Callable | None = None,
                  ray_resources: Mapping | None = None) -> list:
@@ -934,6 +943,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
       (``"auto"``, ``"ray://host:10001"``, ...); a Ray session already started in this
       process (``ray.init``) is used as it is and left running; one started here is shut
       down at the end. Needs ``pip install warp-esph[ray]`` and warp-esph on every node.
+      ``workers`` with ``ray`` is refused, and so is ``ray_resources`` without it (each was ignored).
 
     ``fn`` must be importable by name (a module-level function) and ``items`` picklable
     (with worker processes: one that is not is refused before any item runs); each item is
@@ -964,6 +974,11 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         if isinstance(item, (str, bytes)) or not isinstance(item, (tuple, list)):
             raise ValueError(f"items[{i}] = {checks.shorten(item)!r} is not allowed: each item must be a tuple of "
                              f"fn's arguments (e.g. ({checks.shorten(item)!r},))")
+    _refuse_workers_with_ray(workers, ray, "workers", "ray")
+    if ray_resources is not None and ray is None:
+        # Read only by the Ray tasks: the items ran in processes here as without it.
+        raise ValueError(f"ray_resources = {checks.shorten(ray_resources)!r} is not allowed without ray: it is what each "
+                         "Ray task asks the cluster for, and without ray the items run in processes here")
     if ray is not None:
         return _ray_map(fn, items, ray, on_result, on_error, ray_resources)
     if workers is None:
@@ -1313,6 +1328,7 @@ def sweep(
                          "the draws of sample = 'random' and 'lhs' and the sample seeds handed to extra, and a grid "
                          "without extra reads neither")
     seed = 0 if seed is None else seed
+    _refuse_workers_with_ray(workers, ray, "workers", "ray")
     # Before the plan, which builds the scene: a flag needs no model to be refused.
     retry_failed = checks.boolean("retry_failed", retry_failed)
     plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
@@ -1940,6 +1956,7 @@ def sweep_cli(args, out=None) -> int:
         # column function, the only user of the samples' seeds).
         raise ValueError(f"--seed = {checks.shorten(args.seed)!r} is not allowed with --sample grid: it seeds the draws of --sample "
                          "random and lhs, and a grid draws nothing")
+    _refuse_workers_with_ray(args.workers, args.ray, "--workers", "--ray")
     # Every task holds the plan's scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
                  args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray, options)
