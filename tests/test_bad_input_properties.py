@@ -1224,6 +1224,22 @@ def test_a_monitor_exemption_of_a_0d_array_is_refused_by_name():
     we.simulate(model, 1, monitor_exempt=np.array(["blk"]), progress=False)
 
 
+def test_the_monitor_s_options_without_the_monitor_are_refused():
+    """``simulate(monitor=False, monitor_exempt=[...])`` (or ``monitor_origin=``) ran as without
+    them: only the divergence monitor reads them. Refused before any step."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="blk")
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"^monitor_exempt = \['blk'\] is not allowed with monitor = False: it names the "
+                                         r"bodies the divergence monitor's bounds leave out, and the monitor is off$"):
+        we.simulate(model, 1, monitor=False, monitor_exempt=["blk"], progress=False)
+    with pytest.raises(ValueError, match=r"^monitor_origin is not allowed with monitor = False: it is the state whose "
+                                         r"bounds the divergence monitor keeps, and the monitor is off$"):
+        we.simulate(model, 1, monitor=False, monitor_origin=model.state(requires_grad=False), progress=False)
+    state = we.simulate(model, 1, monitor=False, monitor_exempt=[], progress=False)  # nothing named: nothing ignored
+    assert np.isfinite(state.x.numpy()).all()
+
+
 def test_a_monitor_exemption_or_a_tool_scale_of_an_array_is_refused_by_name():
     """A 2-D array of exemptions, or an array given as a primitive tool's ``scale`` (a mesh
     tool's alone), met a comparison with numpy's 'The truth value of an array with more than

@@ -1433,7 +1433,8 @@ def simulate(
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``'s bounds,
       then ``energy_growth`` from the monitor's state, at every frame, the tools' work counted;
       beside a ``Scripted`` tool its speed read from the poses the steps evaluated);
-      ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
+      ``False`` keeps only the check for non-finite values (and refuses ``monitor_exempt``
+      and ``monitor_origin``, which only the monitor reads). ``monitor_exempt``: names of
       bodies its bounds leave out (``Scene.diverges``: a body a scene shows blowing up); a
       non-finite position or velocity in them still stops the run, as ``fit`` fails the trial.
       ``monitor_origin``: the state of frame 0 whose bounds the monitor keeps, the time
@@ -1471,6 +1472,14 @@ def simulate(
                              f"last frame's index, start_frame + frames, must be at most 2**53 = {MAX_FRAME_INDEX} (a "
                              "frame's USD time code is a double, which holds every integer only up to it)")
         monitor = checks.boolean("monitor", monitor)
+        if not monitor:
+            # Read by the monitor alone: with it off they were taken and ignored without a word.
+            if exempt_bodies(monitor_exempt, [b.name for b in model.bodies]):
+                raise ValueError(f"monitor_exempt = {checks.shorten(monitor_exempt)!r} is not allowed with monitor = False: "
+                                 "it names the bodies the divergence monitor's bounds leave out, and the monitor is off")
+            if monitor_origin is not None:
+                raise ValueError("monitor_origin is not allowed with monitor = False: it is the state whose bounds the "
+                                 "divergence monitor keeps, and the monitor is off")
         progress = checks.boolean("progress", progress)  # 'no' drew the bar
         fps = checks.positive("fps", fps)
         # The stable step follows the control the solver runs (a given solver's own).
