@@ -217,7 +217,8 @@ def _build_parser() -> _Parser:
     ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
     ren.add_argument("--particles", "--no-surface", dest="particles", action="store_true",
                      help="draw particles even where the file holds surface meshes ('run --surface'); "
-                          "by default a body with a surface is drawn as that surface")
+                          "by default a body with a surface is drawn as that surface (a file without any is drawn as "
+                          "particles either way)")
 
     exp = sub.add_parser("export", help="write particle frames of a USD output as .vtu or .ply files (meshio)",
                          description="Write the particles of each frame of a warp-esph USD file as a .vtu or .ply file "
