@@ -454,7 +454,10 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None
-    assert onset == pytest.approx(e_yield, rel=0.05)
+    # The stretch is affine, which the fit reproduces to round-off: the flow first runs at the
+    # first strain of the increments past e_Y (0.0184 for e_Y = 0.018371), one increment (1.1 %
+    # of e_Y) being the measurement's resolution.
+    assert e_yield < onset <= e_yield + de, (onset, e_yield)
 
 
 def test_elastic_kernel_integrates_to_one_and_gradient_matches():
