@@ -485,6 +485,43 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
 
 
 @pytest.mark.parametrize("fused", [True, False])
+def test_the_papers_force_is_eqs_10_to_13_summed_in_numpy(fused):
+    """The paper's force at a deformed, jittered state (``F`` up to 15 % from ``I``) is eqs. 10-13
+    summed over each particle's row in NumPy, ``g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))``
+    added to ``j`` and taken from ``i``, with the stress and ``F`` the step read and eq. 12's
+    gradient ``-c cos(pi r / 2h) r / |r|`` (``smoothing.elastic_kernel_constant``); measured
+    6.6e-16 of the largest force. The other tests of this file ask only that it is not the
+    variational force: a paper's force 10 % too large (``forces.elastic_pair_force``) passed the
+    four of them tried and the 53 of tests/test_shared_formulas.py and tests/test_physics.py
+    that ran."""
+    from warp_esph.sim.smoothing import elastic_kernel_constant
+
+    model = _cube((3, 3, 3), "paper")
+    n, h = model.particle_count, model.support_radius
+    rng = np.random.default_rng(5)
+    solver = we.Solver(model, fused=fused, hourglass=0.0)
+    a, c = model.state(), model.state()
+    x = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
+    a.x.assign(x)
+    a.F.assign(np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3)))
+    solver.step(a, c, 1.0e-9)
+    P, F_inv, V = c.stress.numpy(), np.linalg.inv(c.F_flowed.numpy()), model.particle_volume.numpy()
+    nbr, count = c.neighbors.numpy(), c.neighbor_count.numpy()
+    f = np.zeros((n, 3))
+    for i in range(n):
+        for j in nbr[i, : count[i]]:
+            r = F_inv[i] @ (x[j] - x[i])
+            rl = np.linalg.norm(r)
+            if 0.0 < rl < h:
+                g = V[i] * V[j] * P[i] @ (-elastic_kernel_constant(h) * np.cos(np.pi * rl / (2.0 * h)) * r / rl)
+                f[j] += g
+                f[i] -= g
+    assert np.abs(f).max() > 0.0
+    err = np.abs(c.force.numpy() - f).max() / np.abs(f).max()
+    assert err < 1e-13, err
+
+
+@pytest.mark.parametrize("fused", [True, False])
 def test_guarded_particles_apply_no_variational_force(fused):
     """A one-layer sheet: every fit is ill-conditioned or has too few neighbours, so every F is kept whatever the
     positions do, the energy has no gradient and the variational force is zero; the paper's
