@@ -303,8 +303,10 @@ def beam4(run_once):
 def test_beam_with_the_papers_linear_fit_is_too_soft(beam4):
     """``Solver(fit="linear")``, the fit plastic models run: measured 1.357 x Timoshenko at 4
     thick against the default's 1.057 (6 thick: 1.159 against 1.033; docs/physics.md,
-    "Bending stiffness": the one-sided fits at the free surfaces)."""
-    r = validation.beam_deflection(resolution=4, fit="linear", **BEAM)
+    "Bending stiffness": the one-sided fits at the free surfaces). Read after 2 periods of the
+    relaxation, not 3: only the ratio is asserted, 1.3578 there against 1.3574 at 3 periods
+    (the curvature-corrected fit in its place, the mutation, reads 1.061 and fails it)."""
+    r = validation.beam_deflection(resolution=4, fit="linear", periods=2.0, **BEAM)
     assert not r["blew_up"] and r["fit"] == "linear" and r["rest_model_steps"] == 0
     assert r["ratio"] > 1.25, r["ratio"]
     assert r["ratio"] > beam4["ratio"] + 0.2, (r["ratio"], beam4["ratio"])
@@ -321,8 +323,10 @@ def test_beam_deflection_converges_with_thickness_variational(beam4, beam6):
 
 def test_beam_deflection_with_the_curvature_corrected_fit_alone():
     """``Solver(fit="curvature_corrected")`` without the control (an explicit fit runs no
-    control unless asked): measured 1.061 at 4 thick (1.058 with the default's control)."""
-    r = validation.beam_deflection(resolution=4, fit="curvature_corrected", **BEAM)
+    control unless asked): measured 1.061 at 4 thick (1.058 with the default's control), after
+    2 periods of the relaxation as after 3 (1.0608, 1.0610; the linear fit in its place, the
+    mutation, reads 1.358 and fails it)."""
+    r = validation.beam_deflection(resolution=4, fit="curvature_corrected", periods=2.0, **BEAM)
     assert r["fit"] == "curvature_corrected" and r["hourglass"] == 0.0
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
