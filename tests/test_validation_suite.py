@@ -296,8 +296,9 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
 
 @pytest.fixture(scope="module")
 def beam4(run_once):
-    """The default solver, 4 thick."""
-    return run_once("validation-beam4", lambda: validation.beam_deflection(resolution=4, **BEAM))
+    """The default solver, 4 thick, over 2 periods of the relaxation (its tests read only the
+    ratio: 1.0569 x Timoshenko, 1.0572 over 3 periods; 1.0577 over 1.5)."""
+    return run_once("validation-beam4", lambda: validation.beam_deflection(resolution=4, periods=2.0, **BEAM))
 
 
 def test_beam_with_the_papers_linear_fit_is_too_soft(beam4):
