@@ -632,7 +632,8 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
     solver = we.Solver(model, min_neighbors=10 if case == "guarded" else MIN_NEIGHBORS)
     solver.hand_adjoints = hand_adjoints
     assert solver.rest_model
-    states = [model.state() for _ in range(STEPS + 1)]
+    untaped = not grad_of and hand_adjoints  # a central difference's run: no tape
+    states = [model.state(requires_grad=False)] if untaped else [model.state() for _ in range(STEPS + 1)]
     x = model.particle_x0 @ {"strained": REST_STRAIN, "stretched": REST_STRETCH,
                              "inverted": REST_INVERSION}.get(case, np.eye(3)).T
     v = model.particle_v0.copy()
@@ -642,6 +643,8 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
         v[dv[0], dv[1]] += dv[2]
     states[0].x.assign(x)
     states[0].v.assign(v)
+    if untaped:
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights)
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if case == "inverted":
         # Inverted all the way, clear of det = 0 (where the continued energy's stress has a kink).
@@ -666,6 +669,8 @@ def test_rest_models_hand_written_adjoints_match_central_differences(weights, ca
     ``guarded``, on the ground in ``contact``; an interior particle, 41), all four from one
     taped run."""
     loss, grads = _rest_case_loss(case, weights, grad_of=("mu", "lam", "v0", "x0"))
+    # The central differences' runs, untaped, difference the taped rollout's loss: to the bit.
+    assert _rest_case_loss(case, weights) == loss
     for name in ("v0", "x0"):
         key = "dv" if name == "v0" else "dx"
         eps = 1e-6 if name == "v0" else 1e-7
@@ -722,7 +727,8 @@ def _handover_loss(weights, dF=None, dx=None, grad=False):
     model = _elastic_model()
     solver = we.Solver(model)
     assert solver.rest_model
-    states = [model.state() for _ in range(STEPS + 1)]
+    # A central difference's run without a tape.
+    states = [model.state() for _ in range(STEPS + 1)] if grad else [model.state(requires_grad=False)]
     n = model.particle_count
     shear = np.eye(3)
     shear[0, 1], shear[2, 0] = 0.04, -0.03
@@ -735,9 +741,9 @@ def _handover_loss(weights, dF=None, dx=None, grad=False):
     states[0].F.assign(F)
     states[0].x.assign(x)
     states[0].rest_model = False
-    loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if not grad:
-        return loss.numpy()[0]
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights)
+    loss, tape = taped_rollout_loss(solver, states, DT, weights)
     # Handed over: the rest shape F_p = F^-1 G(x) carries the stored F's departure from the fit.
     assert np.abs(states[1].F_p.numpy() - np.eye(3)).max() > 0.02
     tape.backward(loss)
@@ -750,6 +756,7 @@ def test_gradient_through_the_rest_models_hand_over_matches_central_differences(
     the loss in the first state's ``F`` and ``x`` through that hand-over, the rest model's
     steps after it, and its ``F_p``, against central differences (float64)."""
     loss, gF, gx = _handover_loss(weights, grad=True)
+    assert _handover_loss(weights) == loss  # the untaped runs' loss is the taped one's, to the bit
     for i, a, b in [(7, 0, 1), (20, 2, 0), (33, 1, 1)]:
         eps = 1e-6
         fd = (_handover_loss(weights, dF=(i, a, b, eps)) - _handover_loss(weights, dF=(i, a, b, -eps))) / (2 * eps)
