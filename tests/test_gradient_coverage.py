@@ -2,7 +2,9 @@
 gradient test takes: each at rest on its floor (F = I, every singular value repeated, the
 contact law holding the block) and thrown into it (strained, sliding, pressed), at two steps
 a hundred times apart, the larger one large enough that a jump in the loss would show, and
-the hand-written adjoints against Warp's generated ones (``Solver.hand_adjoints``).
+the hand-written adjoints against Warp's generated ones (``Solver.hand_adjoints``). (The plastic
+block at rest on the slip ghost floor is ``test_gradients.py``'s ``AT_REST`` case, the same
+rollout: ``CHECKED_ELSEWHERE``.)
 
 Where the other combinations are checked (float64 central differences of a taped rollout):
 
