@@ -2133,7 +2133,8 @@ def test_a_number_typed_that_reads_as_0_or_as_an_open_end_is_refused(argv, shown
 
 
 @pytest.mark.parametrize("line, shown", [
-    ("[solver]\nhourglass = 1e-400\n", f"key 'hourglass' in [solver]: 1e-400 {UNDERFLOW}; 0 is off: write 0 for that"),
+    ("[solver]\nhourglass = 1e-400\n",
+     f"key 'hourglass' in [solver]: 1e-400 {UNDERFLOW}; hourglass = 0 is off (no hourglass control): write 0 for that"),
     ("[materials.soft]\npreset = 'dough'\nyield_stress = 1e400\n",
      "key 'yield_stress' in [materials.soft]: 1e400 is not allowed: no float holds this number: it reads as inf (the "
      "largest float is 1.798e+308); write inf where inf is meant"),
@@ -2146,6 +2147,24 @@ def test_a_number_no_float_holds_in_a_scene_file_is_refused(line, shown, tmp_pat
     scene = tmp_path / "s.toml"
     scene.write_text(line + ("" if "materials" in line else "[materials.soft]\npreset = 'dough'\n") + body)
     assert_one_line_error(refused_run(capsys, scene, tmp_path / "x.usdc"), "s.toml: " + shown)
+    assert sorted(os.listdir(tmp_path)) == ["s.toml"]
+
+
+def test_the_advice_for_a_0_that_is_off_comes_from_one_table(tmp_path, monkeypatch, capsys):
+    """The command line's --hourglass and a scene file's [solver] hourglass said what 0 turns
+    off from two copies of the same words (cli.ZERO_IS_OFF and an inline advice in the scene
+    file's checks): both now read checks.ZERO_IS_OFF."""
+    from warp_esph import checks
+
+    monkeypatch.setitem(checks.ZERO_IS_OFF, "hourglass", "off (the table's words)")
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--hourglass", "1e-400", "-o", "x.usdc"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "; --hourglass 0 is off (the table's words): give 0 for that")
+    scene = tmp_path / "s.toml"
+    scene.write_text("[solver]\nhourglass = 1e-400\n[materials.soft]\npreset = 'dough'\n[[bodies]]\nshape = 'box'\n"
+                     "material = 'soft'\ncenter = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\n")
+    assert_one_line_error(refused_run(capsys, scene, tmp_path / "x.usdc"),
+                          "; hourglass = 0 is off (the table's words): write 0 for that")
     assert sorted(os.listdir(tmp_path)) == ["s.toml"]
 
 

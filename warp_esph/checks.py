@@ -120,6 +120,31 @@ def unheld(value) -> str | None:
     return f"no float holds this number: it reads as {float(value)} (the largest float is {sys.float_info.max:.4g})"
 
 
+#: The parameters whose 0 is off, by name (the commands' ``--hourglass`` and ``--jitter``, a
+#: scene file's ``[solver] hourglass``), and what 0 is: a number typed that is not 0 but reads
+#: as 0.0 (``1e-400``) turned them off without a word.
+ZERO_IS_OFF = {"hourglass": "off (no hourglass control)", "jitter": "off (the lattice as written)"}
+
+
+def unheld_refusal(value, param: str = "", *, zero: str = "", inf: str = "") -> str | None:
+    """What follows 'is not allowed: ' in the refusal of ``value`` where it is a number typed
+    that no float holds (``unheld``), else None: why, and the advice. For a number read as 0.0
+    of a parameter ``ZERO_IS_OFF`` names (``param`` as the user wrote it: ``--hourglass`` on a
+    command line, ``hourglass`` in a scene file), what 0 is and to give it; else ``zero`` (read
+    as 0.0) or ``inf`` (read as inf), where 0 or inf is a value of its own ('' for none)."""
+    why = unheld(value)
+    if why is None:
+        return None
+    if value != 0.0:
+        return why + (f"; {inf}" if inf else "")
+    off = ZERO_IS_OFF.get(param.lstrip("-").replace("-", "_"))
+    if off:
+        # As the user writes the parameter: '--hourglass 0' on a command line, 'hourglass = 0' in a file.
+        option = param.startswith("-")
+        zero = f"{param}{' ' if option else ' = '}0 is {off}: {'give' if option else 'write'} 0 for that"
+    return why + (f"; {zero}" if zero else "")
+
+
 def number(name: str, value, *, allow_inf: bool = False) -> float:
     """A real number (bools, strings and NaN rejected); ``inf`` only when ``allow_inf``."""
     if type(value) is float:

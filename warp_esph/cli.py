@@ -68,19 +68,15 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{_typed(text)!r} is not allowed: must be a number") from None
 
 
-#: The options whose 0 means off: a number typed that reads as 0.0 would have turned them off.
-ZERO_IS_OFF = {"--hourglass": "off (no hourglass control)", "--jitter": "off (the lattice as written)"}
-
-
 def refuse_underflow(flag: str, value) -> None:
     """Refuse a number typed that is not 0 but reads as 0.0 (``1e-400``, a ``TypedNumber``):
-    it was taken as 0 without a word (``--hourglass 1e-400`` ran with the control off)."""
-    from .checks import shorten, unheld  # noqa: PLC0415
+    it was taken as 0 without a word (``--hourglass 1e-400`` ran with the control off). One
+    read as inf is left to the option's own check, which says it overflows."""
+    from .checks import shorten, unheld_refusal  # noqa: PLC0415
 
-    if unheld(value) and value == 0.0:
-        off = ZERO_IS_OFF.get(flag)
-        raise ValueError(f"{flag} = {shorten(value)} is not allowed: {unheld(value)}"
-                         + (f"; {flag} 0 is {off}: give 0 for that" if off else ""))
+    why = unheld_refusal(value, flag) if value == 0.0 else None
+    if why:
+        raise ValueError(f"{flag} = {shorten(value)} is not allowed: {why}")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -1214,7 +1210,7 @@ def _checkpoint_every(text):
 
 
 def _parse_bounds(items) -> dict:
-    from .checks import read_number, shorten, unheld  # noqa: PLC0415
+    from .checks import read_number, shorten, unheld_refusal  # noqa: PLC0415
 
     out = {}
     for item in items or []:
@@ -1228,9 +1224,9 @@ def _parse_bounds(items) -> dict:
             raise ValueError(f"--bounds {_typed(item)!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
         for end in (lo, hi):
             # 1e-400 was taken as the bound 0, 1e400 as inf, an open end.
-            if unheld(end):
-                raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {shorten(end)}: {unheld(end)}; write "
-                                 + ("0 where 0 is meant" if end == 0.0 else "inf or -inf for an open end"))
+            why = unheld_refusal(end, zero="write 0 where 0 is meant", inf="write inf or -inf for an open end")
+            if why:
+                raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {shorten(end)}: {why}")
         if name in out:
             # The last one silently won.
             raise ValueError(f"--bounds {_typed(item)!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "

@@ -285,10 +285,8 @@ def _check_table(file: str, where: str, table, schema: dict) -> dict:
         typed = _unheld_in(value)
         if typed is not None:
             # 1e-400 was read as 0.0 (hourglass 0: off), 1e400 as inf (an inf-allowed key's "never").
-            off = ("; 0 is off: write 0 for that" if key == "hourglass" and typed == 0.0 else
-                   "; write inf where inf is meant" if getattr(kind, "allow_inf", False) and typed != 0.0 else "")
-            raise ValueError(f"{file}: key {key!r} in {where}: {checks.shorten(typed)} is not allowed: "
-                             f"{checks.unheld(typed)}{off}")
+            why = checks.unheld_refusal(typed, key, inf="write inf where inf is meant" if getattr(kind, "allow_inf", False) else "")
+            raise ValueError(f"{file}: key {key!r} in {where}: {checks.shorten(typed)} is not allowed: {why}")
         if not kind.check(value):
             raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
     for key, (_, required) in schema.items():

@@ -141,8 +141,9 @@ def _number(name: str, spec: str, text: str, what: str) -> float:
         v = checks.read_number(text)
     except ValueError:
         raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be a number") from None
-    if checks.unheld(v):  # 1e-400 was swept as 0
-        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(v)} is not allowed: {checks.unheld(v)}")
+    why = checks.unheld_refusal(v)
+    if why:  # 1e-400 was swept as 0
+        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(v)} is not allowed: {why}")
     if not math.isfinite(v):
         raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be finite")
     return v
