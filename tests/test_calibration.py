@@ -1393,6 +1393,41 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
     assert not (tmp_path / "o").exists()
 
 
+def test_a_target_frame_range_outside_an_npz_s_frames_is_refused_before_any_kernel(tmp_path, capsys, dough_scene,
+                                                                                      monkeypatch):
+    """--target-frames 0:6 of an .npz storing frames 2, 4, 6 was cut at frame 2 without a word
+    (as 2:10 was at 6 before its end was checked), and the Python API's load_target ignored
+    frames= for an .npz: both refuse a range starting before (or ending after) the stored
+    frames, naming them, before any kernel is launched."""
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    def no_kernel(*args, **kwargs):
+        raise AssertionError("a kernel was launched before the refusal")
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.zeros((3, 64, 3)), frames=[2, 4, 6], fps=30.0)
+    monkeypatch.setattr(wp, "launch", no_kernel)
+    held = f"it holds 3 frames, 2..6; the target {target} holds frames 2, 4, 6"
+    for spec, said in (("0:6", f"'0:6' starts before the file's first frame, 2: {held.replace('; the', '; start the range at 2 or leave its start out; the')}"),
+                       ("4:10", f"'4:10' runs past the file's last frame, 6: {held.replace('; the', '; end the range at 6 or leave its end out; the')}")):
+        assert main(["fit", str(guess), "--target", str(target), "--target-frames", spec, "--params", "yield_stress",
+                     "--iterations", "0", "--no-progress", "--output-dir", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"warp-esph: error: --target-frames = '{spec}' is not allowed: {said} (-N counts frame numbers back "
+                       "from the last)"]
+        with pytest.raises(ValueError, match=re.escape(f"frames = '{spec}' is not allowed: {said}")):
+            load_target(target, frames=spec)
+    assert not (tmp_path / "out").exists()
+    assert load_target(target, frames="4:").frames == [4, 6] and load_target(target, frames=[6, 2]).frames == [6, 2]
+    np.save(tmp_path / "plain.npy", np.zeros((3, 64, 3)))
+    with pytest.raises(ValueError, match=r"^frames = '0:1' is not allowed with the target .*plain\.npy: it chooses among "
+                                         r"the frames a file stores, and this one stores none"):
+        load_target(tmp_path / "plain.npy", frames="0:1")
+
+
 def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, dough_scene, monkeypatch):
     """An .npz that stores its 'frames' had them renumbered by --target-frames: frames 2, 4, 6
     given '1,2,3' fitted frame 2's positions at frame 1 (and so on), exit 0, while '2,6'

@@ -199,6 +199,15 @@ def test_parse_frames():
         with pytest.raises(ValueError, match=rf"^frames = '{late}' is not allowed: '{late.split(',')[-1]}' starts past the "
                                              r"file's last frame, 10: it holds 11 frames, 0\.\.10$"):
             parse_frames(late, have)
+    # A range starting before the first frame was cut there without a word, as one past the end was.
+    for early in ("0:6", ":6,0:4:2", "1:"):
+        with pytest.raises(ValueError, match=rf"^frames = '{early}' is not allowed: '{early.split(',')[-1]}' starts before the "
+                                             r"file's first frame, 2: it holds 5 frames, 2\.\.6; start the range at 2 or leave "
+                                             r"its start out$"):
+            parse_frames(early, [2, 3, 4, 5, 6])
+    with pytest.raises(ValueError, match=r"^frames = '-20:' is not allowed: '-20:' counts back past the first frame "
+                                         r"\(the file holds 0\.\.10, so -1 to -11\)$"):
+        parse_frames("-20:", have)
     for bad in ("11", "x", "0:10:0", "", "1:2:3:4", "-0", "-0:5"):  # -0: frame 0 or the end? (read as 0)
         with pytest.raises(ValueError, match="frames"):
             parse_frames(bad, have)

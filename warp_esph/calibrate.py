@@ -668,6 +668,34 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}{key('target_frames')} is given {len(tframes)} times for {len(targets)} "
                          f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
     coverages, coverage_name = _coverages(spec, args, where, len(targets), key)
+    cameras = spec.get("cameras")
+    fspecs = [tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None) for k in range(len(targets))]
+
+    def read(path, fspec):
+        ext = os.path.splitext(str(path))[1].lower()
+        usd = ext in (".usd", ".usda", ".usdc")
+        # --target-body picks a body of a run's USD; the other targets of the experiment (a force
+        # log beside it) take none (refused below where no target is such a USD).
+        # load_target's frames are the command's --target-frames: 'frames' named no option (an
+        # experiment's refusal is prefixed with its name by the caller).
+        t = load_target(path, body=spec.get("target_body") if usd else None, frames=fspec if usd else None,
+                        tool=spec.get("target_tool"), frames_name=key("target_frames"))
+        if fspec is not None and not usd and t.frames_stored:
+            # The file numbers its frames: --target-frames chooses among them, as of a run's USD
+            # (all, last, A:B:STEP, ...; it renumbered them: frame 2's positions were fitted at
+            # frame 1, exit 0).
+            from .fit import choose_stored_frames  # noqa: PLC0415
+
+            try:
+                choose_stored_frames(t, fspec, key("target_frames"))
+            except ValueError as e:
+                raise ValueError(f"{where}{e}") from None
+        return t
+
+    # A target whose frames are chosen is read first: the choice is refused before the scene's
+    # checks launch their kernels (a range past the frames an .npz stores was found after them).
+    early = {k: read(path, fspecs[k]) for k, path in enumerate(targets)
+             if not cameras and fspecs[k] is not None and os.path.isfile(path)}
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
@@ -683,12 +711,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
     jitter_model(model, jitter, _arg(args, "seed", 5))
 
-    cameras = spec.get("cameras")
     loaded = []
     any_usd = False
     numbered = set()  # targets without frame numbers of their own that --target-frames numbered
     for k, path in enumerate(targets):
-        fspec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
+        fspec = fspecs[k]
         if cameras:
             from .silhouette import read_silhouette_masks  # noqa: PLC0415
 
@@ -699,43 +726,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         ext = os.path.splitext(str(path))[1].lower()
         usd = ext in (".usd", ".usda", ".usdc")
         usd_spec = fspec if usd else None
-        # --target-body picks a body of a run's USD; the other targets of the experiment (a force
-        # log beside it) take none (refused below where no target is such a USD).
-        # load_target's frames are the command's --target-frames: 'frames' named no option (an
-        # experiment's refusal is prefixed with its name by the caller).
-        t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec,
-                        tool=spec.get("target_tool"), frames_name=key("target_frames"))
+        t = early[k] if k in early else read(path, fspec)
         any_usd = any_usd or usd
-        if fspec is not None and usd_spec is None and t.frames_stored:
-            # The file numbers its frames: --target-frames chooses among them, as of a run's USD
-            # (all, last, A:B:STEP, ...; it renumbered them: frame 2's positions were fitted at
-            # frame 1, exit 0).
-            from .usd import parse_frames  # noqa: PLC0415
-
-            chosen, missing = [], []
-            for part in str(fspec).split(","):
-                if part.strip().isdigit():
-                    (chosen if int(part) in t.frames else missing).append(int(part))
-                    continue
-                try:
-                    # In frame order whatever the file's (its 'last' is its largest frame).
-                    chosen.extend(parse_frames(part, sorted(t.frames), key("target_frames")))
-                except ValueError as e:
-                    raise ValueError(f"{where}{e}; the target {path} holds frames "
-                                     f"{', '.join(map(str, sorted(t.frames)))} (-N counts frame numbers back from the "
-                                     "last)") from None
-            if missing:
-                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: the target {path} holds frames "
-                                 f"{', '.join(map(str, sorted(t.frames)))} (its 'frames'), not {', '.join(map(str, missing))}")
-            twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
-            if twice is not None:
-                # Fitted twice, the frame weighed twice in the loss ('last,6' named frame 6 once
-                # here, while a run's USD target fitted it twice).
-                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names frame {twice} twice; name "
-                                 "each frame once")
-            t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
-            t.frames = chosen
-        elif fspec is not None and usd_spec is None:
+        if fspec is not None and usd_spec is None and not t.frames_stored:  # (a stored frames' choice is read's)
             try:
                 chosen = []
                 for part in str(fspec).split(","):

@@ -3769,6 +3769,42 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
 _NPZ_TARGET_KEYS = ("positions", "frames", "fps")
 
 
+def choose_stored_frames(target: Target, spec, name: str = "frames") -> None:
+    """Keep of ``target``, positions whose file stores its frame numbers (an .npz's 'frames'),
+    the frames ``spec`` chooses among them, as ``usd.parse_frames`` chooses among a run's
+    (``all``, ``last``, ``A:B:STEP``, ``2,4``, a list); a refusal names the spec ``name`` and
+    lists the stored frames. Frame 2's positions were fitted at frame 1 where ``1,2,3``
+    renumbered the file's 2, 4, 6."""
+    from .usd import parse_frames  # noqa: PLC0415
+
+    stored = sorted(target.frames)
+    listed = ", ".join(map(str, stored))
+    chosen, missing = [], []
+    # A list or a range is read as parse_frames reads it; text one part at a time, so that
+    # every frame the file does not hold is named.
+    parts = str(spec).split(",") if isinstance(spec, str) else [spec]
+    for part in parts:
+        if isinstance(part, str) and part.strip().isdigit():
+            (chosen if int(part) in target.frames else missing).append(int(part))
+            continue
+        try:
+            # In frame order whatever the file's (its 'last' is its largest frame).
+            chosen.extend(parse_frames(part, stored, name))
+        except ValueError as e:
+            raise ValueError(f"{e}; the target {target.path} holds frames {listed} (-N counts frame numbers back from "
+                             "the last)") from None
+    if missing:
+        raise ValueError(f"{name} = {checks.shorten(spec)!r} is not allowed: the target {target.path} holds frames {listed} "
+                         f"(its 'frames'), not {', '.join(map(str, missing))}")
+    twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
+    if twice is not None:
+        # Fitted twice, the frame weighed twice in the loss ('last,6' named frame 6 once
+        # here, while a run's USD target fitted it twice).
+        raise ValueError(f"{name} = {checks.shorten(spec)!r} is not allowed: it names frame {twice} twice; name each frame once")
+    target.data = np.asarray(target.data)[[target.frames.index(f) for f in chosen]]
+    target.frames = chosen
+
+
 def load_target(path, body: str | None = None, frames=None, tool: str | None = None, frames_name: str = "frames") -> Target:
     """Read a target file.
 
@@ -3780,7 +3816,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``, no other array (a ``times`` is refused, not
-      dropped). A NaN position (``.npz`` or ``.npy``) is a
+      dropped); ``frames`` chooses among a stored ``frames`` as among a run's
+      (``choose_stored_frames``), and is refused for a file that stores none. A NaN position (``.npz`` or ``.npy``) is a
       missing marker, left out of the loss (``PositionLoss``), also in a run's USD (another
       program's); a file all NaN is refused.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
@@ -3817,6 +3854,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: only the USD of a run holds bodies "
                          "to choose from")
     if ext in (".npz", ".npy"):
+        chosen = frames  # the caller's choice among the file's frames ('frames' below is the file's)
         try:
             data = read_arrays(p)
         except Exception as e:  # noqa: BLE001
@@ -3877,13 +3915,22 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if np.isnan(pos).all():
             # NaN marks a gap in the data; a file of nothing but gaps observes nothing.
             raise ValueError(f"target {p} is not allowed: every position in it is NaN (missing); it observes nothing")
+        stored = ext == ".npz" and "frames" in data
+        if chosen is not None and not stored:
+            # It was ignored: every entry was the target, at frames 0..K-1.
+            raise ValueError(f"{frames_name} = {checks.shorten(chosen)!r} is not allowed with the target {p}: it chooses among "
+                             "the frames a file stores, and this one stores none (no 'frames' array); store the frame of "
+                             "each entry as 'frames', or pass the entries wanted")
         if one_frame and frames is None:
             return Target("positions", pos, None, fps, p)  # (n, 3): the last frame
         if frames is None:
             frames = list(range(pos.shape[0]))
         if len(frames) != pos.shape[0] or min(frames) < 0 or len(set(frames)) != len(frames):
             raise ValueError(f"target {p} is not allowed: 'frames' must be {pos.shape[0]} distinct indices >= 0")
-        return Target("positions", pos, frames, fps, p, frames_stored=ext == ".npz" and "frames" in data)
+        target = Target("positions", pos, frames, fps, p, frames_stored=stored)
+        if chosen is not None:
+            choose_stored_frames(target, chosen, frames_name)
+        return target
     if ext == ".csv" and is_tools_csv(p):
         return _forces_target(p, tool)
     if ext == ".csv":

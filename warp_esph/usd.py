@@ -1559,6 +1559,11 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
                     # One starting past it was told to end there, which selects nothing.
                     past, late = part.strip(), a > last
                     break
+                if a < first:
+                    # Cut at the first frame without a word, as at the end: 0:6 of an .npz storing
+                    # frames 2, 4, 6 fitted 2..6, -20: of 11 frames drew 0..10.
+                    past, late = part.strip(), None
+                    break
                 out.extend(f for f in available if a <= f <= b and (f - a) % step == 0)
             else:
                 out.append(one(p))
@@ -1568,6 +1573,14 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
             ) from None
     if past is not None:
         held = f"{last}: it holds {len(available)} frames, {first}..{last}"
+        if late is None:
+            start = past.split(":")[0].strip()
+            if start.startswith("-"):
+                raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} counts back past "
+                                 f"the first frame (the file holds {first}..{last}, so -1 to -{last + 1 - first})")
+            raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} starts before the "
+                             f"file's first frame, {first}: it holds {len(available)} frames, {first}..{last}; start the range "
+                             f"at {first} or leave its start out")
         if late:
             raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} starts past the "
                              f"file's last frame, {held}")
