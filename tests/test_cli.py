@@ -3,6 +3,8 @@
 import functools
 import json
 import os
+import pathlib
+import re
 import shutil
 import signal
 import stat
@@ -2166,6 +2168,49 @@ def test_the_advice_for_a_0_that_is_off_comes_from_one_table(tmp_path, monkeypat
     assert_one_line_error(refused_run(capsys, scene, tmp_path / "x.usdc"),
                           "; hourglass = 0 is off (the table's words): write 0 for that")
     assert sorted(os.listdir(tmp_path)) == ["s.toml"]
+
+
+@pytest.mark.parametrize("case", ["run -o", "a scene file's mesh file", "its relative mesh file", "fit --target",
+                                  "run --resume", "render's file"])
+def test_a_long_path_in_a_refusal_is_shown_by_its_ends(case, tmp_path, monkeypatch, capsys):
+    """A 5000-character path (-o, a scene file's mesh file, a fit's target) was written whole in
+    its refusal, a 5 kB line: a long path is shown by its first and last 40 characters, so that
+    the line stays short and still names the file."""
+    long = str(tmp_path / ("d" * 2500) / ("e" * 2500))  # its folders do not exist
+    monkeypatch.chdir(tmp_path)
+    scene = tmp_path / "s.toml"
+    body = "[materials.soft]\npreset = 'dough'\n[[bodies]]\nshape = 'mesh'\nmaterial = 'soft'\nfile = '{}'\n"
+    if case == "run -o":
+        argv, name = ["run", "--frames", "1", "-o", long + "/out.usdc"], "out.usdc"
+    elif case == "a scene file's mesh file":
+        scene.write_text(body.format(long + "/bunny.obj"))
+        argv, name = ["run", str(scene), "-o", "x.usdc"], "bunny.obj"
+    elif case == "its relative mesh file":
+        scene.write_text(body.format("d" * 2500 + "/bunny.obj"))
+        argv, name = ["run", str(scene), "-o", "x.usdc"], "bunny.obj"
+    elif case == "fit --target":
+        argv, name = ["fit", "dough_drop", "--target", long + "/t.npz", "--no-progress"], "t.npz"
+    elif case == "run --resume":
+        argv, name = ["run", "--resume", long + "/r.npz"], "r.npz"
+    else:
+        argv, name = ["render", long + "/o.usdc", "-o", "x.png"], "o.usdc"
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"/{name}")
+    assert len(err.strip()) < 400, err[:500]
+    assert re.search(r"'?(/tmp|d)\S*\.\.\.[de]+/" + re.escape(name), err), err  # the start, '...', the end
+
+
+def test_shown_path_keeps_a_short_path_whole_and_a_long_one_s_ends():
+    from warp_esph.checks import shown_path
+
+    assert repr(shown_path("a/b.usdc")) == "'a/b.usdc'" and f"{shown_path('a/b.usdc', quote=False)}" == "a/b.usdc"
+    copied = "/x" + "y" * 140 + "/name.usdc"  # a path of a deep folder, to copy from the line: whole
+    assert f"{shown_path(copied, quote=False)}" == copied
+    long = "/x" + "y" * 5000 + "/name.usdc"
+    assert f"{shown_path(long)}" == repr(long)[:40] + "..." + repr(long)[-40:]
+    assert str(shown_path(pathlib.Path(long), quote=False)).endswith("yyy/name.usdc")
+    assert repr(shown_path(None)) == "None"
 
 
 def test_a_number_read_as_typed_computes_as_its_float():

@@ -137,7 +137,7 @@ def _refuse_overwriting_inputs(outputs, inputs) -> None:
     for what, path in outputs:
         hit = read.get(os.path.realpath(path))
         if hit is not None:
-            raise ValueError(f"{what} = {path!r} is not allowed: it is {hit[0]} {hit[1]!r} of this fit, which the fit "
+            raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it is {hit[0]} {hit[1]!r} of this fit, which the fit "
                              "would overwrite; write the results elsewhere")
 
 
@@ -325,7 +325,7 @@ def run_fit(args, out=None, err=None) -> int:
         if name == "fitted.usdc":
             checks.usd_output("--output-dir", folder, os.path.join(folder, name))
         if os.path.isdir(os.path.join(folder, name)):
-            raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
+            raise ValueError(f"--output-dir = {checks.shown_path(folder)} is not allowed: {name} in it is a folder; the fit writes a file there")
         checks.output_files("--output-dir", folder, [name])
     if _arg(args, "output"):
         checks.output_place("--output", args.output)
@@ -497,8 +497,8 @@ def run_fit(args, out=None, err=None) -> int:
                 # Another writer holds fitted.usdc (a second fit into this folder): the line
                 # named the library's 'path' and not what this fit had written before it.
                 kept = f"wrote {', '.join(map(str, written))} before it" if written else "none of its files was written"
-                named = f"--output-dir = {folder!r}" if _arg(args, "output_dir") else f"the output folder {folder}"
-                raise ValueError(f"{named} is not allowed: {e.reason.replace('writing it', f'writing {usd_path}')} (the "
+                named = f"--output-dir = {checks.shown_path(folder)}" if _arg(args, "output_dir") else f"the output folder {checks.shown_path(folder, False)}"
+                raise ValueError(f"{named} is not allowed: {e.reason.replace('writing it', f'writing {checks.shown_path(usd_path, False)}')} (the "
                                  f"fit's results are printed above; {kept})") from None
     except KeyboardInterrupt:
         # The fit had finished: the line said 'interrupted' alone, and a fitted run cut short
@@ -563,11 +563,11 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
     if isinstance(doc, dict):
         doc = doc.get("experiments")
     if not isinstance(doc, list) or not doc:
-        raise ValueError(f"--experiments {p} is not allowed: give a list of experiments (or {{\"experiments\": [...]}})")
+        raise ValueError(f"--experiments {checks.shown_path(p, False)} is not allowed: give a list of experiments (or {{\"experiments\": [...]}})")
     base = os.path.dirname(os.path.abspath(p))
     out = []
     for k, spec in enumerate(doc):
-        where = f"{p}: experiment #{k + 1}: "
+        where = f"{checks.shown_path(p, False)}: experiment #{k + 1}: "
         if not isinstance(spec, dict):
             raise ValueError(f"{where}must be an object with keys {', '.join(EXPERIMENT_KEYS)}")
         unknown = sorted(set(spec) - set(EXPERIMENT_KEYS))
@@ -767,12 +767,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             t.frames = chosen
             numbered.add(id(t))
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
-                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} names {len(t.frames)} frames, the target {path} "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} names {len(t.frames)} frames, the target {checks.shown_path(path, False)} "
                                  f"holds {np.asarray(t.data).shape[0]} (one frame number per entry, in order)")
             if t.kind == "positions" and len(set(t.frames)) != len(t.frames):
                 # Two entries named as one frame: the later one silently replaced the earlier.
                 raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names a frame twice, and "
-                                 f"each entry of the target {path} is one frame")
+                                 f"each entry of the target {checks.shown_path(path, False)} is one frame")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
     fps = spec.get("fps")
@@ -785,13 +785,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         fps = checks.positive(f"{where}{flag}", fps)
         for path, rate in stored:
             if not math.isclose(fps, rate, rel_tol=1e-9):
-                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
+                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the target {checks.shown_path(path, False)} was recorded at {rate:g} fps; "
                                  f"leave {flag} out or give {rate:g}")
     rate = fps if fps is not None else next((r for _, r in stored), scene.fps)
     for path, other in stored:
         if not math.isclose(other, rate, rel_tol=1e-9):
             # The first target's rate was taken for all: this one was fitted at other times.
-            raise ValueError(f"{where}target {path} is not allowed beside the target {stored[0][0]}: it was recorded at "
+            raise ValueError(f"{where}target {checks.shown_path(path, False)} is not allowed beside the target {stored[0][0]}: it was recorded at "
                              f"{other:g} fps, the other at {rate:g} fps, and frame k of the fit is one time for both; "
                              "fit targets of another rate as an experiment of their own (--experiments)")
     for t in file_targets:
@@ -805,12 +805,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             units = ("times are seconds, frame / fps (a log timed in milliseconds implies 1000 times fewer frames a "
                      "second)")
             if fps is not None:
-                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the force log {t.path} says otherwise: "
+                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the force log {checks.shown_path(t.path, False)} says otherwise: "
                                  f"{implied}; {units}")
             if stored:
-                raise ValueError(f"{where}target {t.path} is not allowed: {implied}, not the {rate:g} fps the target "
+                raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the {rate:g} fps the target "
                                  f"{stored[0][0]} was recorded at; {units}")
-            raise ValueError(f"{where}target {t.path} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
+            raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
                              f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
     fps = rate
     dt = spec.get("dt")
@@ -890,7 +890,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if t.frames is None:
                 t.frames = [frames]
             if max(t.frames) > frames:
-                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}: "
+                raise ValueError(f"{where}the target {checks.shown_path(path, False)} has frame {max(t.frames)}, beyond {key('frames')} = {frames}: "
                                  f"give {key('frames')} {max(t.frames)} or more, or choose target frames up to {frames} "
                                  f"with {key('target_frames')}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}

@@ -29,6 +29,7 @@ import zlib
 
 import numpy as np
 
+from . import checks
 from .model import Model, State, flowed_by_hardening
 
 FORMAT = "warp_esph.checkpoint/1"
@@ -128,16 +129,14 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     solver exists (a hourglass strength set by hand, ``Solver.hourglass``, as it runs); a
     state no step of it wrote (a new or loaded one) records none.
     """
-    from . import checks  # noqa: PLC0415
-
     if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"checkpoint path = {checks.shorten(path)!r} is not allowed: must be a file path ending in .npz")
+        raise ValueError(f"checkpoint path = {checks.shown_path(path)} is not allowed: must be a file path ending in .npz")
     path = pathlib.Path(path)
     # Any case, as every other reader of .npz here takes it (fit targets, masks): 'STATE.NPZ'
     # was refused. The file is written through a handle, so numpy appends no second '.npz'
     # (np.savez('STATE.NPZ') would write 'STATE.NPZ.npz').
     if path.suffix.lower() != ".npz":
-        raise ValueError(f"checkpoint path = {str(path)!r} is not allowed: must end in .npz (any case)")
+        raise ValueError(f"checkpoint path = {checks.shown_path(path)} is not allowed: must end in .npz (any case)")
     if not isinstance(model, Model):
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph Model")
     # What load_state asks of them, asked here: it refused the files this wrote with a step of
@@ -255,8 +254,6 @@ def _check_solver(model: Model, solver) -> None:
     from .sim.solver import Solver  # noqa: PLC0415 (the kernels load on demand)
 
     if solver is not None and (not isinstance(solver, Solver) or solver.model is not model):
-        from . import checks  # noqa: PLC0415
-
         raise ValueError(f"solver = {checks.shorten(solver)!r} is not allowed: it must be None or a warp_esph.Solver "
                          "built for this model")
 
@@ -280,9 +277,7 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
     """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one, naming the
     file as ``what`` (the CLI's ``--resume``)."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from pathlib
-        from . import checks  # noqa: PLC0415
-
-        raise ValueError(f"{what} = {checks.shorten(path)!r} is not allowed: must be a path")
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: must be a path")
     path = pathlib.Path(path)
     single = None
     try:
@@ -298,17 +293,17 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
         if single is None:
             meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
-        raise ValueError(f"{what} = {str(path)!r} is not allowed: no such file") from None
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: no such file") from None
     # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
     # (a damaged compression method): in this block, only reading the file can raise them.
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
             RuntimeError, NotImplementedError) as e:
-        raise ValueError(f"{what} = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
     if single is not None:
-        raise ValueError(f"{what} = {str(path)!r} is not allowed: it holds one numpy array of shape {single} (a .npy), not a "
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it holds one numpy array of shape {single} (a .npy), not a "
                          "warp_esph checkpoint (the .npz save_state writes)")
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"{what} = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
     missing = [n for n in State.STATE_FIELDS if n not in arrays and n not in State.OPTIONAL_FIELDS]
     # Every checkpoint of this format holds every material array (MATERIAL_FIELDS has not
     # changed since the first): without one, the model's value resumed without a word.
@@ -340,13 +335,11 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     file (the CLI's ``--resume``).
     """
     if not isinstance(model, Model):
-        from . import checks  # noqa: PLC0415
-
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be the warp_esph.Model the checkpoint "
                          "resumes")
     _check_solver(model, solver)
     meta, arrays = read_checkpoint(path, what)
-    where = f"{what} = {str(path)!r} is not allowed"
+    where = f"{what} = {checks.shown_path(path)} is not allowed"
     _check_meta(where, meta)
     if meta["particle_count"] != model.particle_count or meta["bodies"] != [b.name for b in model.bodies]:
         raise ValueError(

@@ -55,6 +55,40 @@ def shorten(value):
     return _Shown(text)
 
 
+#: A path a message shows whole up to this many characters (``shown_path``): one to copy from
+#: the line; a longer one by its first and last ``PATH_ENDS``.
+PATH_SHOWN_WHOLE = 160
+PATH_ENDS = 40
+
+
+def _ends(text: str) -> str:
+    return text if len(text) <= PATH_SHOWN_WHOLE else f"{text[:PATH_ENDS]}...{text[-PATH_ENDS:]}"
+
+
+def shown_path(path, quote: bool = True) -> _Shown:
+    """A path the user gave (an option's, a scene file's ``file``, a target), for a message: as
+    ``repr`` writes it (``quote=False``: as written), and where that is longer than
+    ``PATH_SHOWN_WHOLE`` only its first and last ``PATH_ENDS`` characters with '...' between,
+    so that the file's name, at the end, stays readable: a 5000-character ``-o`` wrote a 5 kB
+    refusal line (``shorten`` keeps the start alone). Format it with ``{}`` or ``{!r}``: both
+    show this text."""
+    if isinstance(path, _Shown):
+        return path
+    try:
+        text = os.fsdecode(os.fspath(path))
+    except TypeError:  # not a path (None, a number): as any value is shown
+        return shorten(path)
+    return _Shown(_ends(repr(text) if quote else text))
+
+
+def long_words_cut(text: str) -> str:
+    """``text`` with each word (a run without spaces) longer than ``PATH_SHOWN_WHOLE`` characters
+    cut to its ends, as ``shown_path`` cuts a path: the commands' one-line messages pass
+    through it, so that a path a refusal names whole (an ``OSError``'s file name, another
+    library's message) is not a line of kilobytes."""
+    return re.sub(r"\S{%d,}" % (PATH_SHOWN_WHOLE + 1), lambda m: _ends(m.group(0)), text)
+
+
 def shorten_text(text, limit: int = 300) -> str:
     """``text`` (another library's message, which may quote a huge value) on one line, cut to
     ``limit`` characters."""
@@ -603,7 +637,7 @@ def json_file(what: str, path):
         seen = set()
         for key, _ in pairs:
             if key in seen:
-                raise ValueError(f"{what} {p} is not allowed: the key {key!r} appears twice in one object")
+                raise ValueError(f"{what} {shown_path(p, False)} is not allowed: the key {key!r} appears twice in one object")
             seen.add(key)
         return dict(pairs)
 
@@ -613,13 +647,14 @@ def json_file(what: str, path):
         with open(p, encoding="utf-8-sig") as f:
             return json.load(f, object_pairs_hook=unique)
     except OSError as e:
-        raise ValueError(f"{what} {p} cannot be read: {e}") from None
+        # (strerror: the error's own text repeats the path)
+        raise ValueError(f"{what} {shown_path(p, False)} cannot be read: {e.strerror or e}") from None
     except json.JSONDecodeError as e:
-        raise ValueError(f"{what} {p} is not valid JSON: {e}") from None
+        raise ValueError(f"{what} {shown_path(p, False)} is not valid JSON: {e}") from None
     except UnicodeDecodeError:  # bytes that are not text: not the JSON file asked for
-        raise ValueError(f"{what} {p} is not valid JSON: it is not text (a damaged or foreign file?)") from None
+        raise ValueError(f"{what} {shown_path(p, False)} is not valid JSON: it is not text (a damaged or foreign file?)") from None
     except RecursionError:
-        raise ValueError(f"{what} {p} cannot be read: arrays or objects nested too deeply") from None
+        raise ValueError(f"{what} {shown_path(p, False)} cannot be read: arrays or objects nested too deeply") from None
 
 
 #: Bytes a writer adds to an output's name for its working copies and side files
@@ -715,7 +750,7 @@ def refuse_special(what: str, p: str) -> None:
     and the Python API's, refuses it alike."""
     found = _not_plain(p)
     if found is not None:
-        raise ValueError(f"{what} = {p!r} is not allowed: it is {found[0]}, not a file; the output is written beside it "
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {found[0]}, not a file; the output is written beside it "
                          f"and renamed over it, which would replace it: {found[1]}")
 
 
@@ -731,7 +766,7 @@ def output_files(what: str, folder, names) -> None:
         file = os.path.join(folder, name)
         found = _not_plain(file)
         if found is not None:
-            raise ValueError(f"{what} = {folder!r} is not allowed: {file!r} in it is {found[0]}, not a file; the "
+            raise ValueError(f"{what} = {shown_path(folder)} is not allowed: {shown_path(file)} in it is {found[0]}, not a file; the "
                              f"output is written beside it and renamed over it, which would replace it: remove it, "
                              f"or give another folder")
 
@@ -762,8 +797,8 @@ def usd_output(what: str, path, written=None) -> None:
     run's set-up done, then a bare UnicodeEncodeError naming no option."""
     full = not_utf8_path(path if written is None else written)
     if full is not None:
-        raise ValueError(f"{what} = {os.fsdecode(os.fspath(path))!r} is not allowed: USD names its files in UTF-8 text, "
-                         f"and {full!r} is not; give a path of UTF-8 text")
+        raise ValueError(f"{what} = {shown_path(path)} is not allowed: USD names its files in UTF-8 text, "
+                         f"and {shown_path(full)} is not; give a path of UTF-8 text")
 
 
 def usd_input(path, verb: str = "read") -> None:
@@ -772,8 +807,8 @@ def usd_input(path, verb: str = "read") -> None:
     codec can't encode ...", which said neither what was wrong nor what is allowed."""
     full = not_utf8_path(path)
     if full is not None:
-        raise ValueError(f"cannot {verb} {os.fsdecode(os.fspath(path))!r}: USD names its files in UTF-8 text, and "
-                         f"{full!r} is not; give a path of UTF-8 text (rename the file or its folder)")
+        raise ValueError(f"cannot {verb} {shown_path(path)}: USD names its files in UTF-8 text, and "
+                         f"{shown_path(full)} is not; give a path of UTF-8 text (rename the file or its folder)")
 
 
 def not_utf8_path(path) -> str | None:
@@ -824,26 +859,26 @@ def output_place(what: str, path, folder: bool = False) -> str:
         raise ValueError(f"{what} = {shorten(path)!r} is not allowed: must be a path")
     p = os.fspath(path)
     if not p or "\0" in p:
-        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: must be a path (not empty, no NUL character)")
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: must be a path (not empty, no NUL character)")
     if breaks_line(p) or any(c in BIDI_CONTROLS for c in p):
         # As a scene's name, which names its default output: a newline split the commands'
         # one-line reports ('wrote a<newline>b.usdc: ...', the reaction log's), a tab or an
         # escape acted on the terminal, a bidi override showed the rest of the line reversed.
-        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: the commands name their outputs in one-line messages, so it "
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: the commands name their outputs in one-line messages, so it "
                          "must be one line of text (no control characters, no line breaks, no bidirectional "
                          "embeddings, overrides or isolates, U+202A-U+202E and U+2066-U+2069)")
     try:
         name = os.fsencode(os.path.basename(os.path.normpath(p)))
     except UnicodeError:
-        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: it is not a name this file system can hold") from None
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is not a name this file system can hold") from None
     # The writers keep a working copy beside the file, its name the file's and up to
     # OUTPUT_NAME_SLACK more bytes: a longer name failed mid-run with a bare 'File name too long'.
     longest = _name_max(os.path.dirname(os.path.abspath(p)) or ".") - OUTPUT_NAME_SLACK
     if len(name) > longest:
-        raise ValueError(f"{what} = {shorten(p)!r} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
                          "this folder's file names leave room for")
     if os.path.exists(p) and os.path.isdir(p) != folder:
-        raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {'a file' if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
     if not folder:
         refuse_special(what, p)
@@ -852,17 +887,19 @@ def output_place(what: str, path, folder: bool = False) -> str:
     # (run -o, render -o a.png) was refused; every command now refuses it alike.
     parent = p if folder and os.path.isdir(p) else (os.path.dirname(os.path.abspath(p)) or ".")
     if not os.path.isdir(parent):
-        raise ValueError(f"{what} = {p!r} is not allowed: its folder {parent!r} does not exist or is not a folder")
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: its folder {shown_path(parent)} does not exist or is not a "
+                         "folder")
     try:  # the one reliable test that a file can be created there
         import tempfile  # noqa: PLC0415
 
         with tempfile.TemporaryFile(dir=parent):
             pass
     except OSError as e:
-        raise ValueError(f"{what} = {p!r} is not allowed: {parent!r} cannot take a new file ({e.strerror or e})") from None
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: {shown_path(parent)} cannot take a new file "
+                         f"({e.strerror or e})") from None
     return p
 
 
 def file_error(path, exc: BaseException, verb: str = "read") -> ValueError:
     """``ValueError("cannot <verb> '<path>': <reason>")`` for a damaged or foreign file."""
-    return ValueError(f"cannot {verb} {str(path)!r}: {read_reason(exc)}")
+    return ValueError(f"cannot {verb} {shown_path(str(path))}: {read_reason(exc)}")

@@ -128,7 +128,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _one_line(text) -> str:
-    return " ".join(str(text).split())
+    from .checks import long_words_cut  # noqa: PLC0415
+
+    # A path a message names whole (an OSError's file, a writer's output) cut to its ends.
+    return long_words_cut(" ".join(str(text).split()))
 
 
 def _err(message) -> None:
@@ -473,7 +476,8 @@ def _refuse_writing_over_inputs(scene, scene_arg, output: str, what: str) -> Non
     read = {os.path.realpath(path): source for source, path in scene.inputs}
     source = read.get(os.path.realpath(output))
     if source is not None:
-        raise ValueError(f"{what} = {output!r} is not allowed: it is {source} of {os.fsdecode(scene_arg)}, which the run "
+        raise ValueError(f"{what} = {checks.shown_path(output)} is not allowed: it is {source} of "
+                         f"{checks.shown_path(os.fsdecode(scene_arg), False)}, which the run "
                          "would overwrite; give another --output")
 
 
@@ -518,7 +522,7 @@ def _cmd_run(args) -> int:
         from .usd import USD_EXTENSIONS  # noqa: PLC0415
 
         if os.path.splitext(args.output)[1].lower() not in USD_EXTENSIONS:
-            raise ValueError(f"--output = {args.output!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
+            raise ValueError(f"--output = {checks.shown_path(args.output)} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
@@ -548,7 +552,8 @@ def _cmd_run(args) -> int:
         meta, _ = read_checkpoint(args.resume, "--resume")
         run = meta.get("run", {})
         if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
-            raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
+            raise ValueError(f"--resume = {checks.shown_path(args.resume)} is not allowed: the checkpoint was not written by "
+                             "'warp-esph run'")
         _check_run_record(args.resume, run)
         args.scene, scale, args.dtype = _moved_with(args.resume, run["scene"]), run["scale"], run["dtype"]
         args.fps, args.dt, args.surface = run["fps"], run["dt"], run.get("surface", False)
@@ -576,9 +581,9 @@ def _cmd_run(args) -> int:
     frames = frames_total - start_frame
     if frames < 1:
         if args.frames is not None:
-            raise ValueError(f"--frames = {args.frames} is not allowed with --resume = {args.resume!r}: the checkpoint is at "
+            raise ValueError(f"--frames = {args.frames} is not allowed with --resume = {checks.shown_path(args.resume)}: the checkpoint is at "
                              f"frame {start_frame}; give more frames than that to extend the run")
-        raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
+        raise ValueError(f"--resume = {checks.shown_path(args.resume)} is not allowed: that run finished all {frames_total} frames")
     adaptive = dt == "auto"
 
     def flag(name):
@@ -595,7 +600,7 @@ def _cmd_run(args) -> int:
     except ValueError as e:
         if (args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml")
                 and not str(e).startswith("--")):  # an option typed is named as such, not as the file's
-            raise ValueError(f"{args.scene}: [scene] {e}") from None  # the file's dt and fps: name the file
+            raise ValueError(f"{checks.shown_path(args.scene, False)}: [scene] {e}") from None  # the file's dt and fps: name the file
         if (args.dt is None and args.resume is None and args.fps is not None and scene.dt is not None
                 and "whole number of steps" in str(e)):
             # A built-in scene's own step (a figure's) at the --fps typed: the step is no option
@@ -616,7 +621,7 @@ def _cmd_run(args) -> int:
         # one, and a --dt above it blows the run up: a larger spacing lengthens it.
         named = f"--frames = {args.frames!r}" if args.frames is not None else f"frames = {frames_total!r}"
         if args.frames is None and args.resume is None and str(args.scene).lower().endswith(".toml"):
-            named = f"{args.scene}: [scene] {named}"  # the file's frames: name the file, as for its dt and fps
+            named = f"{checks.shown_path(args.scene, False)}: [scene] {named}"  # the file's frames: name the file, as for its dt and fps
         cure = ("" if args.resume is not None else " or a larger --dt" if dt_given else
                 ", or a smaller --scale (a larger spacing, whose stable step is longer)")
         raise ValueError(f"{named} is not allowed: {e.detail}; give fewer --frames{cure}") from None
@@ -627,7 +632,7 @@ def _cmd_run(args) -> int:
 
         named = flag("dt")
         if named == "dt" and args.resume is None and str(args.scene).lower().endswith(".toml"):
-            named = f"{args.scene}: [scene] dt"
+            named = f"{checks.shown_path(args.scene, False)}: [scene] dt"
         resolvable_dt(model, float(dt_typed), named, "the stable step")
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     try:
@@ -646,7 +651,7 @@ def _cmd_run(args) -> int:
             table = ""
             if said.startswith("initial velocity"):
                 table = f"{scene.builder.origins.get(('body', getattr(e, 'body_index', None)), '[[bodies]]')}: "
-            raise ValueError(f"{args.scene}: {table}{said}") from None
+            raise ValueError(f"{checks.shown_path(args.scene, False)}: {table}{said}") from None
         if said != str(e):
             raise ValueError(said) from None
         raise
@@ -658,7 +663,7 @@ def _cmd_run(args) -> int:
     elif not os.path.isfile(stem):
         # The writer refuses it; said here, before the force log's resume warned that the log
         # beside it was missing too (two lines for one cause, the warning first).
-        raise FileNotFoundError(f"cannot append to {stem}: no such file")
+        raise FileNotFoundError(f"cannot append to {checks.shown_path(stem, False)}: no such file")
     if model.tools is not None or model.planes or model.spheres or model.boxes:
         for log_file in (stem + "_tools.csv", stem + "_tools.json"):
             checks.output_place("the reaction log", log_file)
@@ -689,19 +694,19 @@ def _cmd_run(args) -> int:
         writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None),
                            append=args.resume is not None, run_id=run_id)
     except OutputInUse as e:
-        raise ValueError(f"--output = {output!r} is not allowed: {e.reason}") from None
+        raise ValueError(f"--output = {checks.shown_path(output)} is not allowed: {e.reason}") from None
     except FileNotFoundError:
         raise  # the file to append to, or its folder, is not there: the input's fault
     except OSError as e:
         # The writer saves its first (empty) stage at once: a full disk there was exit 2, as bad input.
-        _err(f"cannot write {output}: {e} (no frame of this run was written)")
+        _err(f"cannot write {checks.shown_path(output, False)}: {e.strerror or e} (no frame of this run was written)")
         return EXIT_WRITE_FAILED
     # From here the writer's working copies stand beside the output: whatever ends the command
     # before the run (a refused resume, an interrupt) must remove them, as the run's end does.
     try:
         if args.resume is not None and run_id is None and writer.file_run_id is not None:
             # A checkpoint of a run that named none, resumed onto a file a named run wrote since.
-            raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds the frames of "
+            raise ValueError(f"--resume = {checks.shown_path(args.resume)} is not allowed with {checks.shown_path(writer.path, False)}: the file holds the frames of "
                              f"another run (run id {writer.file_run_id!r}), written after the checkpoint's run")
         if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
             # The resumed frames must follow the file's: a file of a shorter run, written over the
@@ -716,7 +721,7 @@ def _cmd_run(args) -> int:
                 if writer.last_frame < start_frame - 1:
                     gaps.append(f"{max(writer.last_frame + 1, writer.first_frame)}..{start_frame - 1}")
                 gap = " and ".join(gaps)
-            raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds {held} and the "
+            raise ValueError(f"--resume = {checks.shown_path(args.resume)} is not allowed with {checks.shown_path(writer.path, False)}: the file holds {held} and the "
                              f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")
         # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
         checkpoint_path = writer.path + ".checkpoint.npz"
@@ -1084,7 +1089,7 @@ def _check_run_record(path, run: dict) -> None:
     hand-edited file must fail here, by name, not as a TypeError later)."""
     from . import checks  # noqa: PLC0415
 
-    where = f"--resume = {path!r} is not allowed: in its run record,"
+    where = f"--resume = {checks.shown_path(path)} is not allowed: in its run record,"
     try:
         if not isinstance(run["scene"], str) or not isinstance(run["output"], str):
             raise ValueError("scene and output must be text")
@@ -1652,7 +1657,7 @@ def _is_read_error(exc: BaseException) -> bool:
 def _read_failure(args, exc: BaseException) -> str:
     """'cannot read <file>: <reason>' for an input file a library could not read (a pxr
     error names no file: it is the USD input of the command)."""
-    from .checks import read_reason  # noqa: PLC0415
+    from .checks import read_reason, shown_path  # noqa: PLC0415
 
     pxr = type(exc).__module__.split(".")[0] == "pxr"
     if args.command in ("render", "export"):
@@ -1665,7 +1670,7 @@ def _read_failure(args, exc: BaseException) -> str:
         targets = [targets] if isinstance(targets, str) else list(targets)
         files = [", ".join(map(str, targets)) if targets and not pxr else None, getattr(args, "scene", None)]
     name = next((f for f in files if f), None)
-    where = f" {str(name)!r}" if name else ""
+    where = f" {shown_path(str(name))}" if name else ""
     return f"cannot read{where}: {read_reason(exc)} (a damaged or foreign file?)"
 
 

@@ -3596,10 +3596,10 @@ class Target:
         if self.body is not None:
             count = len(self.particles(model))
             if pos.shape[1] != count:
-                raise ValueError(f"target {self.path} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
+                raise ValueError(f"target {checks.shown_path(self.path, False)} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
                                  f"{count}: use the scene and --scale the run was made with")
         elif pos.shape[1] != model.particle_count:
-            raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
+            raise ValueError(f"target {checks.shown_path(self.path, False)} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
                              f"use the scene and --scale the target was made with")
 
     def _check_start_order(self, model: Model, idx=None) -> None:
@@ -3626,7 +3626,7 @@ class Target:
         if wrong.size:
             i, j = int(seen[wrong[0]]), int(near[wrong[0]])
             of = f" of body {self.body!r}" if self.body is not None else ""
-            raise ValueError(f"target {self.path} is not allowed: its frame 0 holds the scene's initial positions in "
+            raise ValueError(f"target {checks.shown_path(self.path, False)} is not allowed: its frame 0 holds the scene's initial positions in "
                              f"another order ({wrong.size} of {seen.size} observed markers on another particle's start; "
                              f"marker {i} on particle {j}'s{of}); particles are compared by index, marker i with particle i: "
                              "reorder the markers to the particles' order")
@@ -3637,16 +3637,16 @@ class Target:
         with a warning naming it."""
         keep = [k for k, f in enumerate(self.frames) if f != 0]
         if not keep:
-            raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+            raise ValueError(f"target {checks.shown_path(self.path, False)} holds only frame 0 (the initial state), which says nothing about the material")
         pos = np.asarray(self.data)
         blank = [k for k in keep if np.isnan(pos[k]).any(axis=1).all()]
         if blank:
             if len(blank) == len(keep):
-                raise ValueError(f"target {self.path} is not allowed: every position of its frames after frame 0 is NaN "
+                raise ValueError(f"target {checks.shown_path(self.path, False)} is not allowed: every position of its frames after frame 0 is NaN "
                                  "(missing); it observes nothing to fit")
             import warnings  # noqa: PLC0415
 
-            warnings.warn(f"target {self.path}: frame{'s' if len(blank) > 1 else ''} "
+            warnings.warn(f"target {checks.shown_path(self.path, False)}: frame{'s' if len(blank) > 1 else ''} "
                           f"{', '.join(str(self.frames[k]) for k in blank)} observe{'' if len(blank) > 1 else 's'} no "
                           f"particle (every position NaN, missing) and {'are' if len(blank) > 1 else 'is'} left out of the fit", UserWarning, stacklevel=3)
         return [k for k in keep if k not in blank]
@@ -3675,7 +3675,7 @@ class Target:
             names = [] if model.tools is None else list(model.tools.names)
             static = static_collider_names(model)
             if self.tool not in names + static:
-                raise ValueError(f"target {self.path} holds the force of tool {self.tool!r}, which is not allowed: the "
+                raise ValueError(f"target {checks.shown_path(self.path, False)} holds the force of tool {self.tool!r}, which is not allowed: the "
                                  f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
                                  f"{', '.join(static) or 'none'}")
             chosen = [f for f in sorted(frame_steps) if f > 0]
@@ -3716,7 +3716,7 @@ class Target:
                     def listed(bodies):
                         return ", ".join(f"{name} ({count} particles)" for name, count in bodies)
 
-                    raise ValueError(f"target {self.path} is not allowed: it holds the bodies {listed(self.bodies)} "
+                    raise ValueError(f"target {checks.shown_path(self.path, False)} is not allowed: it holds the bodies {listed(self.bodies)} "
                                      f"in that order, the scene {listed((b.name, b.count) for b in model.bodies)}; particles "
                                      "are compared in order: use the scene the run was made with, or --target-body NAME")
             self._check_start_order(model)
@@ -3840,18 +3840,18 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     """
     p = os.fspath(path)
     if os.path.isdir(p):
-        raise ValueError(f"target {p} is not allowed: it is a folder; give a target file")
+        raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a folder; give a target file")
     if not os.path.isfile(p):
-        raise FileNotFoundError(f"target file {p} does not exist")
+        raise FileNotFoundError(f"target file {checks.shown_path(p, False)} does not exist")
     ext = os.path.splitext(p)[1].lower()
     if ext == ".toml":
         # The scene given twice ('fit s.toml --target s.toml') was handed to meshio: "mesh
         # 's.toml' is not allowed: meshio cannot read it (ReadError: Could not deduce ...)".
-        raise ValueError(f"target {p} is not allowed: it is a scene file (.toml), not a measurement; give the run's USD, "
+        raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a scene file (.toml), not a measurement; give the run's USD, "
                          "positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud")
     if body is not None and ext not in (".usd", ".usda", ".usdc"):
         # It was ignored: every position of the file was the target.
-        raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: only the USD of a run holds bodies "
+        raise ValueError(f"--target-body {body!r} is not allowed with the target {checks.shown_path(p, False)}: only the USD of a run holds bodies "
                          "to choose from")
     if ext in (".npz", ".npy"):
         chosen = frames  # the caller's choice among the file's frames ('frames' below is the file's)
@@ -3861,11 +3861,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             # numpy reads bytes that are no array file as pickled data and advises loading
             # them unsafely: not the advice to give about a damaged or foreign file.
             why = "not a numpy .npz/.npy file" if "pickle" in str(e) else str(e)
-            raise ValueError(f"target {p} cannot be read: {why} (a damaged or foreign file?)") from None
+            raise ValueError(f"target {checks.shown_path(p, False)} cannot be read: {why} (a damaged or foreign file?)") from None
         frames, fps = None, None
         if ext == ".npz":
             if "positions" not in data:
-                raise ValueError(f"target {p} is not allowed: a .npz target needs a 'positions' array (has {list(data.keys())})")
+                raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: a .npz target needs a 'positions' array (has {list(data.keys())})")
             unread = [k for k in data if k not in _NPZ_TARGET_KEYS]
             if unread:
                 # Dropped without a word: a lab's 'times' (in ms, or from a clock not at 0) left the
@@ -3873,7 +3873,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 timed = [k for k in unread if k.lower() in ("t", "time", "times", "timestamp", "timestamps")]
                 how = (f"; {timed[0]!r} is not read: store the frame of each entry as 'frames' (whole indices, frame k "
                        "at k / fps s from time 0 at frame 0) and the rate as 'fps'") if timed else ""
-                raise ValueError(f"target {p} is not allowed: it holds the array{'s' if len(unread) > 1 else ''} "
+                raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it holds the array{'s' if len(unread) > 1 else ''} "
                                  f"{', '.join(map(repr, unread))}, which a positions target does not read (allowed: "
                                  f"{', '.join(_NPZ_TARGET_KEYS)}){how}")
             pos = _real_array(p, "positions", data["positions"])
@@ -3882,19 +3882,19 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 # 1.5 was truncated to frame 1: a frame is a whole index.
                 if given.dtype.kind not in "iuf" or given.ndim != 1 or (given.dtype.kind == "f" and (
                         not np.isfinite(given).all() or (given != np.round(given)).any())):
-                    raise ValueError(f"target {p} is not allowed: its 'frames' must be whole frame indices, "
+                    raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: its 'frames' must be whole frame indices, "
                                      f"not {checks.shorten(given.tolist())!r}")
                 frames = [int(f) for f in given]
             if "fps" in data:
                 rate = np.asarray(data["fps"])
                 if rate.size != 1 or rate.dtype.kind not in "iuf":
-                    raise ValueError(f"target {p} is not allowed: its 'fps' must be one number, not an array of shape "
+                    raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: its 'fps' must be one number, not an array of shape "
                                      f"{rate.shape} ({rate.dtype})")
                 fps = float(rate.reshape(()))
                 if not (math.isfinite(fps) and fps > 0.0):
                     # nan was read as the rate ('recorded at nan fps, the other at nan fps'), 0 refused
                     # as 'fps = 0.0', naming no file.
-                    raise ValueError(f"target {p} is not allowed: its 'fps' = {fps!r} must be a finite number of "
+                    raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: its 'fps' = {fps!r} must be a finite number of "
                                      "frames per second > 0")
         else:
             pos = _real_array(p, "positions", data)
@@ -3906,19 +3906,19 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         # "targets[62]", by the step it was compared at.
         if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] == 0 or pos.shape[1] == 0:
             cloud = " (an (M, 3) .npy of another count than the scene's particles is a point cloud)" if ext == ".npy" else ""
-            raise ValueError(f"target {p} with shape {shape} is not allowed: positions must be (K, n, 3) or (n, 3) "
+            raise ValueError(f"target {checks.shown_path(p, False)} with shape {shape} is not allowed: positions must be (K, n, 3) or (n, 3) "
                              f"with K, n >= 1{cloud}")
         if np.isinf(pos).any():
             k, i = (int(v) for v in np.argwhere(np.isinf(pos))[0][:2])
-            raise ValueError(f"target {p} is not allowed: it has an infinite position (frame entry {k}, particle {i}); "
+            raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it has an infinite position (frame entry {k}, particle {i}); "
                              "a missing one (an occluded marker) is NaN")
         if np.isnan(pos).all():
             # NaN marks a gap in the data; a file of nothing but gaps observes nothing.
-            raise ValueError(f"target {p} is not allowed: every position in it is NaN (missing); it observes nothing")
+            raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: every position in it is NaN (missing); it observes nothing")
         stored = ext == ".npz" and "frames" in data
         if chosen is not None and not stored:
             # It was ignored: every entry was the target, at frames 0..K-1.
-            raise ValueError(f"{frames_name} = {checks.shorten(chosen)!r} is not allowed with the target {p}: it chooses among "
+            raise ValueError(f"{frames_name} = {checks.shorten(chosen)!r} is not allowed with the target {checks.shown_path(p, False)}: it chooses among "
                              "the frames a file stores, and this one stores none (no 'frames' array); store the frame of "
                              "each entry as 'frames', or pass the entries wanted")
         if one_frame and frames is None:
@@ -3926,7 +3926,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if frames is None:
             frames = list(range(pos.shape[0]))
         if len(frames) != pos.shape[0] or min(frames) < 0 or len(set(frames)) != len(frames):
-            raise ValueError(f"target {p} is not allowed: 'frames' must be {pos.shape[0]} distinct indices >= 0")
+            raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: 'frames' must be {pos.shape[0]} distinct indices >= 0")
         target = Target("positions", pos, frames, fps, p, frames_stored=stored)
         if chosen is not None:
             choose_stored_frames(target, chosen, frames_name)
@@ -3947,7 +3947,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                     # frame, time, tool, fx, fy, fz: a force log whose header row was lost.
                     hint = ("; its first row reads as a force log's (frame, time, tool, fx, fy, fz) without the header "
                             "row a force log starts with: add the line 'frame,time,tool,fx,fy,fz'")
-            raise ValueError(f"target {p} cannot be read as a point cloud: {str(e).rstrip('.')}{hint}") from None
+            raise ValueError(f"target {checks.shown_path(p, False)} cannot be read as a point cloud: {str(e).rstrip('.')}{hint}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         # Before the run's reader, whose refusals are taken as a damaged file's.
@@ -3956,7 +3956,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if run is not None:
             return run
         if body is not None:
-            raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: it is a mesh, not the USD of a "
+            raise ValueError(f"--target-body {body!r} is not allowed with the target {checks.shown_path(p, False)}: it is a mesh, not the USD of a "
                              "run, and holds no bodies to choose from")
         from .meshes import load_mesh  # noqa: PLC0415
 
@@ -4225,7 +4225,7 @@ def _refuse_other_force_logs(p: str) -> None:
     if ";" in line and "," not in line and "\t" not in line:
         # A spreadsheet in a locale of decimal commas writes ';' between fields. Tabs are read
         # (losses.tools_log_delimiter): they had been refused as if they meant decimal commas.
-        raise ValueError(f"target {p} is not allowed: its fields are separated by semicolons (a spreadsheet's "
+        raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: its fields are separated by semicolons (a spreadsheet's "
                          f"export with decimal commas?); {need}")
     header = tools_csv_header(p) or []
     missing = [c for c in TOOLS_CSV_COLUMNS if c not in header]
@@ -4263,23 +4263,23 @@ def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
     a NaN point was named by the step it was compared at)."""
     if pts.ndim != 2 or pts.shape[0] == 0 or pts.shape[1] < 3:
         shape = "no points" if pts.size == 0 else f"points of shape {pts.shape}"
-        raise ValueError(f"target {path} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
+        raise ValueError(f"target {checks.shown_path(path, False)} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
                          "of three coordinates (x y z)")
     pts = pts[:, :3]
     bad = np.flatnonzero(np.isinf(pts).any(axis=1))
     if bad.size:
-        raise ValueError(f"target {path} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "
+        raise ValueError(f"target {checks.shown_path(path, False)} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "
                          "a coordinate must be finite, or NaN for a missing point")
     # A cloud is unordered: a NaN row can only be a point not seen (as a NaN marker of a
     # position target is one), and had been refused as if the file were damaged.
     missing = np.isnan(pts).any(axis=1)
     if missing.all():
-        raise ValueError(f"target {path} is not allowed as a point cloud: every point has a NaN coordinate (missing); "
+        raise ValueError(f"target {checks.shown_path(path, False)} is not allowed as a point cloud: every point has a NaN coordinate (missing); "
                          "it observes nothing")
     if missing.any():
         import warnings  # noqa: PLC0415
 
-        warnings.warn(f"target {path}: {int(missing.sum())} of its {len(pts)} points have a NaN coordinate (missing) and "
+        warnings.warn(f"target {checks.shown_path(path, False)}: {int(missing.sum())} of its {len(pts)} points have a NaN coordinate (missing) and "
                       f"are left out ({int((~missing).sum())} points)", stacklevel=2)
         pts = pts[~missing]
     from .losses import unique_points  # noqa: PLC0415
@@ -4288,7 +4288,7 @@ def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
     if repeats:
         import warnings  # noqa: PLC0415
 
-        warnings.warn(f"target {path}: {repeats} of its {len(pts) + repeats} points repeat an earlier point exactly; "
+        warnings.warn(f"target {checks.shown_path(path, False)}: {repeats} of its {len(pts) + repeats} points repeat an earlier point exactly; "
                       f"each point is counted once ({len(pts)} points)", stacklevel=2)
     return pts
 
@@ -4298,7 +4298,7 @@ def _real_array(path: str, name: str, a) -> np.ndarray:
     imaginary parts with a warning) and text are refused by the file's name."""
     a = np.asarray(a)
     if a.dtype.kind not in "iuf":
-        raise ValueError(f"target {path} is not allowed: its {name} must be real numbers, not {a.dtype} values")
+        raise ValueError(f"target {checks.shown_path(path, False)} is not allowed: its {name} must be real numbers, not {a.dtype} values")
     return a.astype(np.float64)
 
 
@@ -4320,7 +4320,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
     names = list(dict.fromkeys(r["tool"] for r in rows))
     if tool is None:
         if len(names) > 1:
-            raise ValueError(f"--target-tool is required: {path} holds the forces of tools and static colliders "
+            raise ValueError(f"--target-tool is required: {checks.shown_path(path, False)} holds the forces of tools and static colliders "
                              f"{', '.join(names)}")
         tool = names[0]
     if tool not in names:
@@ -4328,7 +4328,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
     mine = [r for r in rows if r["tool"] == tool]
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:
-        raise ValueError(f"target {path} holds only frame 0 of tool {tool!r}, which has no force yet")
+        raise ValueError(f"target {checks.shown_path(path, False)} holds only frame 0 of tool {tool!r}, which has no force yet")
     fps = None
     _refuse_shifted_or_repeated_times(path, tool, mine)
     if any(r["time"] != 0.0 for r in mine):
@@ -4341,7 +4341,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
         for r in sorted(mine, key=lambda r: r["row"]):
             if fps is None or abs(r["time"] * fps - r["frame"]) > 0.1:
                 expected = "a time > 0" if fps is None else f"frame / fps = {r['frame']} / {fps:g} = {r['frame'] / fps:.6g} s"
-                raise ValueError(f"{path}, row {r['row']} (frame {r['frame']}, tool {tool!r}): time = {r['time']!r} is "
+                raise ValueError(f"{checks.shown_path(path, False)}, row {r['row']} (frame {r['frame']}, tool {tool!r}): time = {r['time']!r} is "
                                  f"not allowed: must be {expected} (the rate its last frame, {last['frame']}, gives; "
                                  "frame k is fitted at k / fps, so rows are one frame period apart from time 0)")
     return Target("forces", mine, frames, fps, path, tool=tool)
@@ -4355,7 +4355,7 @@ def _refuse_shifted_or_repeated_times(path: str, tool: str, rows: list[dict]) ->
     by_frame = sorted(rows, key=lambda r: r["frame"])
     for a, b in zip(by_frame, by_frame[1:]):
         if a["time"] == b["time"] and any(r["time"] != 0.0 for r in rows):
-            raise ValueError(f"{path}, rows {a['row']} and {b['row']} (frames {a['frame']} and {b['frame']} of tool "
+            raise ValueError(f"{checks.shown_path(path, False)}, rows {a['row']} and {b['row']} (frames {a['frame']} and {b['frame']} of tool "
                              f"{tool!r}) are not allowed: both give time = {a['time']!r} s; each frame's row is one frame "
                              "period after the one before (frame k at k / fps)")
     first, last = by_frame[0], by_frame[-1]
@@ -4367,7 +4367,7 @@ def _refuse_shifted_or_repeated_times(path: str, tool: str, rows: list[dict]) ->
         return  # time 0 at frame 0 (or no steady rate at all: said row by row after this)
     if all(abs((r["time"] - offset) * fps - r["frame"]) <= 0.1 for r in rows):
         cure = f"{'subtract' if offset > 0 else 'add'} {abs(offset):g} s {'from' if offset > 0 else 'to'} the time column"
-        raise ValueError(f"{path} is not allowed: its times for tool {tool!r} start at {first['time']:g} s (row "
+        raise ValueError(f"{checks.shown_path(path, False)} is not allowed: its times for tool {tool!r} start at {first['time']:g} s (row "
                          f"{first['row']}, frame {first['frame']}), {abs(offset):g} s {'after' if offset > 0 else 'before'} "
                          f"frame / fps; frame k is fitted at k / fps from time 0 at frame 0, so {cure} (or, where the "
                          "frames are what is off, number the rows so that time 0 is frame 0)")
@@ -4403,7 +4403,7 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
         body = given[index]
     chosen = parse_frames(frames, data.frames, frames_name) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
-        raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
+        raise ValueError(f"target {checks.shown_path(path, False)} holds only frame {data.frames[0]}, which says nothing about the material")
     observed = [(given[k], k) for k in range(len(data.bodies)) if body is None or k == index]
     pos = []
     counts = None
@@ -4413,7 +4413,7 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
             # USD answers between samples with the nearest one held, or interpolated: a body of
             # another program's file whose samples stopped (or skipped a frame) was fitted as
             # standing still there, or moving on a straight line, which nothing measured.
-            raise ValueError(f"target {path} is not allowed: body {missing!r} has no sample at frame {f} (the file's "
+            raise ValueError(f"target {checks.shown_path(path, False)} is not allowed: body {missing!r} has no sample at frame {f} (the file's "
                              "frames are those of any body); a run's file holds every body at every frame")
         # In metres and world coordinates (UsdFrames.arrays), as render and export read them
         # and a mesh target is read (meshes.load_mesh).
@@ -4429,14 +4429,14 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
             # changes from frame to frame (or an empty sample) failed in numpy's stack,
             # 'all input arrays must have the same shape', naming neither file nor frame.
             k = index if body is not None else next(k for k in range(len(given)) if here[k] != counts[k])
-            raise ValueError(f"target {path} is not allowed: body {given[k]!r} has {counts[k]} particles at frame {first} "
+            raise ValueError(f"target {checks.shown_path(path, False)} is not allowed: body {given[k]!r} has {counts[k]} particles at frame {first} "
                              f"and {here[k]} at frame {f}; a run's particles are the same in every frame")
         bad = np.flatnonzero(np.isinf(pts).any(axis=1))
         if bad.size:
             # Refused here, by file and frame: it was named 'targets at step 34', by the step it
             # was compared at. NaN is a missing marker (another program's gap, an occluded one),
             # left out of the loss as an .npz target's is; it was refused here as 'not finite'.
-            raise ValueError(f"target {path} is not allowed: at frame {f}, {bad.size} of its {len(pts)} positions are infinite "
+            raise ValueError(f"target {checks.shown_path(path, False)} is not allowed: at frame {f}, {bad.size} of its {len(pts)} positions are infinite "
                              f"(first: particle {bad[0]}{'' if body is None else f' of body {body!r}'}, "
                              f"{pts[bad[0]].tolist()}); a missing one (an occluded marker) is NaN")
         pos.append(pts)

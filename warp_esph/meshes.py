@@ -71,7 +71,7 @@ def check_mesh_file(path: str, name: str = "source", typed: str | None = None) -
     True for a USD file, False for one meshio reads."""
     # Named as the caller's parameter: 'mesh' had been named to add_mesh("x"), whose is source,
     # and 'source' to a scene file, whose key is file.
-    said = f"{name} = {(path if typed is None else typed)!r}"
+    said = f"{name} = {checks.shown_path(path if typed is None else typed)}"
     if not os.path.exists(path):
         raise ValueError(f"{said} is not allowed: file not found")
     if not os.path.isfile(path):

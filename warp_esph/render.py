@@ -1153,13 +1153,13 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         raise ValueError(f"progress = {checks.shorten(progress)!r} is not allowed: must be callable as progress(k, n)")
     kind = output_kind(out, flag("output"))
     if kind == "mp4" and ffmpeg_path() is None:
-        raise ValueError(f"{flag('output')} = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
+        raise ValueError(f"{flag('output')} = {checks.shown_path(out)} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
                          f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg', or pip install 'warp-esph[mp4]'); write a .gif or a folder "
                          f"of PNG frames instead")
     # Options of another kind of output: refused, not ignored (a .png took --fps, a .gif
     # --columns, and drew as without them). An output not given is not named as if it had
     # been ('with --output = ...' to a command line that typed no --output).
-    named = f"{flag('output')} = {out!r}" if given else f"the default output {out}"
+    named = f"{flag('output')} = {checks.shown_path(out)}" if given else f"the default output {checks.shown_path(out, False)}"
     if fps is not None and kind not in ("gif", "mp4"):
         raise ValueError(f"{flag('fps')} = {checks.shorten(fps)!r} is not allowed with {named}: it is the playback rate of a .gif or "
                          f".mp4, and {'a folder of PNG frames' if kind == 'dir' else 'a .png'} has none")
@@ -1240,8 +1240,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                             _save_image(img, part, format="PNG", optimize=True)
                     except OSError as e:
                         # A full disk: exit 2, 'bad input', with the bare errno, before.
-                        raise checks.OutputWriteError(f"cannot write {file}: {e.strerror or e} ({len(files)} of the "
-                                                      f"{len(chosen)} frames are written whole in {out})", e) from e
+                        raise checks.OutputWriteError(f"cannot write {checks.shown_path(file, False)}: {e.strerror or e} ({len(files)} of the "
+                                                      f"{len(chosen)} frames are written whole in {checks.shown_path(out, False)})", e) from e
                     files.append(file)
                 elif kind == "mp4":
                     if writer is None:
@@ -1279,7 +1279,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     except KeyboardInterrupt as e:
         raise checks.interrupted(_kept(kind, out, files, chosen)) from e
     except OSError as e:
-        raise checks.OutputWriteError(f"cannot write {out}: {e.strerror or e} (not written; a file of that name is left as "
+        raise checks.OutputWriteError(f"cannot write {checks.shown_path(out, False)}: {e.strerror or e} (not written; a file of that name is left as "
                                       "it was)", e) from e
     except Exception as e:
         checks.stopped_writing(e, _kept(kind, out, files, chosen))

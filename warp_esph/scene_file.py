@@ -537,8 +537,10 @@ def _mesh_file(source: str, base_dir: str) -> str:
     path = _in_folder(source, base_dir)
     if not os.path.isabs(source) and not os.path.lexists(path):
         tilde = "; '~' is not expanded" if source.startswith("~") else ""
-        raise ValueError(f"file = {source!r} is not allowed: there is no {path!r}; a relative path is read from the "
-                         f"scene file's folder ({base_dir!r}), not the working folder (give an absolute path for another)"
+        # (The message names the scene file first, and so its folder: the folder's path again,
+        # and the joined one, made three long paths of one line.)
+        raise ValueError(f"file = {checks.shown_path(source)} is not allowed: there is no such file; a relative path is "
+                         f"read from the scene file's folder, not the working folder (give an absolute path for another)"
                          f"{tilde}")
     check_mesh_file(path, "file", source)
     return path
@@ -564,11 +566,14 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     type, bad value — raises a ``ValueError`` that names the file, the table and the key.
     """
     scale = checks.positive("scale", scale)
-    file = os.fspath(path)
+    path = os.fspath(path)
+    # The file as every message names it: a long path cut to its ends (a 5000-character one
+    # wrote a 5 kB line).
+    file = str(checks.shown_path(path, quote=False))
     if tomllib is None:
-        raise ValueError(f"cannot read scene file {file!r}: reading TOML needs Python >= 3.11 or the tomli package")
+        raise ValueError(f"cannot read scene file {checks.shown_path(path)}: reading TOML needs Python >= 3.11 or the tomli package")
     try:
-        with open(file, "rb") as fh:
+        with open(path, "rb") as fh:
             # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
             data = tomllib.load(fh, parse_float=checks.read_number)
     except tomllib.TOMLDecodeError as e:
@@ -578,7 +583,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     except RecursionError:
         raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
-        raise ValueError(f"cannot read scene file {file!r}: {e.strerror or e}") from None
+        raise ValueError(f"cannot read scene file {checks.shown_path(path)}: {e.strerror or e}") from None
     for key in data:
         if key not in TOP_KEYS:
             raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")
@@ -637,11 +642,11 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     except ValueError as e:
         raise ValueError(f"{file}: [scene]: {e}") from None
     # finalize checks the numbers against the model's precision; its refusals name the file too.
-    builder.source = file
+    builder.source = file  # (for messages: the path as they show it)
     builder.origins[("scene",)] = "[scene]"
 
     materials = {name: _material(file, name, table) for name, table in materials_table.items()}
-    base_dir = os.path.dirname(os.path.abspath(file))
+    base_dir = os.path.dirname(os.path.abspath(path))
     for k, table in enumerate(bodies):
         _body(file, k, table, builder, materials, base_dir)
     for k, table in enumerate(colliders):
@@ -668,13 +673,13 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     # ('ev\u202eil.toml' was printed as it was in 'run's one-line report, reordering it).
     # So are what Scene refuses in a name, which a file's name may hold ('a\\b.toml', '  .toml').
     if name is None:
-        name = checks.one_line_label(os.path.splitext(os.path.basename(file))[0]).replace("\\", "_")
+        name = checks.one_line_label(os.path.splitext(os.path.basename(path))[0]).replace("\\", "_")
         name = name if name.strip() else "_" * len(name)
     # Of the file's path, which only labels, cleaned as the name (Scene refuses a line break).
-    description = scene.get("description") or f"scene file {checks.one_line_label(file)}"
+    description = scene.get("description") or f"scene file {checks.one_line_label(path)}"
     # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
     # bunny.usdc had its mesh replaced by the run, and could not be run again.
-    inputs = [("the scene file", os.path.abspath(file))]
+    inputs = [("the scene file", os.path.abspath(path))]
     inputs += [(f"the mesh of [[{kind}]] #{k + 1}", os.path.abspath(_in_folder(table["file"], base_dir)))
                for kind, tables in (("bodies", bodies), ("tools", tool_tables))
                for k, table in enumerate(tables) if table.get("shape") == "mesh"]

@@ -166,10 +166,10 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     doc = checks.json_file("camera file", p)
     cams = doc.get("cameras") if isinstance(doc, dict) else None
     if not isinstance(cams, list) or not cams:
-        raise ValueError(f"camera file {p} is not allowed: it needs a non-empty 'cameras' list")
+        raise ValueError(f"camera file {checks.shown_path(p, False)} is not allowed: it needs a non-empty 'cameras' list")
     unknown = sorted(set(doc) - {"cameras", "radius", "opacity"})
     if unknown:
-        raise ValueError(f"camera file {p}: key {unknown[0]!r} is not allowed: the keys are cameras, radius, opacity")
+        raise ValueError(f"camera file {checks.shown_path(p, False)}: key {unknown[0]!r} is not allowed: the keys are cameras, radius, opacity")
     for key in ("radius", "opacity"):
         if key in doc:
             checks.positive(f"camera file {p}: {key}", doc[key])  # 'x' was a float() error naming nothing
@@ -178,7 +178,7 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     cameras = [PinholeCamera.from_dict(c) for c in cams]
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
-        raise ValueError(f"camera file {p} is not allowed: camera names must be distinct ({names})")
+        raise ValueError(f"camera file {checks.shown_path(p, False)} is not allowed: camera names must be distinct ({names})")
     options = {k: doc[k] for k in ("radius", "opacity") if k in doc}
     return cameras, options
 
@@ -213,7 +213,7 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     single image applies to the only camera at ``frame``."""
     p = os.fspath(path)
     if not os.path.isfile(p):
-        raise FileNotFoundError(f"mask file {p} does not exist")
+        raise FileNotFoundError(f"mask file {checks.shown_path(p, False)} does not exist")
     ext = os.path.splitext(p)[1].lower()
     from .fit import read_arrays  # noqa: PLC0415
 
@@ -221,40 +221,40 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
         try:
             data = read_arrays(p)
         except Exception as e:  # noqa: BLE001 (zipfile, zlib and numpy raise many kinds)
-            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+            raise ValueError(f"mask file {checks.shown_path(p, False)} cannot be read: {type(e).__name__}: {e}") from None
         if not isinstance(data, dict):
-            raise ValueError(f"mask file {p} is not allowed: it holds one array, not <camera>_<frame> arrays")
+            raise ValueError(f"mask file {checks.shown_path(p, False)} is not allowed: it holds one array, not <camera>_<frame> arrays")
         out: dict[int, dict[str, np.ndarray]] = {}
         names = {c.name for c in cameras}
         for key in data:
             cam, _, f = key.rpartition("_")
             if cam not in names or not (f.isascii() and f.isdigit()):  # '²' passed isdigit() and failed int()
-                raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
+                raise ValueError(f"mask {key!r} in {checks.shown_path(p, False)} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
             if cam in out.get(int(f), {}):  # front_1 and front_01: the last read won
-                raise ValueError(f"mask {key!r} in {p} is not allowed: camera {cam!r} already has a mask for frame {int(f)}")
+                raise ValueError(f"mask {key!r} in {checks.shown_path(p, False)} is not allowed: camera {cam!r} already has a mask for frame {int(f)}")
             out.setdefault(int(f), {})[cam] = _fitting_mask(_mask_array(data[key], f"{p}:{key}"), f"{p}:{key}",
                                                             cameras[[c.name for c in cameras].index(cam)])
         result = {}
         for f, by in out.items():
             if set(by) != names:
-                raise ValueError(f"{p}: frame {f} has masks for {sorted(by)}, the cameras are {sorted(names)}")
+                raise ValueError(f"{checks.shown_path(p, False)}: frame {f} has masks for {sorted(by)}, the cameras are {sorted(names)}")
             result[f] = [by[c.name] for c in cameras]
         _refuse_all_inside(p, (m for ms in result.values() for m in ms))
         return result
     if len(cameras) != 1:
-        raise ValueError(f"mask file {p} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
+        raise ValueError(f"mask file {checks.shown_path(p, False)} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
     if ext == ".npy":
         try:
             a = read_arrays(p)
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+            raise ValueError(f"mask file {checks.shown_path(p, False)} cannot be read: {type(e).__name__}: {e}") from None
         if isinstance(a, dict):
-            raise ValueError(f"mask file {p} is not allowed: it is a zip of arrays, not one .npy image")
+            raise ValueError(f"mask file {checks.shown_path(p, False)} is not allowed: it is a zip of arrays, not one .npy image")
     else:
         try:
             a = _image_mask(p)
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"mask {p} cannot be read as an image: {e}") from None
+            raise ValueError(f"mask {checks.shown_path(p, False)} cannot be read as an image: {e}") from None
     mask = _fitting_mask(_mask_array(a, p), p, cameras[0])
     _refuse_all_inside(p, [mask])
     return {frame: [mask]}

@@ -453,7 +453,7 @@ class SweepTable:
                 columns = next(reader, [])
                 return columns, list(reader)
         except (UnicodeDecodeError, csv.Error) as e:
-            raise ValueError(f"path = {path!r} is not allowed: {wanted}; it is not CSV text ({e})") from None
+            raise ValueError(f"path = {checks.shown_path(path)} is not allowed: {wanted}; it is not CSV text ({e})") from None
 
     @classmethod
     def _from_cells(cls, path: str, columns: list[str], cells: list[list[str]], types: dict) -> "SweepTable":
@@ -473,7 +473,7 @@ class SweepTable:
         except (OSError, ValueError) as e:  # pyarrow's ArrowInvalid is a ValueError
             if not os.path.isfile(path):
                 raise
-            raise ValueError(f"path = {path!r} is not allowed: must be a sweep table written by SweepTable.to_parquet; "
+            raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be a sweep table written by SweepTable.to_parquet; "
                              f"it is not a Parquet file ({_one_line(e)})") from None
         columns = list(table.column_names)
         data = table.to_pydict()
@@ -487,7 +487,7 @@ class SweepTable:
         wanted = f"must be a sweep table written by SweepTable.{writer} (a header with sample, status, the parameters, seed)"
         # An empty file raised StopIteration; another CSV "'status' is not in list".
         if columns[:2] != ["sample", "status"] or "seed" not in columns:
-            raise ValueError(f"path = {path!r} is not allowed: {wanted}; its header is {checks.shorten(columns)!r}")
+            raise ValueError(f"path = {checks.shown_path(path)} is not allowed: {wanted}; its header is {checks.shorten(columns)!r}")
         start, end = columns.index("status") + 1, columns.index("seed")
         return cls(columns, rows, columns[start:end], identity)
 
@@ -1766,7 +1766,7 @@ def _resume_table(source, name: str) -> tuple[SweepTable, str]:
         try:
             table = SweepTable.read_parquet(path)
         except ImportError:
-            raise ValueError(f"{name} = {shown} is not allowed: reading {path!r} needs pyarrow (pip install pyarrow); "
+            raise ValueError(f"{name} = {shown} is not allowed: reading {checks.shown_path(path)} needs pyarrow (pip install pyarrow); "
                              f"or resume from the sweep.csv beside it") from None
         if table.identity is not None:
             return table, shown
@@ -1866,7 +1866,7 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
     (``ValueError``: it was a bare ``FileExistsError`` from ``os.makedirs``)."""
     folder = os.fspath(folder)
     if os.path.exists(folder) and not os.path.isdir(folder):
-        raise ValueError(f"folder = {folder!r} is not allowed: it is a file; the sweep's tables ({', '.join(OUTPUT_FILES)}) "
+        raise ValueError(f"folder = {checks.shown_path(folder)} is not allowed: it is a file; the sweep's tables ({', '.join(OUTPUT_FILES)}) "
                          "are written into a folder, one that is there or one that is made")
     os.makedirs(folder, exist_ok=True)
     # The record first, then the tables: it holds the sweep's identity, which a resumed sweep is
@@ -1966,7 +1966,7 @@ def sweep_cli(args, out=None) -> int:
     checks.output_place("--output", folder, folder=True)  # before the first sample, not after
     for name in OUTPUT_FILES:  # a folder in the way of one was found after every sample had run
         if os.path.isdir(os.path.join(folder, name)):
-            raise ValueError(f"--output = {folder!r} is not allowed: {os.path.join(folder, name)!r} is a folder; the "
+            raise ValueError(f"--output = {checks.shown_path(folder)} is not allowed: {checks.shown_path(os.path.join(folder, name))} is a folder; the "
                              f"sweep writes its {name} there")
     checks.output_files("--output", folder, OUTPUT_FILES)
     if args.retry_failed and not args.resume:
@@ -2049,7 +2049,7 @@ def sweep_cli(args, out=None) -> int:
                 # A full disk under the table of the samples finished: the error reached the
                 # command's handler as bad input (exit 2), the signal dropped and the folder unsaid.
                 print(f"{PROG}: {_stopped(args)}: cannot write the table of the {len(done)} of {len(points)} samples "
-                      f"finished in {folder}: {_one_line(e)} (the tables in {folder} do not keep them all)", file=sys.stderr)
+                      f"finished in {checks.shown_path(folder, False)}: {_one_line(e)} (the tables in {checks.shown_path(folder, False)} do not keep them all)", file=sys.stderr)
                 return EXIT_INTERRUPTED
             for line in written:
                 print(line, file=out)
@@ -2086,8 +2086,8 @@ def sweep_cli(args, out=None) -> int:
             # what is left on disk said.
             from .cli import _err  # noqa: PLC0415
 
-            said = (f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
-                    f"{folder} are not this sweep's whole result)")
+            said = (f"cannot write the sweep's tables in {checks.shown_path(folder, False)}: {e} ({len(table)} samples ran; the tables in "
+                    f"{checks.shown_path(folder, False)} are not this sweep's whole result)")
             if _held_signal_wins(args, seen, said):
                 return EXIT_INTERRUPTED
             _err(said)

@@ -112,7 +112,7 @@ def _read_view(path: str, view) -> tuple[float, float] | None:
         az = el = math.nan
         shown = view
     if not (math.isfinite(az) and math.isfinite(el)):
-        warnings.warn(f"{path}: its {_VIEW} = {checks.shorten(shown)!r} is no (azimuth, elevation) in finite degrees; "
+        warnings.warn(f"{checks.shown_path(path, False)}: its {_VIEW} = {checks.shorten(shown)!r} is no (azimuth, elevation) in finite degrees; "
                       "the suggested view is left out", UserWarning, stacklevel=3)
         return None
     return az, min(max(el, -VIEW_ELEVATION), VIEW_ELEVATION)
@@ -130,12 +130,12 @@ def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
     except Exception as e:  # noqa: BLE001 (Tf.ErrorException, RuntimeError)
         raise checks.file_error(path, e, action) from None
     if layer is None:
-        raise ValueError(f"cannot {action} {path}: pxr cannot open it as a USD file")
+        raise ValueError(f"cannot {action} {checks.shown_path(path, False)}: pxr cannot open it as a USD file")
     # A file this package wrote opens without a word; pxr's warnings (invalid prim names,
     # properties without a prim) mean damaged tokens, and the data read would be garbage.
     said = [n.split(" -- ", 1)[-1].strip() for n in notes if n.strip()]
     if said:
-        raise ValueError(f"cannot {action} {path!r}: pxr reads it as damaged ({checks.shorten(said[0]).text}"
+        raise ValueError(f"cannot {action} {checks.shown_path(path)}: pxr reads it as damaged ({checks.shorten(said[0]).text}"
                          + (f", and {len(said) - 1} more warnings)" if len(said) > 1 else ")"))
     return layer
 
@@ -217,7 +217,7 @@ class OutputInUse(ValueError):
     says so, for a caller that names the file by its own option (the CLI's ``--output``)."""
 
     def __init__(self, path: str, reason: str):
-        super().__init__(f"path = {path!r} is not allowed: {reason}")
+        super().__init__(f"path = {checks.shown_path(path)} is not allowed: {reason}")
         self.reason = reason
 
 
@@ -254,13 +254,13 @@ class UsdWriter:
         try:
             self.path = os.path.abspath(os.fspath(path))
         except TypeError:
-            raise ValueError(f"path = {checks.shorten(path)!r} is not allowed: must be a file path") from None
+            raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be a file path") from None
         folder, name = os.path.split(self.path)
         ext = os.path.splitext(name)[1].lower()
         if ext not in USD_EXTENSIONS:
             raise ValueError(f"path = {os.fspath(path)!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
         if not os.path.isdir(folder):
-            raise FileNotFoundError(f"cannot write {self.path}: the folder {folder} does not exist")
+            raise FileNotFoundError(f"cannot write {checks.shown_path(self.path, False)}: the folder {checks.shown_path(folder, False)} does not exist")
         if os.path.isdir(self.path):  # a folder of that name met an IsADirectoryError at the first frame
             raise ValueError(f"path = {os.fspath(path)!r} is not allowed: it is a folder; a file is written there")
         # Every frame is renamed over path: a symbolic link there became a regular file and
@@ -399,10 +399,10 @@ class UsdWriter:
         if stale is not None:
             # A layer of that name is still alive in this process (an earlier writer's
             # stage not yet garbage-collected): USD refuses to create a second one.
-            raise OSError(f"cannot create {file}: a USD layer of that name is still open in this process")
+            raise OSError(f"cannot create {checks.shown_path(file, False)}: a USD layer of that name is still open in this process")
         layer = Sdf.Layer.CreateNew(file, args={"format": self.format})
         if layer is None:
-            raise OSError(f"cannot create {file}")
+            raise OSError(f"cannot create {checks.shown_path(file, False)}")
         return layer
 
     def _create_new(self):
@@ -412,7 +412,7 @@ class UsdWriter:
             except Tf.ErrorException as e:
                 # pxr writes the new layer at once: a full disk there reached the CLI as pxr's
                 # error, taken for a damaged input file ('cannot read', exit 2); it is a failed write.
-                raise OSError(f"USD could not create {file}: {checks.read_reason(e)}") from None
+                raise OSError(f"USD could not create {checks.shown_path(file, False)}: {checks.read_reason(e)}") from None
             self._author_static(stage)
             self._stages.append(stage)
         # Publish the empty stage (prims, colliders, metadata) at once: the file at
@@ -421,7 +421,7 @@ class UsdWriter:
 
     def _open_existing(self):
         if not os.path.isfile(self.path):
-            raise FileNotFoundError(f"cannot append to {self.path}: no such file")
+            raise FileNotFoundError(f"cannot append to {checks.shown_path(self.path, False)}: no such file")
         open_layer_checked(self.path, "append to")  # a damaged file: one message, not pxr's warnings
         for file in self._work:
             if os.path.exists(file):
@@ -429,7 +429,7 @@ class UsdWriter:
             shutil.copyfile(self.path, file)
             layer = Sdf.Layer.FindOrOpen(file)
             if layer is None:
-                raise ValueError(f"cannot append to {self.path}: it is not a USD file pxr can open")
+                raise ValueError(f"cannot append to {checks.shown_path(self.path, False)}: it is not a USD file pxr can open")
             layer.Reload(force=True)  # a layer of that name may be cached from an earlier writer
             stage = Usd.Stage.Open(layer)
             self._check_compatible(stage)
@@ -446,7 +446,7 @@ class UsdWriter:
         # ``path`` itself stays untouched until the first frame is published.
 
     def _check_compatible(self, stage: Usd.Stage):
-        where = f"cannot append to {self.path}"
+        where = f"cannot append to {checks.shown_path(self.path, False)}"
         tcps = stage.GetTimeCodesPerSecond()
         if not math.isclose(tcps, self.fps, rel_tol=1e-9):
             raise ValueError(f"{where}: it was written at fps = {tcps:g}, not {self.fps:g}")
@@ -691,7 +691,7 @@ class UsdWriter:
             if self.closed or not self._stages:
                 # Called before each frame's write_frame: a closed writer met an IndexError
                 # here, before write_frame's refusal.
-                raise ValueError(f"cannot write frame {frame!r}: the writer of {self.path} is closed")
+                raise ValueError(f"cannot write frame {frame!r}: the writer of {checks.shown_path(self.path, False)} is closed")
             if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
                 raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: must be an integer >= 0 (the frame index "
                                  "write_frame writes next)")
@@ -715,7 +715,7 @@ class UsdWriter:
         if self.closed or not self._stages:
             # A close() whose clean-up raised has released the stages but is not marked closed
             # (a later close() finishes it): writing on raised an IndexError from the publish.
-            raise ValueError(f"cannot write frame {frame_index!r}: the writer of {self.path} is closed")
+            raise ValueError(f"cannot write frame {frame_index!r}: the writer of {checks.shown_path(self.path, False)} is closed")
         if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or frame_index < 0:
             raise ValueError(f"frame_index = {checks.shorten(frame_index)!r} is not allowed: must be an integer >= 0")
         frame = int(frame_index)
@@ -1033,11 +1033,11 @@ class UsdFrames:
     @_held_stderr
     def __init__(self, path):
         if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
-            raise ValueError(f"path = {checks.shorten(path)!r} is not allowed: must be the path of a warp-esph USD file")
+            raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be the path of a warp-esph USD file")
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
             why = "it is a folder" if os.path.isdir(self.path) else "no such file"
-            raise FileNotFoundError(f"cannot read {self.path}: {why}")
+            raise FileNotFoundError(f"cannot read {checks.shown_path(self.path, False)}: {why}")
         suffix = os.path.splitext(self.path)[1].lower()
         if suffix not in USD_SUFFIXES:
             # pxr's own words named no format it reads ("Cannot determine file format for @s.toml@").
@@ -1060,7 +1060,7 @@ class UsdFrames:
         if lost:
             # pxr composes without what it cannot open, printing a warning: the prims it held
             # were missing, and the file read as holding no frames.
-            raise ValueError(f"cannot read {self.path!r}: the file {lost[0][2]} it refers to (at {lost[0][1]}) cannot be "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: the file {lost[0][2]} it refers to (at {lost[0][1]}) cannot be "
                              f"opened{f', nor {len(lost) - 1} more' if len(lost) > 1 else ''}")
         for n in notes:  # anything else pxr said, passed on
             if n.strip():
@@ -1068,7 +1068,7 @@ class UsdFrames:
         rate = float(self.stage.GetTimeCodesPerSecond())
         if not (math.isfinite(rate) and rate > 0.0):
             # 0 was read as 30 fps and -24 as -24 (negative times in frames.pvd, a GIF's warning).
-            raise ValueError(f"cannot read {self.path!r}: timeCodesPerSecond = {rate:g} is not allowed: must be a finite "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: timeCodesPerSecond = {rate:g} is not allowed: must be a finite "
                              "number > 0 (the frames per second)")
         self.fps = rate
         #: Whether the file authors its rate (``timeCodesPerSecond`` or ``framesPerSecond``);
@@ -1082,7 +1082,7 @@ class UsdFrames:
             if prim.IsA(UsdGeom.Points):
                 self.bodies.append((prim.GetName(), prim))
         if not self.bodies:
-            raise NotAnOutput(f"cannot read {self.path}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
+            raise NotAnOutput(f"cannot read {checks.shown_path(self.path, False)}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
         times = set()
         #: Each body's sample times (an empty set: a body with a value for all time, no samples).
         self._samples = []
@@ -1093,7 +1093,7 @@ class UsdFrames:
         if between:
             # A frame is a whole time code: samples at 0.5 and 1.5 (another program's subframes)
             # were rounded onto frames 0 and 2, which were then drawn twice and the samples never read.
-            raise ValueError(f"cannot read {self.path!r}: its points have time samples at time codes that are not whole "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: its points have time samples at time codes that are not whole "
                              f"numbers ({', '.join(f'{t:g}' for t in between[:3])}{', ...' if len(between) > 3 else ''}); "
                              "a warp-esph output has one per frame, at time code = frame index")
         self.frames = sorted(int(t) for t in times)
@@ -1101,16 +1101,16 @@ class UsdFrames:
             # A fit target's frame -1 ended in a KeyError traceback, and '-1' of --frames counts
             # from the end, so a negative frame index cannot even be chosen.
             before = [f for f in self.frames if f < 0]
-            raise ValueError(f"cannot read {self.path!r}: its points have time samples at negative time codes "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: its points have time samples at negative time codes "
                              f"({', '.join(map(str, before[:3]))}{', ...' if len(before) > 3 else ''}); "
                              "a warp-esph output has one per frame, at time code = frame index >= 0")
         if not self.frames:
-            raise ValueError(f"cannot read {self.path}: it holds no frames")
+            raise ValueError(f"cannot read {checks.shown_path(self.path, False)}: it holds no frames")
         #: Metres per unit of the file's coordinates (USD's fallback, centimetres, where not
         #: authored; a run's file authors 1).
         self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(self.stage))
         if not UsdGeom.StageHasAuthoredMetersPerUnit(self.stage):
-            warnings.warn(f"{self.path}: its stage does not author metersPerUnit, so USD's fallback of "
+            warnings.warn(f"{checks.shown_path(self.path, False)}: its stage does not author metersPerUnit, so USD's fallback of "
                           f"{self.meters_per_unit:g} m per unit (centimetres) is assumed (USD's rule); if its points are "
                           "in metres, author metersPerUnit = 1 in the file (UsdGeom.SetStageMetersPerUnit)",
                           UserWarning, stacklevel=3)
@@ -1131,7 +1131,7 @@ class UsdFrames:
             if isinstance(e, ValueError) and str(self.path) in str(e):
                 raise
             detail = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            raise ValueError(f"cannot read {self.path}: a collider or tool is damaged ({detail})") from None
+            raise ValueError(f"cannot read {checks.shown_path(self.path, False)}: a collider or tool is damaged ({detail})") from None
         # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
         self.surface_prims = []
         for name, _ in self.bodies:
@@ -1174,7 +1174,7 @@ class UsdFrames:
         counts = np.asarray(counts, dtype=np.int64)
         idx = np.asarray(idx, dtype=np.int64)
         if counts.sum() != len(idx) or (counts < 3).any() or idx.min() < 0 or idx.max() >= len(v):
-            raise ValueError(f"cannot read {self.path}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
+            raise ValueError(f"cannot read {checks.shown_path(self.path, False)}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
         tri = _fan(counts, idx)
         world = self.placement(prim, frame)
         if world is not None:  # in metres and world coordinates, as the particles (arrays)
@@ -1325,7 +1325,7 @@ class UsdFrames:
 
     def resolve(self, frame: int) -> int:
         if not self._holds(frame):
-            raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
+            raise ValueError(f"frame = {checks.shorten(frame)!r} is not allowed: {checks.shown_path(self.path, False)} holds frames {self.frames[0]}..{self.frames[-1]}")
         return frame
 
     def _frame(self, frame) -> int:
@@ -1407,7 +1407,7 @@ class UsdFrames:
         if cols["points"] and not np.isfinite(np.concatenate(cols["points"])).all(axis=1).any():
             # The writer never writes a non-finite particle: a frame without one finite is damaged
             # (it rendered as an empty picture and exported NaN, both exiting 0).
-            raise ValueError(f"cannot read {self.path!r}: frame {frame} has no particle with a finite position "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: frame {frame} has no particle with a finite position "
                              "(not a warp-esph output, or damaged)")
         shapes = {"points": (0, 3), "velocities": (0, 3), "singular_values": (0, 3)}
         return {k: (np.concatenate(v) if v else np.zeros(shapes.get(k, (0,)), np.int32 if k in ("body", "material_id") else np.float32))
@@ -1419,7 +1419,7 @@ class UsdFrames:
         a = self.arrays(frame)
         bad = ~(np.isfinite(a["widths"]) & (a["widths"] > 0.0))
         if bad.any():  # a NaN width failed inside the renderer
-            raise ValueError(f"cannot read {self.path!r}: body {self.bodies[int(a['body'][bad.argmax()])][0]!r} at frame {frame} "
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: body {self.bodies[int(a['body'][bad.argmax()])][0]!r} at frame {frame} "
                              "has widths that are not finite and > 0 (not a warp-esph output, or damaged; the particles are "
                              "drawn as spheres of these diameters)")
         with np.errstate(divide="ignore", invalid="ignore"):
