@@ -2201,6 +2201,16 @@ def test_a_long_path_in_a_refusal_is_shown_by_its_ends(case, tmp_path, monkeypat
     assert re.search(r"'?(/tmp|d)\S*\.\.\.[de]+/" + re.escape(name), err), err  # the start, '...', the end
 
 
+@pytest.mark.parametrize("kind", ["a folder", "a name too long"])
+def test_resume_from_a_path_the_system_cannot_open_says_why(kind, tmp_path, capsys):
+    """Found by a fuzz of the commands' path options: 'run --resume <folder>' said 'not a readable
+    warp_esph checkpoint (IsADirectoryError)', and a name past the file system's limit '(OSError)'."""
+    path = tmp_path if kind == "a folder" else tmp_path / ("n" * 300 + ".npz")
+    assert main(["run", "--resume", str(path)]) == 2
+    why = "Is a directory" if kind == "a folder" else "File name too long"
+    assert_one_line_error(capsys.readouterr().err, f"is not allowed: it cannot be read ({why})")
+
+
 def test_shown_path_keeps_a_short_path_whole_and_a_long_one_s_ends():
     from warp_esph.checks import shown_path
 

@@ -294,6 +294,13 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
             meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
         raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: no such file") from None
+    except OSError as e:
+        if e.errno is None:  # raised by a reader of the bytes, not by the system: a damaged file
+            raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: not a readable warp_esph checkpoint "
+                             f"({type(e).__name__})") from None
+        # The system's reason: 'not a readable warp_esph checkpoint (IsADirectoryError)' or
+        # '(OSError)', for a folder or a name too long, named no cause or the wrong one.
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it cannot be read ({e.strerror or e})") from None
     # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
     # (a damaged compression method): in this block, only reading the file can raise them.
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
