@@ -2211,6 +2211,18 @@ def test_resume_from_a_path_the_system_cannot_open_says_why(kind, tmp_path, caps
     assert_one_line_error(capsys.readouterr().err, f"is not allowed: it cannot be read ({why})")
 
 
+@pytest.mark.parametrize("argv", [["fit", "dough_drop", "--target=~/t.npz"], ["run", "--output=~/o.usdc"],
+                                  ["run", "~/s.toml"], ["render", "~/o.usdc"]])
+def test_a_path_starting_with_a_tilde_that_names_nothing_says_it_is_not_expanded(argv, tmp_path, monkeypatch, capsys):
+    """Found by a fuzz of the commands' path options: the shell leaves '~' as written after
+    '--target=' (or quoted), and 'target file ~/t.npz does not exist' did not say why, where a
+    scene file's mesh file said it."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert_one_line_error(capsys.readouterr().err, "'~' is not expanded")
+    assert os.listdir(tmp_path) == []
+
+
 def test_shown_path_keeps_a_short_path_whole_and_a_long_one_s_ends():
     from warp_esph.checks import shown_path
 

@@ -81,6 +81,15 @@ def shown_path(path, quote: bool = True) -> _Shown:
     return _Shown(_ends(repr(text) if quote else text))
 
 
+def tilde_note(path) -> str:
+    """'; '~' is not expanded' where ``path`` starts with '~' (a shell leaves it as written after
+    '--target=' or in quotes, and no reader here expands it), else ''."""
+    try:
+        return "; '~' is not expanded" if os.fsdecode(os.fspath(path)).startswith("~") else ""
+    except TypeError:
+        return ""
+
+
 def long_words_cut(text: str) -> str:
     """``text`` with each word (a run without spaces) longer than ``PATH_SHOWN_WHOLE`` characters
     cut to its ends, as ``shown_path`` cuts a path: the commands' one-line messages pass
@@ -888,7 +897,7 @@ def output_place(what: str, path, folder: bool = False) -> str:
     parent = p if folder and os.path.isdir(p) else (os.path.dirname(os.path.abspath(p)) or ".")
     if not os.path.isdir(parent):
         raise ValueError(f"{what} = {shown_path(p)} is not allowed: its folder {shown_path(parent)} does not exist or is not a "
-                         "folder")
+                         f"folder{tilde_note(p)}")
     try:  # the one reliable test that a file can be created there
         import tempfile  # noqa: PLC0415
 

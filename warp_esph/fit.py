@@ -3842,7 +3842,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if os.path.isdir(p):
         raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a folder; give a target file")
     if not os.path.isfile(p):
-        raise FileNotFoundError(f"target file {checks.shown_path(p, False)} does not exist")
+        raise FileNotFoundError(f"target file {checks.shown_path(p, False)} does not exist{checks.tilde_note(p)}")
     ext = os.path.splitext(p)[1].lower()
     if ext == ".toml":
         # The scene given twice ('fit s.toml --target s.toml') was handed to meshio: "mesh

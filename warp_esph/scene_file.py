@@ -536,12 +536,11 @@ def _mesh_file(source: str, base_dir: str) -> str:
     to nothing likewise, as written: it was named by add_mesh's ``source`` or add_tool's ``mesh``."""
     path = _in_folder(source, base_dir)
     if not os.path.isabs(source) and not os.path.lexists(path):
-        tilde = "; '~' is not expanded" if source.startswith("~") else ""
         # (The message names the scene file first, and so its folder: the folder's path again,
         # and the joined one, made three long paths of one line.)
         raise ValueError(f"file = {checks.shown_path(source)} is not allowed: there is no such file; a relative path is "
                          f"read from the scene file's folder, not the working folder (give an absolute path for another)"
-                         f"{tilde}")
+                         f"{checks.tilde_note(source)}")
     check_mesh_file(path, "file", source)
     return path
 
@@ -583,7 +582,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     except RecursionError:
         raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
-        raise ValueError(f"cannot read scene file {checks.shown_path(path)}: {e.strerror or e}") from None
+        raise ValueError(f"cannot read scene file {checks.shown_path(path)}: {e.strerror or e}{checks.tilde_note(path)}") from None
     for key in data:
         if key not in TOP_KEYS:
             raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")

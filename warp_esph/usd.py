@@ -1036,7 +1036,7 @@ class UsdFrames:
             raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be the path of a warp-esph USD file")
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
-            why = "it is a folder" if os.path.isdir(self.path) else "no such file"
+            why = "it is a folder" if os.path.isdir(self.path) else f"no such file{checks.tilde_note(self.path)}"
             raise FileNotFoundError(f"cannot read {checks.shown_path(self.path, False)}: {why}")
         suffix = os.path.splitext(self.path)[1].lower()
         if suffix not in USD_SUFFIXES:
