@@ -66,7 +66,12 @@ def squared_error(mean: wp.array(dtype=wp.float64), target: wp.float64, loss: wp
     loss[0] = d * d
 
 
-def press_loss(heights, target, steps=250, dt=4e-4, grad=False):
+def press_loss(heights, target, steps=250, dt=4e-4, grad=False, positions=None):
+    """The squared distance of the top layer's mean height from ``target`` after the press,
+    and that mean height; with ``grad``, also the loss's derivatives with respect to the two
+    moving keyframes' heights. ``positions``: a dict to which ``heights[0]`` maps
+    ``(x0, x)``, the particles' start and final positions (what the notebook plots, read
+    from this run rather than run again)."""
     model = press_model(heights)
     solver = we.Solver(model)
     states = [model.state() for _ in range(steps + 1)]
@@ -85,6 +90,8 @@ def press_loss(heights, target, steps=250, dt=4e-4, grad=False):
         wp.launch(squared_error, 1, [mean, target], [loss])
     value = float(loss.numpy()[0])
     mean_top = float(mean.numpy()[0])
+    if positions is not None:
+        positions[heights[0]] = (x0, states[-1].x.numpy())
     if not grad:
         return value, mean_top
     tape.backward(loss)
@@ -118,13 +125,15 @@ def minimise_1d(fun_grad, x, step, iterations, label, tol):
     return x
 
 
-def optimise_press(target=0.021, iterations=10, history=None):
+def optimise_press(target=0.021, iterations=10, history=None, positions=None):
     """How deep must the press go (it comes back up to 3 cm) to leave the top at ``target``?
-    ``history``: a list to append ``(depth, loss, top, derivative)`` to at every evaluation."""
+    ``history``: a list to append ``(depth, loss, top, derivative)`` to at every evaluation;
+    ``positions``: a dict to which each evaluated depth maps the particles' start and final
+    positions (``press_loss``)."""
     print(f"press: target top height {1e3 * target:.1f} mm (top particle layer at rest: 25.0 mm)")
 
     def fun_grad(depth):
-        loss, top, g = press_loss(np.array([depth, 0.03]), target, grad=True)
+        loss, top, g = press_loss(np.array([depth, 0.03]), target, grad=True, positions=positions)
         fun_grad.top = top
         if history is not None:
             history.append((depth, loss, top, g[0]))

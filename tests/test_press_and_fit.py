@@ -33,13 +33,21 @@ def test_press_optimisation_reaches_the_target_top_height():
     """``optimise_press`` (the notebook's part 1): measured depth 14.31 mm, mean top 20.99 mm
     for the 21 mm target in 6 evaluations (docs/tools.md; 13.86 mm in 7 before the tool
     contact's tangential displacement was taken from the particle's start)."""
-    history = []
-    depth = pf.optimise_press(TARGET, history=history)
+    history, positions = [], {}
+    depth = pf.optimise_press(TARGET, history=history, positions=positions)
     # The search returns the depth it evaluated last: its top is read there, not run again.
     last, _, top, _ = history[-1]
     assert last == depth
     assert top == pytest.approx(TARGET, abs=1e-4)
     assert depth < TARGET  # the dough springs back: the press must go below the target
+    # The final positions each evaluation kept (the notebook plots them rather than run the
+    # press again): their top layer's mean height is the top that evaluation measured.
+    assert list(positions) == [h[0] for h in history]
+    for d, _, t, _ in history:
+        x0, x = positions[d]
+        layer = x0[:, 1] > x0[:, 1].max() - 0.5 * pf.DX
+        assert x.shape == x0.shape and layer.sum() == 36
+        assert float(np.mean(x[layer, 1])) == pytest.approx(t, rel=1e-12)
 
 
 def test_force_curve_loss_derivative_matches_central_differences_and_the_fit_recovers_E():
