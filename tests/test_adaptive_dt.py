@@ -311,11 +311,13 @@ def test_stable_dt_includes_the_hourglass_control_and_holds():
     print(f"stable_dt: c = 0 {plain:.4e}, c = 3 {mild:.4e} ({mild / plain:.4f} x), c = 1000 {stiff:.4e} ({stiff / plain:.4f} x)")
     assert 0.95 * plain < mild < plain and stiff < plain / 3.0
     start = float(np.abs(state.v.numpy()).max())
-    peaks = [_peak_speed(model, dt, 400, 1.0, c, state) for c, dt in ((3.0, mild), (1000.0, stiff), (1000.0, 3.0 * stiff), (0.0, 3.0 * stiff))]
+    peaks = [_peak_speed(model, dt, 200, 1.0, c, state) for c, dt in ((3.0, mild), (1000.0, stiff), (1000.0, 3.0 * stiff), (0.0, 3.0 * stiff))]
     print(f"peak speed / start ({start:.2e} m/s): c = 3 at its step {peaks[0] / start:.2f}, c = 1000 at its step "
           f"{peaks[1] / start:.2f}, at 3 x {peaks[2] / start:.3g}, c = 0 at that step {peaks[3] / start:.2f}")
     # Bounded: an undamped elastic block keeps its energy (the peak speed wanders within a
-    # few times the start as the modes beat); blown up: past 1 m/s within 400 steps.
+    # few times the start as the modes beat); blown up: past 1 m/s within 200 steps. Measured:
+    # peaks 0.88 / 1.10 / 0.83 x the start, each the same over 400 steps; 3 x blown up by step
+    # 20, as a step 1.6 x the control's limit is (1.4 x stays bounded: 1.45 x over 400).
     assert peaks[0] < 3.0 * start and peaks[1] < 3.0 * start and peaks[3] < 3.0 * start
     assert peaks[2] == math.inf
     with pytest.warns(RuntimeWarning, match="hourglass control at c = 1000"):
