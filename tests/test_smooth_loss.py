@@ -417,23 +417,28 @@ def test_loss_is_smooth_through_the_imaged_ground(name, taped_base):
 
 @pytest.mark.parametrize("name", ["mu", "viscosity"])
 def test_no_jump_in_the_loss_through_ground_contact(name, taped_base):
-    """The loss and the tape's gradient at 11 values over +-1 % of the parameter: the loss's
-    increment over each interval is the mean of the tape's gradients at its ends (the
-    trapezoid rule, exact to the loss's curvature) within 2 %; neighbouring gradients differ
-    by at most 8 % of the centre's, and none by more than 25 %. A jump, or a kink, anywhere
-    in the range shows as one interval far off the trapezoid and as a step between
-    neighbouring gradients; a smooth bend does neither.
+    """The loss and the tape's gradient at the middle 7 of 11 values over +-1 % of the
+    parameter (-0.6 % to +0.6 %, 0.2 % apart): the loss's increment over each interval is the
+    mean of the tape's gradients at its ends (the trapezoid rule, exact to the loss's
+    curvature) within 2 %; neighbouring gradients differ by at most 8 % of the centre's, and
+    none by more than 25 %. A jump, or a kink, anywhere in the range shows as one interval far
+    off the trapezoid and as a step between neighbouring gradients; a smooth bend does neither.
 
-    Measured with the touchdown share (``colliders.touchdown_share``): increments within
-    0.11 % (mu) and 0.17 % (viscosity) of the trapezoid; gradients 0.90-1.13 (mu) and
-    0.89-1.21 (viscosity) of the centre's, neighbours at most 3.7 % and 5.0 % apart: the
-    curvature of where 168 particles' touchdowns fall in their steps. With the share's first
-    form, linear and so kinked at both ends of the touchdown step: 0.55 % and 0.66 %, with
+    Measured with the touchdown share (``colliders.touchdown_share``) over the 7 values:
+    increments within 0.11 % (mu) and 0.17 % (viscosity) of the trapezoid; gradients
+    0.926-1.092 (mu) and 0.916-1.129 (viscosity) of the centre's, neighbours at most 3.75 %
+    and 4.6 % apart (over all 11: 0.90-1.13 and 0.89-1.21, 3.75 % and 5.0 %): the curvature of
+    where 168 particles' touchdowns fall in their steps. With the flow's volume factor jumping
+    where J leaves [0.8, 1.25] (the paper's target alone outside the range, the mutation), the
+    7 values read increments 0.65-1.06 (mu) and -13.2 to 1.97 (viscosity) times the
+    trapezoid's, gradients 0.74-1.50 and -2.7 to 1.12 of the centre's: every bound fails.
+    With the share's first form, linear and so kinked at both ends of the touchdown step
+    (over all 11): 0.55 % and 0.66 %, with
     gradients 0.93-1.03 here but down to 0.45 on the imaged ground (below). With the instant
     contact law, which removed all inward velocity of a particle once it crossed the surface:
     increments of -20 to 4 times the slope; with the flow's volume factor jumping where J left
-    [0.8, 1.25]: 0.71 and 1.25."""
-    _assert_smooth(*_scan_against_trapezoid(name, taped_base))
+    [0.8, 1.25]: 0.71 and 1.25 (over all 11, when first measured)."""
+    _assert_smooth(*_scan_against_trapezoid(name, taped_base, points=range(2, 9)))
 
 
 def _assert_smooth(ratios, grads):
