@@ -678,6 +678,24 @@ def _row(t, array, tool, offset):
     return (t.keyframe_start[k] + offset) if array.startswith("keyframe") else k
 
 
+def _perturbed(loss, model, array, row, comp, delta):
+    """``loss(model)`` with ``model.tools``' ``array`` moved by ``delta`` at ``row`` (in
+    component ``comp``; ``None``: a scalar row), then put back bit for bit: the central
+    differences reuse one model, whose build cost more than the 8 steps of each loss."""
+    a = getattr(model.tools, array)
+    original = a.numpy().copy()
+    v = original.copy()
+    if comp is None:
+        v[row] += delta
+    else:
+        v[row][comp] += delta
+    a.assign(v)
+    try:
+        return loss(model)
+    finally:
+        a.assign(original)
+
+
 @pytest.mark.parametrize("crossing", [False, True])
 def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_central_differences(crossing):
     """Mesh contact (float64 geometry on the face Warp's float32 query picks), its velocity
@@ -687,6 +705,7 @@ def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_c
     segments either side of it."""
     model = _mesh_keyframe_model(crossing)
     _loss(model, grad=True)  # (it also checks that every tool touched the block)
+    fd_model = _mesh_keyframe_model(crossing)
     t = model.tools
     grads = {name: getattr(t, arr).grad.numpy()[_row(t, arr, tool, off)] for name, (arr, tool, off, _c, _h) in _TOOL_PARAMS.items()}
     for name, (arr, tool, off, comp, h) in _TOOL_PARAMS.items():
@@ -698,18 +717,7 @@ def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_c
             # 1e-7 and 1e-8 both within 6e-4 and 6e-5 of the tape's -1.8717).
             h = 1e-8
         g = grads[name] if comp is None else grads[name][comp]
-        vals = []
-        for sign in (1, -1):
-            m = _mesh_keyframe_model(crossing)
-            a = getattr(m.tools, arr)
-            v = a.numpy()
-            row = _row(m.tools, arr, tool, off)
-            if comp is None:
-                v[row] += sign * h
-            else:
-                v[row][comp] += sign * h
-            a.assign(v)
-            vals.append(_loss(m))
+        vals = [_perturbed(_loss, fd_model, arr, _row(t, arr, tool, off), comp, sign * h) for sign in (1, -1)]
         fd = (vals[0] - vals[1]) / (2 * h)
         print(name, g, fd)
         assert g == pytest.approx(fd, rel=1e-4, abs=1e-9), name
@@ -790,16 +798,11 @@ def test_gradients_of_swept_tools_and_moving_pins_and_their_reaction_torque_matc
     row = "grip" if case == "pin" else "roller"
     _, touched, grads = _row_loss(make(), row, _MOTION_PARAMS)
     assert touched > 0.0  # the tool touched the block (the pin carried its set)
+    fd_model = make()
     h = 1e-6
     for (array, comp), g in zip(_MOTION_PARAMS, grads):
-        vals = []
-        for sign in (1, -1):
-            m = make()
-            a = getattr(m.tools, array)
-            v = a.numpy()
-            v[m.tools.index(row)][comp] += sign * h
-            a.assign(v)
-            vals.append(_row_loss(m, row)[0])
+        vals = [_perturbed(lambda m: _row_loss(m, row)[0], fd_model, array, fd_model.tools.index(row), comp, sign * h)
+                for sign in (1, -1)]
         fd = (vals[0] - vals[1]) / (2 * h)
         print(case, array, comp, g, fd, abs(g / fd - 1))
         assert abs(fd) > 1e-6, (array, comp)  # the parameter acts on the loss
