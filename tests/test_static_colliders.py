@@ -155,8 +155,9 @@ def test_block_on_a_tilted_box_slides_below_tan_phi_and_stays_above(mu):
 
 @pytest.mark.parametrize("collider", ["box", "sphere", "ground", "ground_images"])
 def test_resting_block_carries_its_weight_without_penetration(collider):
-    """Settled (with kinetic damping) on a box top, on a sphere's apex or off the origin on
-    the ground, then left alone for 0.1 s: it stays at rest, the colliders' force over that
+    """Settled (with kinetic damping: 0.2 s, on the sphere's apex 0.5 s; there at 0.2 s it
+    still rolled off the apex at 1.6e-3 m/s) on a box top, on a sphere's apex or off the
+    origin on the ground, then left alone for 0.1 s: it stays at rest, the colliders' force over that
     time is the weight, straight up, both from the momentum balance and as the collider
     reports it, the reported torque about the collider's reference point balances the
     weight's (``(c - ref) x M g`` up, ``c`` the centroid), and no particle is inside. On the
@@ -164,7 +165,9 @@ def test_resting_block_carries_its_weight_without_penetration(collider):
     the plane, out of the collider's contact): the row reports their force too (before it
     did, it read 0)."""
     m, s = _block(0.5, collider)
-    a, c = _settle(m, s, 2500, relax=True)
+    # Measured after 0.2 s: the reaction within 3.3e-5 M g of the weight, 3e-4 m/s at most
+    # (ground_images; the others 6e-7 and 1e-5 m/s), against the 1e-3 M g and 1e-3 m/s asked.
+    a, c = _settle(m, s, 2500 if collider == "sphere" else 1000, relax=True)
     p0 = _momentum(m, a)
     n = 500
     name = {"box": "box0", "sphere": "sphere0", "ground": "plane0", "ground_images": "plane0"}[collider]
