@@ -564,30 +564,19 @@ def test_spread_radius_within_10_percent_of_roussel_coussot(spread_pile):
 THIN_LAYER = {"layers": 3, "duration": 0.6, "length": 8.0}
 
 
-@pytest.fixture(scope="module")
-def strip_above_on_particles(run_once):
-    """The strip on the particle floor at 1.3 tau_y, walls through the outer rows' centres,
-    0.6 s (``THIN_LAYER``): the floor's test reads it above yield, the sliding test as the
-    strip that cannot widen."""
-    return run_once("validation-strip_above_on_particles",
-                    lambda: validation.incline(load=1.3, floor="particles", walls="centres", **THIN_LAYER))
-
-
-def _stops_below_and_flows_above(floor: str, above=None):
+def _stops_below_and_flows_above(floor: str):
     """The strip on ``floor`` (walls through the outer rows' centres): at 0.6 tau_y its top
-    stops (below 3 % of the Bingham surface speed at 1.3), at 1.3 tau_y (``above``: that
-    run, if made already) it flows at more than half that speed."""
+    stops (below 3 % of the Bingham surface speed at 1.3), at 1.3 tau_y it flows at more
+    than half that speed."""
     below = validation.incline(load=0.6, floor=floor, walls="centres", **THIN_LAYER)
-    if above is None:
-        above = validation.incline(load=1.3, floor=floor, walls="centres", **THIN_LAYER)
+    above = validation.incline(load=1.3, floor=floor, walls="centres", **THIN_LAYER)
     assert below["finite"] and above["finite"]
     scale = above["bingham_surface_speed"]
     assert abs(below["top_speed"]) < 0.03 * scale, (below["top_speed"], scale)
     assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
 
 
-def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_the_shear_yield_stress(
-        strip_above_on_particles):
+def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_the_shear_yield_stress():
     """Floor: two pinned layers of the layer's own body, so every particle's fit is that of
     an interior one at the base. The walls normal to z go through the outer rows' centres,
     so the strip cannot widen, which stops it after about a spacing of slip (next test):
@@ -600,7 +589,7 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     mm/s (widened 1.26 x). Earlier, with the energy force and the walls at the faces:
     longer runs stopped at 0.9 and flowed at 1.1 tau_y (0.34 against 0.48 mm/s). At 0.6 s
     the speed is not yet the steady one: energy_spiky, centres, 1.1 tau_y: 8.5 mm/s."""
-    _stops_below_and_flows_above("particles", strip_above_on_particles)
+    _stops_below_and_flows_above("particles")
 
 
 def test_thin_layer_on_an_elastic_particle_floor_is_held_where_the_plastic_floor_lets_it_flow():
@@ -622,8 +611,7 @@ def test_thin_layer_on_the_ghost_floor_stops_below_and_flows_above_the_shear_yie
     _stops_below_and_flows_above("ghost_particles")
 
 
-def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_between_its_walls(
-        strip_above_on_particles):
+def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_between_its_walls():
     """The layer's flow stops after about one spacing of slip (docs/physics.md, thin layers
     in shear) because the strip widens: its walls normal to z act on particle centres, half a
     spacing outside its outer rows, which move out to them, so the layers close up in y.
@@ -634,12 +622,9 @@ def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_
     2.15 mm/s, 0.58 of the Bingham speed. The first reading ran the spiky pressure force, then
     the default (incline passes energy_spiky since): with it this tree reads 4.06 mm/s. Either
     reading is the tail of the load ramp's overshoot, not a steady flow: the strip slows to
-    0.29 mm/s by 2.0 s (docs/physics.md, "The three-layer strip read longer"). The strip that
-    cannot widen is read over 0.6 s, the run of the floor's test above: 0.994 x and 0.896, top
-    at 7.74 mm/s (2.1 x Bingham); in its place the strip between walls at the faces (the
-    mutation), widened 1.11 x and slowed to 1.09 mm/s (0.30 x) by 0.6 s, fails it."""
+    0.29 mm/s by 2.0 s (docs/physics.md, "The three-layer strip read longer")."""
     faces = validation.incline(load=1.3, floor="particles", layers=3, length=8.0, duration=1.0)
-    centres = strip_above_on_particles
+    centres = validation.incline(load=1.3, floor="particles", layers=3, length=8.0, duration=1.0, walls="centres")
     assert faces["finite"] and centres["finite"]
     scale = centres["bingham_surface_speed"]
     assert faces["width_ratio"] > 1.08 and faces["top_height_ratio"] < 0.82, faces
