@@ -2235,6 +2235,21 @@ def test_shown_path_keeps_a_short_path_whole_and_a_long_one_s_ends():
     assert repr(shown_path(None)) == "None"
 
 
+@pytest.mark.parametrize("argv", [["render", "{}", "-o", "x.png"], ["run", "--frames", "1", "-o", "{}"]])
+def test_a_path_of_160_characters_is_shown_whole(argv, tmp_path, monkeypatch, capsys):
+    """A path of exactly PATH_SHOWN_WHOLE characters is one a refusal shows whole: its quotes
+    (shown_path's repr) or the ':' after it (the commands' one-line messages) had counted in its
+    length, and it was cut to its ends."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE
+
+    monkeypatch.chdir(tmp_path)
+    folder = str(tmp_path / "absent") + "/"  # nothing there: render cannot read it, run cannot write in it
+    path = folder + "p" * (PATH_SHOWN_WHOLE - len(folder) - 5) + ".usdc"
+    assert len(path) == PATH_SHOWN_WHOLE
+    assert main([a.format(path) for a in argv]) == 2
+    assert_one_line_error(capsys.readouterr().err, path)
+
+
 def test_a_number_read_as_typed_computes_as_its_float():
     import pickle
 

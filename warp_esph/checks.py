@@ -61,8 +61,17 @@ PATH_SHOWN_WHOLE = 160
 PATH_ENDS = 40
 
 
-def _ends(text: str) -> str:
-    return text if len(text) <= PATH_SHOWN_WHOLE else f"{text[:PATH_ENDS]}...{text[-PATH_ENDS:]}"
+def _ends(text: str, length: int | None = None) -> str:
+    """``text`` whole where ``length`` (the path's own, without what a message writes around it;
+    default ``text``'s) is at most ``PATH_SHOWN_WHOLE``, else its first and last ``PATH_ENDS``."""
+    long = len(text) if length is None else length
+    return text if long <= PATH_SHOWN_WHOLE else f"{text[:PATH_ENDS]}...{text[-PATH_ENDS:]}"
+
+
+#: What a message writes around a path (quotes, '=', a ':' or ',' after it): not counted in
+#: the path's length, so that a path of PATH_SHOWN_WHOLE characters is shown whole however it
+#: is written; counted, one of 159 or 160 characters was cut by its quotes or a ':' after it.
+_AROUND_PATH = "'\"=(),:;"
 
 
 def shown_path(path, quote: bool = True) -> _Shown:
@@ -78,7 +87,8 @@ def shown_path(path, quote: bool = True) -> _Shown:
         text = os.fsdecode(os.fspath(path))
     except TypeError:  # not a path (None, a number): as any value is shown
         return shorten(path)
-    return _Shown(_ends(repr(text) if quote else text))
+    # Whole by the path's length, not its repr's: a path of 159 or 160 characters was cut by its quotes.
+    return _Shown(_ends(repr(text) if quote else text, len(text)))
 
 
 def tilde_note(path) -> str:
@@ -95,7 +105,8 @@ def long_words_cut(text: str) -> str:
     cut to its ends, as ``shown_path`` cuts a path: the commands' one-line messages pass
     through it, so that a path a refusal names whole (an ``OSError``'s file name, another
     library's message) is not a line of kilobytes."""
-    return re.sub(r"\S{%d,}" % (PATH_SHOWN_WHOLE + 1), lambda m: _ends(m.group(0)), text)
+    return re.sub(r"\S{%d,}" % (PATH_SHOWN_WHOLE + 1),
+                  lambda m: _ends(m.group(0), len(m.group(0).strip(_AROUND_PATH))), text)
 
 
 def shorten_text(text, limit: int = 300) -> str:
