@@ -205,6 +205,13 @@ def test_parse_frames():
                                              r"file's first frame, 2: it holds 5 frames, 2\.\.6; start the range at 2 or leave "
                                              r"its start out$"):
             parse_frames(early, [2, 3, 4, 5, 6])
+    # A stepped one whose step misses the first frame: the advice keeps its frames (10, 20, ...
+    # of '0:100:10'), where starting at the first frame, 1, would choose 1, 11, ...
+    from_one = list(range(1, 101))
+    with pytest.raises(ValueError, match=r"; start the range at 10, the first frame on its step from 1 on \(starting at 1 "
+                                         r"would choose 1, 11, \.\.\.\)$"):
+        parse_frames("0:100:10", from_one)
+    assert parse_frames("10:100:10", from_one) == [f for f in range(0, 101, 10) if f >= 1]
     with pytest.raises(ValueError, match=r"^frames = '-20:' is not allowed: '-20:' counts back past the first frame "
                                          r"\(the file holds 0\.\.10, so -1 to -11\)$"):
         parse_frames("-20:", have)

@@ -1578,9 +1578,15 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
             if start.startswith("-"):
                 raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} counts back past "
                                  f"the first frame (the file holds {first}..{last}, so -1 to -{last + 1 - first})")
+            # (a and step: the range refused.) Its frames step from its start: where the first frame
+            # is off that step, neither starting at it nor leaving the start out keeps them ('0:100:10'
+            # of frames 1..100 is 10, 20, ...; from 1 it would be 1, 11, ...).
+            on_step = a + -((a - first) // step) * step
+            how = (f"start the range at {first} or leave its start out" if on_step == first else
+                   f"start the range at {on_step}, the first frame on its step from {first} on (starting at {first} "
+                   f"would choose {first}, {first + step}, ...)")
             raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} starts before the "
-                             f"file's first frame, {first}: it holds {len(available)} frames, {first}..{last}; start the range "
-                             f"at {first} or leave its start out")
+                             f"file's first frame, {first}: it holds {len(available)} frames, {first}..{last}; {how}")
         if late:
             raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(past)!r} starts past the "
                              f"file's last frame, {held}")
