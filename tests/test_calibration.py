@@ -1428,6 +1428,33 @@ def test_a_target_frame_range_outside_an_npz_s_frames_is_refused_before_any_kern
         load_target(tmp_path / "plain.npy", frames="0:1")
 
 
+def test_an_experiment_s_target_frame_range_outside_its_npz_is_refused_before_any_scene_s_kernel(tmp_path, capsys,
+                                                                                                    dough_scene, monkeypatch):
+    """The refusal of a target frame choice is made before any scene is built for every
+    experiment, not only the first: an --experiments file's experiment whose target_frames
+    start before its .npz's stored frames was refused after the command line's experiment had
+    built its scene, launching kernels."""
+    from warp_esph.cli import main
+
+    def no_kernel(*args, **kwargs):
+        raise AssertionError("a kernel was launched before the refusal")
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    good, bad = tmp_path / "good.npz", tmp_path / "bad.npz"
+    np.savez(good, positions=np.zeros((3, 64, 3)), frames=[2, 4, 6], fps=30.0)
+    np.savez(bad, positions=np.zeros((3, 64, 3)), frames=[2, 4, 6], fps=30.0)
+    experiments = tmp_path / "e.json"
+    experiments.write_text(json.dumps([{"scene": str(guess), "target": str(bad), "target_frames": "0:6"}]))
+    monkeypatch.setattr(wp, "launch", no_kernel)
+    assert main(["fit", str(guess), "--target", str(good), "--target-frames", "2:6", "--experiments", str(experiments),
+                 "--params", "yield_stress", "--iterations", "0", "--no-progress", "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {experiments}: experiment #1: target_frames = '0:6' is not "
+                                               "allowed: '0:6' starts before the file's first frame, 2"), err
+    assert not (tmp_path / "out").exists()
+
+
 def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, dough_scene, monkeypatch):
     """An .npz that stores its 'frames' had them renumbered by --target-frames: frames 2, 4, 6
     given '1,2,3' fitted frame 2's positions at frame 1 (and so on), exit 0, while '2,6'

@@ -244,9 +244,9 @@ def run_fit(args, out=None, err=None) -> int:
     specs = [("", main_spec)]
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
-    def load(where, spec):
+    def load(where, spec, **how):
         try:
-            return _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep)
+            return _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, **how)
         except ValueError as e:
             # Every refusal of an experiment of the file names it (fps, dt, a target's).
             said = str(e)
@@ -266,7 +266,10 @@ def run_fit(args, out=None, err=None) -> int:
                 raise ValueError(f"{where}{message}") from None
             raise
 
-    exps = [load(where, spec) for where, spec in specs]
+    # Every experiment's targets whose frames are chosen, before any scene: an experiment's
+    # choice was refused after the experiments before it had built theirs, launching kernels.
+    chosen = [load(where, spec, targets_only=True) for where, spec in specs]
+    exps = [load(where, spec, read_targets=read) for (where, spec), read in zip(specs, chosen)]
     # A noise nothing reads: refused, not ignored. --noise is metres, read by position, cloud
     # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
     # their own, and a force-only fit had dropped '--noise 0.05' (meant as newtons) without a word.
@@ -649,8 +652,11 @@ def _coverages(spec, args, where, count, key) -> tuple[list[str], str]:
     return values, name
 
 
-def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep):
-    """One experiment of the command: scene, model (jittered), targets, loss, time step."""
+def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, *, targets_only=False,
+                read_targets=None):
+    """One experiment of the command: scene, model (jittered), targets, loss, time step.
+    ``targets_only``: only its targets whose frames are chosen, read (by index), before any
+    scene is built; ``read_targets``: those, read so before."""
     import types  # noqa: PLC0415
 
     def key(name):
@@ -694,8 +700,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     # A target whose frames are chosen is read first: the choice is refused before the scene's
     # checks launch their kernels (a range past the frames an .npz stores was found after them).
-    early = {k: read(path, fspecs[k]) for k, path in enumerate(targets)
-             if not cameras and fspecs[k] is not None and os.path.isfile(path)}
+    early = read_targets if read_targets is not None else {
+        k: read(path, fspecs[k]) for k, path in enumerate(targets)
+        if not cameras and fspecs[k] is not None and os.path.isfile(path)}
+    if targets_only:
+        return early
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
