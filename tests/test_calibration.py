@@ -1428,6 +1428,26 @@ def test_a_target_frame_range_outside_an_npz_s_frames_is_refused_before_any_kern
         load_target(tmp_path / "plain.npy", frames="0:1")
 
 
+@pytest.mark.parametrize("given, said", [(0, "target_frames = 0 is not allowed: the targets hold only frame 0"),
+                                         ([], "target_frames = [] is not allowed: it chooses no frame")])
+def test_an_experiment_s_target_frames_of_0_or_none_is_not_dropped(given, said, tmp_path, capsys, dough_scene):
+    """An --experiments file's "target_frames": 0 (frame 0) or [] read as not given: the
+    experiment fitted every frame of its target, 0, 1 and 2, exit 0."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.zeros((3, 64, 3)), frames=[0, 1, 2], fps=30.0)
+    experiments = tmp_path / "e.json"
+    experiments.write_text(json.dumps([{"scene": str(guess), "target": str(target), "target_frames": given}]))
+    assert main(["fit", str(guess), "--target", str(target), "--target-frames", "2", "--experiments", str(experiments),
+                 "--params", "yield_stress", "--iterations", "0", "--no-progress", "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {experiments}: experiment #1: {said}"), err
+    assert not (tmp_path / "out").exists()
+
+
 def test_an_experiment_s_target_frame_range_outside_its_npz_is_refused_before_any_scene_s_kernel(tmp_path, capsys,
                                                                                                     dough_scene, monkeypatch):
     """The refusal of a target frame choice is made before any scene is built for every

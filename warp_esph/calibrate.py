@@ -669,7 +669,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     scale = checks.positive(scale_name, spec["scale"])
     targets = spec["target"] if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
     tframes = spec.get("target_frames")
-    tframes = tframes if isinstance(tframes, (list, tuple)) else ([tframes] if tframes else [])
+    if isinstance(tframes, (list, tuple)) and not tframes:
+        raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(tframes)!r} is not allowed: it chooses no frame; give "
+                         f"a choice once for all {key('target')} files or once per {key('target')}, or leave it out for "
+                         "every frame")
+    # Given is not true: 0 (an experiment's frame 0) and '' were dropped, every frame fitted.
+    tframes = tframes if isinstance(tframes, (list, tuple)) else ([] if tframes is None else [tframes])
     if len(tframes) > 1 and len(tframes) != len(targets):
         raise ValueError(f"{where}{key('target_frames')} is given {len(tframes)} times for {len(targets)} "
                          f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
