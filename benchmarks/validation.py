@@ -603,7 +603,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
             ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky",
-            fit_weight: str = "poly6") -> dict:
+            fit_weight: str = "poly6", floor_margin: float = 0.0) -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -622,7 +622,11 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     ground collider's thin-layer strength"); ``"particles"``, FLOOR_LAYERS
     layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be; ``"elastic_particles"``, the
-    same floor made elastic (``add_particle_floor(elastic=True)``). mu = Y / (2 yield_strain), nu = 0.3.
+    same floor made elastic (``add_particle_floor(elastic=True)``). ``floor_margin``: how many
+    spacings the particle floors reach past the strip's ends (0: under its starting footprint
+    only, where the ends, slumping off it, make the middle run in bursts from about 0.8 s;
+    8 leaves no burst, docs/physics.md, "The three-layer strip read longer").
+    mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
     release (up to twice the static stress).
@@ -655,8 +659,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     W = width * dx
     b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
     if floor in ("particles", "elastic_particles", "ghost_particles", "slip_ghost_particles"):
-        # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
-        b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles",
+        # The walls normal to z bound the strip, its ends are free: the floor reaches past
+        # them by floor_margin spacings along x only (not past the walls, where it would
+        # add only pinned particles to the neighbour search).
+        b.add_particle_floor("layer", margin=floor_margin * dx, where=lambda p: (p[:, 2] > 0.0) & (p[:, 2] < W), layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles",
                              ghost=floor in ("ghost_particles", "slip_ghost_particles"), slip=floor == "slip_ghost_particles")
     else:
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
@@ -672,7 +678,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     middle = (np.abs(x0[:, 0] - L / 2.0) < L / 8.0) & (x0[:, 1] > 0.0)
     top = middle & (x0[:, 1] > h - dx)
     a, c = model.state(), model.state()
-    times, speeds = [], []
+    times, speeds, heights = [], [], []
     g_full = (G * s, -G * math.cos(theta), 0.0)
 
     def sample(state, k):
@@ -682,6 +688,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
             return
         times.append(k * dt)
         speeds.append(float(state.v.numpy()[top, 0].astype(np.float64).mean()))
+        heights.append(float(state.x.numpy()[top, 1].astype(np.float64).mean()))
 
     t0 = time.perf_counter()
     a, c = _swap_run(model, solver, a, c, dt, steps, sample)
@@ -692,15 +699,25 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     bingham = RHO * G * s * max(h - h_p, 0.0) ** 2 / (2.0 * eta)
     v = np.array(speeds)
     k23 = (2 * len(v)) // 3
+    # The strip thins as its free ends slump and its middle lengthens; near yield B goes as
+    # (h - h_p)^2, so against the nominal B a thinning strip reads slow. The thinned strip's
+    # thickness is read as the top layer's height is (over the same three samples as
+    # top_speed): a uniform stretch scales every height above the base alike.
+    h_eff = h * float(np.mean(heights[-3:])) / float(x0[top, 1].mean())
+    bingham_thinned = RHO * G * s * max(h_eff - h_p, 0.0) ** 2 / (2.0 * eta)
     return {
         "case": "incline", "layers": layers, "load": load, "floor": floor, "fit_weight": fit_weight,
         "theta_deg": math.degrees(theta),
         "particles": model.particle_count, "dt": dt, "steps": steps, "duration": float(times[-1]),
-        "tau_y": tau_y, "bingham_surface_speed": bingham,
+        "tau_y": tau_y, "bingham_surface_speed": bingham, "floor_margin": floor_margin,
+        # The middle quarter's thickness at the end and the Bingham surface speed of a layer
+        # of it (same tau_y, slope and eta): the reference of a strip that thins.
+        "thickness": h_eff, "plug_thickness": h_p, "thinned_bingham_surface_speed": bingham_thinned,
         # The top's speed at the end and at two thirds of the run (mean of 3 samples each):
         # a flowing layer keeps it, a stopping one loses it.
         "top_speed": float(v[-3:].mean()), "top_speed_two_thirds": float(v[max(k23 - 1, 0):k23 + 2].mean()),
-        "time_history": times, "speed_history": speeds, "finite": bool(np.isfinite(v).all()), "wall_s": wall,
+        "time_history": times, "speed_history": speeds,
+        "height_ratio_history": [y / float(x0[top, 1].mean()) for y in heights], "finite": bool(np.isfinite(v).all()), "wall_s": wall,
         # At the end, over their initial values (both 1 while the strip keeps its shape): the
         # top layer's height above the base, and the strip's width (the mean distance from
         # its mid-plane in z) over the middle quarter.

@@ -634,6 +634,31 @@ def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_
     assert centres["top_speed"] > 0.5 * scale, (centres["top_speed"], scale)
 
 
+def test_thin_strip_on_a_floor_past_its_ends_comes_to_rest_just_above_its_plug_thickness():
+    """The strip of the test above (3 layers, 8 h, 1.3 tau_y, walls through the outer rows'
+    centres) on a particle floor that reaches 8 spacings past its ends (``floor_margin=8``: on
+    the floor under the strip only, its ends slump off the floor's edges and the middle runs
+    in bursts). Its free ends slump, its middle lengthens and thins, and near yield its
+    Bingham speed goes as (h - h_p)^2, so the nominal B is no reference for it (docs/physics.md,
+    "The three-layer strip read longer"). What a Bingham layer thinning on a slope does is come
+    to rest where its basal shear has fallen to the yield stress: its thickness h_eff down to
+    the plug thickness h_p = h / 1.3, its thinned Bingham speed B(h_eff) to 0. Measured
+    (poly6): the middle runs at 5-14 x B(h_eff) to 2.3 s, then stops within 0.2 s; at 3.0 s
+    0.04 mm/s (B 3.67) at h_eff = 1.057 h_p (B(h_eff) 0.036 B): 6 % of excess shear strength
+    at the base, bounded here at 10 %. The biweight: stops at 1.4-1.6 s,
+    0.005 mm/s at 3.0 s at 1.087 h_p (0.084 B). With the
+    yield stress 10 % higher, at rest at 1.150 h_p (of the nominal h_p); with the viscosity
+    doubled, 2.5 mm/s at 3.0 s, still flowing."""
+    r = validation.incline(load=1.3, floor="particles", layers=3, length=8.0, duration=3.0, walls="centres",
+                           floor_margin=8.0)
+    assert r["finite"]
+    scale = r["bingham_surface_speed"]
+    assert abs(r["top_speed"]) < 0.03 * scale, (r["top_speed"], scale)
+    # At rest within 10 % of the plug's basal shear: h_eff < 1.1 h_p, B(h_eff) < 0.11 B.
+    assert r["plug_thickness"] < r["thickness"], (r["thickness"], r["plug_thickness"])
+    assert r["thinned_bingham_surface_speed"] < 0.11 * scale, (r["thickness"] / r["plug_thickness"], r["thinned_bingham_surface_speed"], scale)
+
+
 def test_incline_refuses_unknown_walls_by_name():
     with pytest.raises(ValueError, match="walls = 'glass'"):
         validation.incline(walls="glass")
