@@ -623,10 +623,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be; ``"elastic_particles"``, the
     same floor made elastic (``add_particle_floor(elastic=True)``). ``floor_margin``: how many
-    spacings the particle floors reach past the strip's ends (0: under its starting footprint
-    only, where the ends, slumping off it, make the middle run in bursts from about 0.8 s;
-    8 leaves no burst, docs/physics.md, "The three-layer strip read longer").
-    mu = Y / (2 yield_strain), nu = 0.3.
+    spacings the particle floors reach past the strip's ends, not past its walls (0: under
+    its starting footprint only, where the ends, slumping off it, make the middle run in
+    bursts from about 0.8 s; 8 leaves no burst, docs/physics.md, "Read against the thinned
+    strip"). mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
     release (up to twice the static stress).
@@ -637,7 +637,17 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     spacing. ``"centres"``, through the outer rows' centres: the strip cannot widen
     (docs/physics.md, thin layers in shear: widening lets the layers close up and stop).
     ``pressure_force``: the material's (``Material.pressure_force``), its default k_p.
-    ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
+    ``fit_weight``: ``SceneBuilder(fit_weight=)``.
+
+    The strip thins as its free ends slump and its middle lengthens, and near yield B goes as
+    (h - h_p)^2, so the nominal ``bingham_surface_speed`` is no reference for a strip that has
+    thinned. ``thickness`` is the middle quarter's at the end, h_eff = h x the top layer's
+    mean height over its start (the last three samples, those of ``top_speed``: a uniform
+    stretch scales every height above the base alike); ``thinned_bingham_surface_speed`` is
+    B(h_eff), the Bingham surface speed of a layer that thick (the same tau_y, slope and
+    eta; 0 at or below ``plug_thickness`` h_p), the speed at which a continuum layer of it
+    flows and which falls to 0 as it comes to rest; ``height_ratio_history``, the top's
+    height over its start at each sample."""
     wp, we = _we()
     _check_floor(floor)
     if walls not in INCLINE_WALLS:
@@ -699,10 +709,6 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     bingham = RHO * G * s * max(h - h_p, 0.0) ** 2 / (2.0 * eta)
     v = np.array(speeds)
     k23 = (2 * len(v)) // 3
-    # The strip thins as its free ends slump and its middle lengthens; near yield B goes as
-    # (h - h_p)^2, so against the nominal B a thinning strip reads slow. The thinned strip's
-    # thickness is read as the top layer's height is (over the same three samples as
-    # top_speed): a uniform stretch scales every height above the base alike.
     h_eff = h * float(np.mean(heights[-3:])) / float(x0[top, 1].mean())
     bingham_thinned = RHO * G * s * max(h_eff - h_p, 0.0) ** 2 / (2.0 * eta)
     return {
@@ -710,8 +716,6 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         "theta_deg": math.degrees(theta),
         "particles": model.particle_count, "dt": dt, "steps": steps, "duration": float(times[-1]),
         "tau_y": tau_y, "bingham_surface_speed": bingham, "floor_margin": floor_margin,
-        # The middle quarter's thickness at the end and the Bingham surface speed of a layer
-        # of it (same tau_y, slope and eta): the reference of a strip that thins.
         "thickness": h_eff, "plug_thickness": h_p, "thinned_bingham_surface_speed": bingham_thinned,
         # The top's speed at the end and at two thirds of the run (mean of 3 samples each):
         # a flowing layer keeps it, a stopping one loses it.
