@@ -2087,6 +2087,54 @@ def _foreign_points_usd(path, samples, rate=None, meters=1.0):
     return str(path)
 
 
+def test_a_long_target_path_is_shown_by_its_ends_through_the_python_api(tmp_path):
+    """A target's or force log's path over checks.PATH_SHOWN_WHOLE characters is named by its
+    ends (checks.shown_path) in the refusals of the Python API too: the force log's reader,
+    ReactionForceLoss.from_csv and these load_target refusals named it whole (the CLI's
+    long_words_cut shortens a word, not a path with spaces in it)."""
+    import types
+
+    from pxr import Usd, UsdGeom, Vt
+
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+    from warp_esph.fit import Target, _partial_refused, load_target, save_target
+    from warp_esph.losses import ReactionForceLoss, read_tools_csv
+
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    log = folder / "press_tools.csv"
+    log.write_text("frame,time,tool,fx,fy,fz\n1,0.1,press,0,1,0\n")
+    (folder / "rowless_tools.csv").write_text("frame,time,tool,fx,fy,fz\n")
+    (folder / "lab.csv").write_text("time,fx\n0,1\n")
+    save_target(folder / "stored.npz", np.zeros((2, 4, 3), np.float32), frames=[2, 4])
+    points = _foreign_points_usd(folder / "points.usda", {0: np.zeros((4, 3)), 1: np.zeros((4, 3))})
+    nested = str(folder / "nested.usda")
+    stage = Usd.Stage.CreateNew(nested)
+    UsdGeom.Xform.Define(stage, "/World/group")
+    UsdGeom.Points.Define(stage, "/World/group/cloud").GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.zeros((4, 3), np.float32)), 1.0)
+    stage.Save()
+    far = Target("positions", np.full((1, 2, 3), 1e30, np.float32), [1], None, str(folder / "far.npz"))
+    for call, path in (
+        (lambda: read_tools_csv(folder / "absent_tools.csv"), folder / "absent_tools.csv"),
+        (lambda: read_tools_csv(folder / "rowless_tools.csv"), folder / "rowless_tools.csv"),
+        (lambda: ReactionForceLoss.from_csv(log, "nope", {1: 10}), log),
+        (lambda: ReactionForceLoss.from_csv(log, "press", {2: 20}, frames=[2]), log),
+        (lambda: ReactionForceLoss.from_csv(log, "press", {}), log),
+        (lambda: load_target(log, tool="nope"), log),
+        (lambda: load_target(folder / "stored.npz", frames="3"), folder / "stored.npz"),
+        (lambda: load_target(folder / "stored.npz", frames="x"), folder / "stored.npz"),
+        (lambda: load_target(folder / "lab.csv"), folder / "lab.csv"),
+        (lambda: load_target(nested), nested),
+        (lambda: load_target(points, body="nope"), points),
+        (lambda: far._check_range(types.SimpleNamespace(scalar=np.float32)), far.path),
+    ):
+        with pytest.raises((ValueError, FileNotFoundError)) as e:
+            call()
+        assert str(shown_path(path, False)) in str(e.value) and str(path) not in str(e.value), str(e.value)
+    said = _partial_refused(str(log), "mesh")
+    assert str(shown_path(log, False)) in said and str(log) not in said
+
+
 def test_a_nan_position_in_a_usd_target_is_a_missing_marker_as_in_an_npz(tmp_path):
     """NaN in an .npz target is a missing marker, left out of the loss; the same NaN in a USD
     target (another program's points, an occluded marker) was refused as 'must be finite'."""

@@ -3559,7 +3559,7 @@ class Target:
         precision = model.scalar.__name__ if self.kind == "positions" else "float32"
         if self.kind == "positions":
             data = np.nan_to_num(np.asarray(data, dtype=np.float64), nan=0.0, posinf=np.inf, neginf=-np.inf)  # NaN: missing
-        checks.squarable_coordinates(f"target {self.path}", data, precision, place)
+        checks.squarable_coordinates(f"target {checks.shown_path(self.path, False)}", data, precision, place)
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
@@ -3744,7 +3744,7 @@ def _partial_refused(path, kind: str) -> str:
             "forces": "a force curve", "silhouettes": "silhouettes"}.get(kind, kind)
     why = ("; a mesh target is closed (an open one is refused), the whole body's surface: fit a scan of part of "
            "the body as a point cloud of its points" if kind == "mesh" else "")
-    return f"the target {path} is {said}, not a point cloud{why}; give full for it"
+    return f"the target {checks.shown_path(path, False)} is {said}, not a point cloud{why}; give full for it"
 
 
 def save_target(path, positions, frames: Sequence[int], fps: float | None = None):
@@ -3791,10 +3791,10 @@ def choose_stored_frames(target: Target, spec, name: str = "frames") -> None:
             # In frame order whatever the file's (its 'last' is its largest frame).
             chosen.extend(parse_frames(part, stored, name))
         except ValueError as e:
-            raise ValueError(f"{e}; the target {target.path} holds frames {listed} (-N counts frame numbers back from "
+            raise ValueError(f"{e}; the target {checks.shown_path(target.path, False)} holds frames {listed} (-N counts frame numbers back from "
                              "the last)") from None
     if missing:
-        raise ValueError(f"{name} = {checks.shorten(spec)!r} is not allowed: the target {target.path} holds frames {listed} "
+        raise ValueError(f"{name} = {checks.shorten(spec)!r} is not allowed: the target {checks.shown_path(target.path, False)} holds frames {listed} "
                          f"(its 'frames'), not {', '.join(map(str, missing))}")
     twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
     if twice is not None:
@@ -3968,7 +3968,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 raise
             # Particles another program wrote elsewhere (a PointInstancer, Points under a group
             # or another root) were refused as 'not a closed triangle mesh', which they never were.
-            raise ValueError(f"target {p} is not allowed: it has no mesh, and its points ({', '.join(points[:3])}"
+            raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it has no mesh, and its points ({', '.join(points[:3])}"
                              f"{', ...' if len(points) > 3 else ''}) are not where a run's particles are read from: "
                              "UsdGeom.Points prims directly under /World, one per body, one time sample per frame") from None
     from .meshes import read_meshio  # noqa: PLC0415
@@ -4242,7 +4242,7 @@ def _refuse_other_force_logs(p: str) -> None:
         axes = "".join(c[1] for c in forces)
         extra += (f"; a load cell that measures {axes} alone: write 0 in {', '.join(unmeasured)} and give "
                   f"--force-components {axes} (the zeros are then not fitted as measured forces)")
-    raise ValueError(f"target {p} is not allowed: {need}; it lacks {', '.join(missing)} (its header: "
+    raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: {need}; it lacks {', '.join(missing)} (its header: "
                      f"{line.strip()[:120]!r}){extra}")
 
 
@@ -4324,7 +4324,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
                              f"{', '.join(names)}")
         tool = names[0]
     if tool not in names:
-        raise ValueError(f"--target-tool = {checks.shorten(tool)!r} is not allowed: {path} holds the forces of {', '.join(names)}")
+        raise ValueError(f"--target-tool = {checks.shorten(tool)!r} is not allowed: {checks.shown_path(path, False)} holds the forces of {', '.join(names)}")
     mine = [r for r in rows if r["tool"] == tool]
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:
@@ -4399,7 +4399,7 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
         elif body in names:
             index = names.index(body)
         else:
-            raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(given)}")
+            raise ValueError(f"--target-body {body!r} is not allowed: {checks.shown_path(path, False)} holds bodies {', '.join(given)}")
         body = given[index]
     chosen = parse_frames(frames, data.frames, frames_name) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:

@@ -1701,7 +1701,7 @@ class ReactionForceLoss(Loss):
         rows = read_tools_csv(path)
         mine = [r for r in rows if r["tool"] == tool]
         if not mine:
-            raise ValueError(f"tool = {checks.shorten(tool)!r} is not allowed: {path} holds the forces of "
+            raise ValueError(f"tool = {checks.shorten(tool)!r} is not allowed: {checks.shown_path(path, False)} holds the forces of "
                              f"{', '.join(dict.fromkeys(r['tool'] for r in rows))}")
         by_frame = {r["frame"]: r for r in mine}  # one row per frame: read_tools_csv refuses a repeat
         chosen = sorted(f for f in by_frame if f > 0) if frames is None else list(_frames(frames))
@@ -1710,7 +1710,7 @@ class ReactionForceLoss(Loss):
                              "it to average over)")
         missing = [f for f in chosen if f not in by_frame]
         if missing:
-            raise ValueError(f"frames {missing} are not allowed: {path} has no row of tool {tool!r} for them")
+            raise ValueError(f"frames {missing} are not allowed: {checks.shown_path(path, False)} has no row of tool {tool!r} for them")
         if not isinstance(frame_steps, Mapping):
             raise ValueError(f"frame_steps = {checks.shorten(frame_steps)!r} is not allowed: must map each rendered "
                              "frame to its step ({frame: step})")
@@ -1718,7 +1718,7 @@ class ReactionForceLoss(Loss):
         if missing:
             raise ValueError(f"frame_steps = {checks.shorten(dict(frame_steps))!r} is not allowed: it has no step for "
                              f"frame{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))} of tool {tool!r} "
-                             f"in {path}")
+                             f"in {checks.shown_path(path, False)}")
         steps = [checks.positive_int(f"frame_steps[{f}]", frame_steps[f]) for f in chosen]
         windows = {round(s / f) for s, f in zip(steps, chosen) if f > 0}
         if len(windows) != 1 or any(s != f * next(iter(windows)) for s, f in zip(steps, chosen)):
@@ -1811,11 +1811,12 @@ def read_tools_csv(path) -> list[dict]:
     import csv  # noqa: PLC0415
 
     p = os.fspath(path)
+    shown = checks.shown_path(p, False)
     # The convention of the other target readers (fit.load_target, silhouette.load_masks).
     if not os.path.exists(p):
-        raise FileNotFoundError(f"force log {p} does not exist")
+        raise FileNotFoundError(f"force log {shown} does not exist")
     if os.path.isdir(p):
-        raise ValueError(f"force log {p} is not allowed: it is a folder, not a '<output>_tools.csv' file")
+        raise ValueError(f"force log {shown} is not allowed: it is a folder, not a '<output>_tools.csv' file")
     out = []
     seen: dict[tuple[str, int], int] = {}
     try:
@@ -1830,13 +1831,13 @@ def read_tools_csv(path) -> list[dict]:
                 for (name, unit), cell in zip(columns, reader.fieldnames):
                     if unit is not None and name in TOOLS_CSV_UNITS and unit != TOOLS_CSV_UNITS[name]:
                         # A log in mN or ms is 1000 times off: refused, not read as newtons and seconds.
-                        raise ValueError(f"{p} is not allowed as a force target: its column {cell.strip()!r} is in "
+                        raise ValueError(f"{shown} is not allowed as a force target: its column {cell.strip()!r} is in "
                                          f"{unit}; give {name} in {TOOLS_CSV_UNITS[name]} (header '{name}' or "
                                          f"'{name} [{TOOLS_CSV_UNITS[name]}]')")
                 reader.fieldnames = [name for name, _ in columns]
             missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
             if missing:
-                raise ValueError(f"{p} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
+                raise ValueError(f"{shown} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
                                  f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
             width = len(reader.fieldnames)
             for row in reader:
@@ -1849,12 +1850,12 @@ def read_tools_csv(path) -> list[dict]:
                 if fields != width:
                     # A row cut inside its fz read the digits left as the force (the torque columns
                     # after it unread), and a longer row was read as if it were this table's.
-                    raise ValueError(f"{p}, row {line} is not allowed: it has {fields} fields, the header {width} (a file "
+                    raise ValueError(f"{shown}, row {line} is not allowed: it has {fields} fields, the header {width} (a file "
                                      "cut short, or a row of another table?)")
                 tool = (row["tool"] or "").strip()
                 if not tool:
                     # Read as a tool named '' and refused as 'holds the forces of ', naming no row.
-                    raise ValueError(f"{p}, row {line}: tool = '' is not allowed: it is empty; name the scene's tool (or "
+                    raise ValueError(f"{shown}, row {line}: tool = '' is not allowed: it is empty; name the scene's tool (or "
                                      "static collider, 'plane0' for the ground) that measured the force, as --target-tool "
                                      "does")
                 values = {}
@@ -1870,10 +1871,10 @@ def read_tools_csv(path) -> list[dict]:
                         unit = f" ({TOOLS_CSV_UNITS[c]})" if c in TOOLS_CSV_UNITS else ""
                         if c in ("fx", "fy", "fz") and (not cell or cell.lower() in ("na", "n/a", "-", "null", "none")):
                             unit += "; a frame not measured is left out of the log (no row)"
-                        raise ValueError(f"{p}, row {line}: {c} = {checks.shorten(cell)!r} is not allowed: {why}{unit}") from None
+                        raise ValueError(f"{shown}, row {line}: {c} = {checks.shorten(cell)!r} is not allowed: {why}{unit}") from None
                 frame = values.pop("frame")
                 if frame < 0:
-                    raise ValueError(f"{p}, row {line}: frame = {frame} is not allowed: frames are rendered frame "
+                    raise ValueError(f"{shown}, row {line}: frame = {frame} is not allowed: frames are rendered frame "
                                      "indices >= 0")
                 for c, v in values.items():
                     # float() reads 'nan' and '1e400' (inf) without complaint.
@@ -1881,21 +1882,21 @@ def read_tools_csv(path) -> list[dict]:
                         # NaN is a missing marker in positions: said how a log leaves a frame out.
                         gap = ("; a frame not measured is left out of the log (no row), as NaN marks a missing marker "
                                "in positions") if math.isnan(v) else ""
-                        raise ValueError(f"{p}, row {line} (frame {frame}, tool {tool!r}): {c} = {row[c]!r} is not "
+                        raise ValueError(f"{shown}, row {line} (frame {frame}, tool {tool!r}): {c} = {row[c]!r} is not "
                                          f"allowed: must be a finite number{' (s)' if c == 'time' else ' (N)'}{gap}")
                 if (tool, frame) in seen:
                     # Silently the last row won: which of two measurements is the force is not ours to choose.
-                    raise ValueError(f"{p}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
+                    raise ValueError(f"{shown}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
                                      f"{seen[tool, frame]} already gives it (one row per tool and frame)")
                 seen[tool, frame] = line
                 out.append({"frame": frame, "time": values["time"], "tool": tool, "row": line,
                             "force": np.array([values["fx"], values["fy"], values["fz"]])})
     except OSError as e:
-        raise ValueError(f"force log {p} cannot be read: {e.strerror or e}") from None
+        raise ValueError(f"force log {shown} cannot be read: {e.strerror or e}") from None
     except (UnicodeDecodeError, csv.Error) as e:
-        raise ValueError(f"force log {p} cannot be read: {checks.read_reason(e)} (a damaged or foreign file?)") from None
+        raise ValueError(f"force log {shown} cannot be read: {checks.read_reason(e)} (a damaged or foreign file?)") from None
     if not out:
-        raise ValueError(f"{p} is not allowed as a force target: it has no rows")
+        raise ValueError(f"{shown} is not allowed as a force target: it has no rows")
     return out
 
 
