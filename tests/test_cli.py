@@ -891,6 +891,34 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert not (tmp_path / "fit_tiny").exists()
 
 
+def test_an_experiment_s_scene_is_named_as_the_json_wrote_it_where_its_resolved_path_is_shown_by_its_ends(tmp_path, capsys):
+    """An --experiments file's scene named relative to it is named as the JSON wrote it, also
+    where the path it resolves to is over checks.PATH_SHOWN_WHOLE characters: the refusal shows
+    that path by its ends, which the rewrite (a match of the whole path) missed, naming a cut
+    path the user never gave."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    capsys.readouterr()
+    sub = "sub" + "d" * 100
+    (tmp_path / sub).mkdir()
+    (tmp_path / sub / "fast.toml").write_text(GOOD_TOML.replace("[[bodies]]", "[[bodies]]\nvelocity = [0.0, -1e3, 0.0]"))
+    (tmp_path / sub / "bad.toml").write_text(GOOD_TOML + "\n[scene]\n")
+    looked = f"(looked for relative to {tmp_path}, the folder of the --experiments file): No such file or directory"
+    for scene, words in ((f"{sub}/fast.toml", f"{sub}/fast.toml: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0'"),
+                         (f"{sub}/bad.toml", f"{sub}/bad.toml: invalid TOML: "),
+                         (f"{sub}/nope.toml", f"cannot read scene file '{sub}/nope.toml' {looked}")):
+        assert len(str(tmp_path / scene)) > PATH_SHOWN_WHOLE >= len(scene)
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
+        assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1",
+                     "--experiments", str(tmp_path / "exp.json")]) == 2
+        captured = capsys.readouterr()
+        assert_one_line_error(captured.err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words}")
+        assert not captured.out, captured
+
+
 @pytest.mark.parametrize("where", ["plots", "fitted run"])
 def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_path, monkeypatch, capsys, where):
     """A Ctrl-C after the fit (and its diagnostics) had finished, while its pictures or its

@@ -255,8 +255,13 @@ def run_fit(args, out=None, err=None) -> int:
             if written is not None:
                 # The scene file as the JSON wrote it: its resolved path ('/tmp/x/fast.toml:
                 # ...') read as a name the user never gave.
-                message = re.sub(re.escape(spec["scene"]) + r"(?![\w./\\-])", lambda _: written, message)
-                unread = f"cannot read scene file {written!r}"
+                # Matched as the refusal shows it, too: a path over checks.PATH_SHOWN_WHOLE
+                # characters by its ends (quoted or not), which the whole path's pattern missed.
+                for shown, named in ((checks.shown_path(spec["scene"]), checks.shown_path(written)),
+                                     (checks.shown_path(spec["scene"], False), checks.shown_path(written, False)),
+                                     (spec["scene"], written)):
+                    message = re.sub(re.escape(str(shown)) + r"(?![\w./\\-])", lambda _, named=named: str(named), message)
+                unread = f"cannot read scene file {checks.shown_path(written)}"
                 if message.startswith(unread):
                     # The name alone read as a file missing from the working folder, where nobody
                     # looked.
@@ -1029,7 +1034,7 @@ def _check_fit_start(spec, scene, model, frames, fps, dt, where) -> None:
         if str(spec["scene"]).lower().endswith(".toml"):
             if e.reason.startswith("initial velocity"):
                 table = f"{scene.builder.origins.get(('body', getattr(e, 'body_index', None)), '[[bodies]]')}: "
-            table = f"{spec['scene']}: {table}"
+            table = f"{checks.shown_path(spec['scene'], False)}: {table}"
         raise ValueError(f"{where}{table}{e.reason}{advice}") from None
 
 
