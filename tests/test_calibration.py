@@ -2135,6 +2135,32 @@ def test_a_long_target_path_is_shown_by_its_ends_through_the_python_api(tmp_path
     assert str(shown_path(log, False)) in said and str(log) not in said
 
 
+def test_the_fit_plan_s_lines_show_a_long_target_path_by_its_ends():
+    """The plan's readings of a target (its frames read without numbers, a force column all
+    zero, a start stored late) name a path over checks.PATH_SHOWN_WHOLE characters by its ends
+    (checks.shown_path), as the refusals do: they named it whole."""
+    import types
+
+    from warp_esph.calibrate import _frame_reading, _start_frame_later, _zero_force_columns
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+
+    path = "/data/a long folder " + "d" * PATH_SHOWN_WHOLE + "/target.npz"
+    ns = types.SimpleNamespace
+    model = ns(particle_x0=np.zeros((4, 3)), spacing=0.01)
+    still, moved = np.zeros((4, 3)), np.full((4, 3), 0.1)
+    lines = [
+        _frame_reading(path, ns(data=np.zeros((2, 4, 3)), frames=[1, 2]), True, model),
+        _frame_reading(path, ns(data=np.zeros((1, 4, 3)), frames=[5]), False, model),
+        _frame_reading(path, ns(data=np.stack([still, moved]), frames=[0, 1]), False, model),
+        _zero_force_columns(path, ns(targets=np.zeros((2, 3)), components="xyz", tool="press"), False),
+        _zero_force_columns(path, ns(targets=np.array([[0.0, 1.0, 0.0]] * 2), components="xyz", tool="press"), False),
+        _start_frame_later(path, ns(frames=[3, 5], data=np.stack([still, moved])), model),
+        _start_frame_later(path, ns(frames=[3], data=still[None]), model, run=lambda frame: moved),
+    ]
+    for line in lines:
+        assert line is not None and str(shown_path(path, False)) in line and path not in line, line
+
+
 def test_a_nan_position_in_a_usd_target_is_a_missing_marker_as_in_an_npz(tmp_path):
     """NaN in an .npz target is a missing marker, left out of the loss; the same NaN in a USD
     target (another program's points, an occluded marker) was refused as 'must be finite'."""

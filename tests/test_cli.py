@@ -919,6 +919,27 @@ def test_an_experiment_s_scene_is_named_as_the_json_wrote_it_where_its_resolved_
         assert not captured.out, captured
 
 
+def test_a_refusal_of_targets_of_two_rates_shows_a_long_path_by_its_ends(tmp_path, capsys):
+    """The targets' rates read from their files are named by the path shown by its ends
+    (checks.shown_path) where it is over checks.PATH_SHOWN_WHOLE characters: the first
+    target's was named whole beside the other's, shortened, a path with spaces whole even on
+    the command line."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+    from warp_esph.fit import save_target
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    for name, fps in (("a.npz", 30.0), ("b.npz", 60.0)):
+        save_target(folder / name, np.zeros((2, 4, 3), np.float32), frames=[1, 2], fps=fps)
+    assert main(["fit", str(tmp_path / "s.toml"), "--target", str(folder / "a.npz"), "--target", str(folder / "b.npz"),
+                 "--no-progress", "--iterations", "1", "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"target {shown_path(folder / 'b.npz', False)} is not allowed beside the target "
+                               f"{shown_path(folder / 'a.npz', False)}: it was recorded at 60 fps")
+    assert str(folder) not in err
+
+
 @pytest.mark.parametrize("where", ["plots", "fitted run"])
 def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_path, monkeypatch, capsys, where):
     """A Ctrl-C after the fit (and its diagnostics) had finished, while its pictures or its

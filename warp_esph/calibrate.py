@@ -799,7 +799,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # Frame k of the fit is compared with each target's frame k: a target of another rate was
     # fitted at other times than it was recorded (and --fps 0.001 planned millions of steps).
     # A run's USD and an .npz store their rate; a force log's is implied by its time column.
-    stored = [(t.path, t.fps) for t in file_targets if t.fps is not None and t.kind != "forces"]
+    stored = [(checks.shown_path(t.path, False), t.fps) for t in file_targets if t.fps is not None and t.kind != "forces"]
     if fps is not None:
         fps = checks.positive(f"{where}{flag}", fps)
         for path, rate in stored:
@@ -1047,11 +1047,11 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
     entries = np.asarray(t.data).shape[0]
     what = "a .npy" if str(path).lower().endswith(".npy") else "an .npz without 'frames'"
     if numbered:
-        return (f"target {path}: {what} holds no frame numbers; its {entries} entries are read as frames "
+        return (f"target {checks.shown_path(path, False)}: {what} holds no frame numbers; its {entries} entries are read as frames "
                 f"{', '.join(map(str, t.frames))} (--target-frames)")
     if entries == 1 and t.frames and len(t.frames) == 1 and t.frames[0] != 0:
-        return f"target {path}: {what} holds no frame numbers; its one frame of positions is read as the run's last frame, {t.frames[0]}"
-    line = (f"target {path}: {what} holds no frame numbers; its {entries} entries are read as frames 0 to {entries - 1}, "
+        return f"target {checks.shown_path(path, False)}: {what} holds no frame numbers; its one frame of positions is read as the run's last frame, {t.frames[0]}"
+    line = (f"target {checks.shown_path(path, False)}: {what} holds no frame numbers; its {entries} entries are read as frames 0 to {entries - 1}, "
             "entry 0 as frame 0, the initial state, which is not fitted")
     first = np.asarray(t.data)[0]
     x0 = np.asarray(model.particle_x0, dtype=np.float64)
@@ -1091,7 +1091,7 @@ def _zero_force_columns(path, term, chosen: bool) -> str | None:
     if zero and len(zero) == len(term.components):
         # A plate that never touched the sample: the fit stopped on a zero gradient and blamed
         # the material ("no particle reaches the yield stress").
-        return (f"target {path}: the force on {term.tool!r} is 0 in every frame fitted: the log holds no contact, which "
+        return (f"target {checks.shown_path(path, False)}: the force on {term.tool!r} is 0 in every frame fitted: the log holds no contact, which "
                 "the model matches only where its tool touches nothing either (no gradient: the fit stops at once); check "
                 "that the scene's tool reaches the sample in the frames measured and that --target-tool names the tool "
                 "the log measured")
@@ -1099,7 +1099,7 @@ def _zero_force_columns(path, term, chosen: bool) -> str | None:
         return None
     kept = "".join(c for c in term.components if c not in zero)
     names = ", ".join(f"f{c}" for c in zero)
-    line = (f"target {path}: {names} {'is' if len(zero) == 1 else 'are'} 0 in every frame fitted: fitted as measured "
+    line = (f"target {checks.shown_path(path, False)}: {names} {'is' if len(zero) == 1 else 'are'} 0 in every frame fitted: fitted as measured "
             f"zeros, the model's force along {'that axis' if len(zero) == 1 else 'those axes'} held to 0, and counted "
             "as observations by the diagnostics")
     if chosen:
@@ -1203,7 +1203,7 @@ def _start_frame_later(path, t, model, run=None) -> str | None:
         return None
     following = next((r for r in away[1:] if r is not None), None)
     if following is not None and near <= START_MOTION_SHARE * moved and following > START_TOLERANCE:
-        return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the "
+        return (f"warning: target {checks.shown_path(path, False)}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the "
                 f"scene's initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, "
                 f"which is frame 0; each entry is fitted at its stored frame / fps, {first} frames late if the frames "
                 "count from another start (a camera's frame counter): renumber them from 0 at the start")
@@ -1222,7 +1222,7 @@ def _start_frame_later(path, t, model, run=None) -> str | None:
         return None
     stored = f"its one stored frame, {first}," if len(order) == 1 else (
         f"its first stored frame, {first}," if held == 1 else f"its stored frames {first} to {last}")
-    return (f"warning: target {path}: {stored} {'lies' if held == 1 else 'lie'} within {START_TOLERANCE:g} spacings RMS "
+    return (f"warning: target {checks.shown_path(path, False)}: {stored} {'lies' if held == 1 else 'lie'} within {START_TOLERANCE:g} spacings RMS "
             f"of the scene's initial positions, where the scene's own run (its values now) has moved {scene:.3g} "
             f"spacings RMS from them by frame {last}: the data hold the start, frame 0, after the scene has left it; "
             "each entry is fitted at its stored frame / fps, late if the frames count from another start (a camera's "
