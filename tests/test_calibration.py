@@ -2161,6 +2161,47 @@ def test_the_fit_plan_s_lines_show_a_long_target_path_by_its_ends():
         assert line is not None and str(shown_path(path, False)) in line and path not in line, line
 
 
+def test_a_long_camera_mask_usd_or_resumed_force_log_path_is_shown_by_its_ends(tmp_path):
+    """A camera file's radius or opacity, a mask's shape, a file not USD and the force log of a
+    run to resume are refused naming a path over checks.PATH_SHOWN_WHOLE characters by its
+    ends (checks.shown_path), as every other refusal does: they named it whole."""
+    import types
+
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+    from warp_esph.silhouette import load_cameras, load_masks
+    from warp_esph.tools import ReactionLog
+    from warp_esph.usd import UsdFrames
+
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    camera = {"name": "front", "width": 8, "height": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5,
+              "R": np.eye(3).tolist(), "t": [0.0, 0.0, 1.0]}
+    for key, value in (("radius", -1.0), ("opacity", 1.0)):
+        (folder / f"{key}.json").write_text(json.dumps({"cameras": [camera], key: value}))
+    np.savez(folder / "masks.npz", front_1=np.zeros((2, 6, 8)))
+    (folder / "scene.toml").write_text("")
+    (folder / "damaged_tools.json").write_text("{")
+    (folder / "other_tools.json").write_text(json.dumps({"run_id": "other", "rows": []}))
+    cameras = [PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5, np.eye(3), [0.0, 0.0, 1.0], "front")]
+    log = types.SimpleNamespace(run_id="mine", rows=[], _kept=None)
+    for call, path in (
+        (lambda: load_cameras(folder / "radius.json"), folder / "radius.json"),
+        (lambda: load_cameras(folder / "opacity.json"), folder / "opacity.json"),
+        (lambda: load_masks(folder / "masks.npz", cameras), folder / "masks.npz"),
+        (lambda: UsdFrames(folder / "scene.toml"), folder / "scene.toml"),
+        (lambda: ReactionLog.resume(log, str(folder / "damaged"), 3), folder / "damaged_tools.json"),
+        (lambda: ReactionLog.resume(log, str(folder / "other"), 3), folder / "other_tools.json"),
+    ):
+        with pytest.raises(ValueError) as e:
+            call()
+        shown = (str(shown_path(path, False)), str(shown_path(path)))  # as written, or quoted
+        assert any(form in str(e.value) for form in shown) and str(path) not in str(e.value), str(e.value)
+    with pytest.warns(UserWarning, match="of the run to resume is not there") as caught:
+        ReactionLog.resume(log, str(folder / "absent"), 3)
+    said = str(caught[0].message)
+    assert str(shown_path(folder / "absent_tools.json", False)) in said and str(folder) not in said
+
+
 def test_a_nan_position_in_a_usd_target_is_a_missing_marker_as_in_an_npz(tmp_path):
     """NaN in an .npz target is a missing marker, left out of the loss; the same NaN in a USD
     target (another program's points, an occluded marker) was refused as 'must be finite'."""

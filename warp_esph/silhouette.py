@@ -172,9 +172,9 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
         raise ValueError(f"camera file {checks.shown_path(p, False)}: key {unknown[0]!r} is not allowed: the keys are cameras, radius, opacity")
     for key in ("radius", "opacity"):
         if key in doc:
-            checks.positive(f"camera file {p}: {key}", doc[key])  # 'x' was a float() error naming nothing
+            checks.positive(f"camera file {checks.shown_path(p, False)}: {key}", doc[key])  # 'x' was a float() error naming nothing
     if "opacity" in doc:  # 1.0 was refused by SilhouetteLoss, naming no file
-        checks.in_range(f"camera file {p}: opacity", doc["opacity"], 1e-6, 0.999)
+        checks.in_range(f"camera file {checks.shown_path(p, False)}: opacity", doc["opacity"], 1e-6, 0.999)
     cameras = [PinholeCamera.from_dict(c) for c in cams]
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
@@ -232,7 +232,7 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
                 raise ValueError(f"mask {key!r} in {checks.shown_path(p, False)} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
             if cam in out.get(int(f), {}):  # front_1 and front_01: the last read won
                 raise ValueError(f"mask {key!r} in {checks.shown_path(p, False)} is not allowed: camera {cam!r} already has a mask for frame {int(f)}")
-            out.setdefault(int(f), {})[cam] = _fitting_mask(_mask_array(data[key], f"{p}:{key}"), f"{p}:{key}",
+            out.setdefault(int(f), {})[cam] = _fitting_mask(_mask_array(data[key], f"{checks.shown_path(p, False)}:{key}"), f"{checks.shown_path(p, False)}:{key}",
                                                             cameras[[c.name for c in cameras].index(cam)])
         result = {}
         for f, by in out.items():

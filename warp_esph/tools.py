@@ -1997,20 +1997,20 @@ class ReactionLog:
                 raise TypeError("its 'rows' is not a list")
         except FileNotFoundError:
             if frame > 0:
-                warnings.warn(f"the force log {path} of the run to resume is not there: the resumed log holds the "
+                warnings.warn(f"the force log {checks.shown_path(path, False)} of the run to resume is not there: the resumed log holds the "
                               f"frames from {frame} on only", UserWarning, stacklevel=2)
             return  # no earlier log: the resumed frames only
         except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
             # Rewriting it with the resumed frames only would lose the finished run's rows.
             why = f"no {e}" if isinstance(e, KeyError) else str(e) or type(e).__name__
-            raise ValueError(f"the force log {path} of the run to resume cannot be read ({why}): resuming would replace "
+            raise ValueError(f"the force log {checks.shown_path(path, False)} of the run to resume cannot be read ({why}): resuming would replace "
                              "its rows of the finished frames; move it away to resume without them") from None
         theirs = doc.get("run_id") if isinstance(doc, dict) else None
         if theirs != self.run_id and (theirs is not None):
             # Another run wrote it since (or the checkpoint's run named none): its rows up to the
             # checkpoint were taken as this run's, exit 0.
             ours = f"the run {self.run_id!r}" if self.run_id is not None else "the run (which names none)"
-            raise ValueError(f"the force log {path} belongs to another run (run id {theirs!r}), not {ours} to resume: "
+            raise ValueError(f"the force log {checks.shown_path(path, False)} belongs to another run (run id {theirs!r}), not {ours} to resume: "
                              "put back that run's own log, or move it away to resume without its rows")
         self.rows = [r for r in rows if isinstance(r, dict) and isinstance(r.get("frame"), int) and r["frame"] <= frame]
         self._kept = frame if any(r["frame"] == frame for r in self.rows) else None

@@ -1042,7 +1042,7 @@ class UsdFrames:
         if suffix not in USD_SUFFIXES:
             # pxr's own words named no format it reads ("Cannot determine file format for @s.toml@").
             hint = ": a scene file is run with 'warp-esph run' (or warp_esph.simulate)" if suffix == ".toml" else ""
-            raise ValueError(f"cannot read {self.path!r}: it is not a USD file ({', '.join(USD_SUFFIXES)}){hint}")
+            raise ValueError(f"cannot read {checks.shown_path(self.path)}: it is not a USD file ({', '.join(USD_SUFFIXES)}){hint}")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
         layer = open_layer_checked(self.path)
         if layer.GetCompositionAssetDependencies():
