@@ -940,6 +940,27 @@ def test_a_refusal_of_targets_of_two_rates_shows_a_long_path_by_its_ends(tmp_pat
     assert str(folder) not in err
 
 
+def test_an_output_folder_holding_a_fit_input_is_refused_naming_long_paths_by_their_ends(tmp_path, capsys):
+    """The refusal of an --output-dir that holds the target as a file the fit writes names the
+    folder and the target, over checks.PATH_SHOWN_WHOLE characters, by their ends
+    (checks.shown_path): both were named whole, a path with spaces whole on the command line."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(folder / "fitted.usdc"), "--no-progress", "--dtype", "float64"]) == 0
+    capsys.readouterr()
+    measured = (folder / "fitted.usdc").read_bytes()
+    assert main(["fit", str(tmp_path / "s.toml"), "--target", str(folder / "fitted.usdc"), "--no-progress",
+                 "--iterations", "1", "--output-dir", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"--output-dir {shown_path(folder, False)}: fitted.usdc = {shown_path(folder / 'fitted.usdc')} is "
+                               f"not allowed: it is --target {shown_path(folder / 'fitted.usdc')} of this fit")
+    assert str(folder) not in err
+    assert (folder / "fitted.usdc").read_bytes() == measured
+
+
 @pytest.mark.parametrize("where", ["plots", "fitted run"])
 def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_path, monkeypatch, capsys, where):
     """A Ctrl-C after the fit (and its diagnostics) had finished, while its pictures or its

@@ -137,7 +137,7 @@ def _refuse_overwriting_inputs(outputs, inputs) -> None:
     for what, path in outputs:
         hit = read.get(os.path.realpath(path))
         if hit is not None:
-            raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it is {hit[0]} {hit[1]!r} of this fit, which the fit "
+            raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it is {hit[0]} {checks.shown_path(hit[1])} of this fit, which the fit "
                              "would overwrite; write the results elsewhere")
 
 
@@ -340,7 +340,7 @@ def run_fit(args, out=None, err=None) -> int:
     # With -o elsewhere, an earlier fit's fit.json in the folder is removed (_remove_earlier_run):
     # an input of that name there is refused as one the fit would overwrite.
     _refuse_overwriting_inputs(
-        [(f"--output-dir {folder}: {name}", os.path.join(folder, name)) for name in dict.fromkeys([*names, "fit.json"])]
+        [(f"--output-dir {checks.shown_path(folder, False)}: {name}", os.path.join(folder, name)) for name in dict.fromkeys([*names, "fit.json"])]
         + ([("--output", args.output)] if _arg(args, "output") else []),
         [("the scene", str(spec["scene"])) for _, spec in specs]
         + [("--target", str(t)) for _, spec in specs for t in (spec["target"] if isinstance(spec["target"], (list, tuple))
