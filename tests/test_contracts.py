@@ -24,6 +24,7 @@ import warp.examples
 import warp_esph as we
 from warp_esph import checkpoint, tools
 from warp_esph.rollout import Rollout
+from warp_esph.sim.smoothing import FIT_WEIGHTS
 
 BUNNY = pathlib.Path(warp.examples.get_asset_directory()) / "bunny.usd"
 DX = 0.05
@@ -65,7 +66,7 @@ def _scene(option, dtype, offset=(0.0, 0.0, 0.0), requires_grad=False):
         material = we.Material(**plastic, viscosity=1.0)
     elif option == "yield_with_pressure":
         solver = dict(yield_with_pressure=True)
-    b = we.SceneBuilder(spacing=DX, **({"fit_weight": "biweight"} if option == "biweight" else {}))
+    b = we.SceneBuilder(spacing=DX, **({"fit_weight": option} if option in FIT_WEIGHTS else {}))
     b.add_box(center=at(0, 0.13, 0), size=(0.25, 0.25, 0.25), material=material, name="block",
               velocity=(0.1, -0.3, 0.05), angular_velocity=(2.0, -3.0, 1.0))
     if option.startswith("ghost_floor"):
@@ -327,8 +328,9 @@ def test_a_float64_rollout_torch_and_checkpoint_stay_float64_and_resume_bit_for_
 
 # Pairs of models that share no setting: each stepped in turn with the other must give the
 # very states it gives alone, and the two must differ (so a shared kernel or cache built for
-# the first would show).
-PAIRS = [(("plain", wp.float64), ("biweight", wp.float32)), (("biweight", wp.float64), ("plain", wp.float64)),
+# the first would show). The fit weights are named, not "plain": were the biweight the
+# default, "plain" and "biweight" would be one weight.
+PAIRS = [(("poly6", wp.float64), ("biweight", wp.float32)), (("biweight", wp.float64), ("poly6", wp.float64)),
          (("curvature_corrected", wp.float64), ("plain", wp.float32)), (("floor_images", wp.float32), ("ghost_floor", wp.float64)),
          (("deformation_rest", wp.float32), ("hourglass", wp.float64)), (("pressure_spiky", wp.float64), ("pressure_energy", wp.float64)),
          (("pressure_isotropic", wp.float64), ("plain", wp.float32))]
