@@ -130,8 +130,9 @@ def test_settled_float32_pile_keeps_coming_to_rest():
     from benchmarks import validation as V
     from warp_esph import checkpoint
 
-    # The state was saved with the energy pressure force (the default then): the same force here.
-    model, free, _, _ = V.slump_model(0.5, 8, pressure_force="energy")
+    # The state was saved with the energy pressure force (the default then) and the poly6 fit
+    # weight (its fingerprint refuses another): the same here, named.
+    model, free, _, _ = V.slump_model(0.5, 8, pressure_force="energy", fit_weight="poly6")
     a, meta = checkpoint.load_state(pathlib.Path(__file__).parent / "data" / "slump8_s05_float32_5s.npz", model)
     b = model.state()
     mass = model.particle_mass.numpy()[free].astype(np.float64)
