@@ -23,6 +23,7 @@ from warp_esph import cli
 from warp_esph.builder import SceneBuilder
 from warp_esph.material import Material
 from warp_esph.scenes import Scene
+from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT
 from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
 from run_files import run_script
 from pool_items import _dies_first, _dies_second, _exits_at
@@ -1445,8 +1446,8 @@ def three_sample_sweep(tmp_path_factory):
     (["--param", "yield_stress=10,100"], "its table is of another sweep: params = [yield_stress=10.0,100.0,1000.0] "
                                          "there, [yield_stress=10.0,100.0] here; samples = 3 there, 2 here;"),
     (["--hourglass", "0.2"], "its table is of another sweep: solver = {{\"fit\": null, \"contact_ramp\": 1.0, "
-                             "\"hourglass\": null, \"fit_weight\": \"poly6\"}} there, {{\"fit\": null, "
-                             "\"contact_ramp\": 1.0, \"hourglass\": 0.2, \"fit_weight\": \"poly6\"}} here;"),
+                             "\"hourglass\": null, \"fit_weight\": \"{weight}\"}} there, {{\"fit\": null, "
+                             "\"contact_ramp\": 1.0, \"hourglass\": 0.2, \"fit_weight\": \"{weight}\"}} here;"),
     (["--edit-scene"], "its table is of another sweep: scene_file = "),
     (["--elsewhere"], "--resume of --output = '{out}' is not allowed: there is no such file or folder, so there is "
                       "nothing to resume; run the sweep without it"),
@@ -1477,7 +1478,8 @@ def test_the_command_refuses_to_resume_a_table_of_another_sweep_before_any_sampl
             "--no-progress", *flags]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and words.format(out=out) in err, err
+    # The scene names no fit weight: the record shows the default's.
+    assert err.count("\n") == 1 and words.format(out=out, weight=DEFAULT_FIT_WEIGHT) in err, err
     assert (tmp_path / "sw" / "sweep.csv").read_bytes() == before
 
 
