@@ -252,7 +252,7 @@ def _interior(model, margin):
 
 def test_rest_model_fits_the_total_deformation_exactly():
     model = _kernel_case("rest")
-    k = comparison.kernels(wp.float64, "poly6")
+    k = comparison.kernels(wp.float64, model.fit_weight)  # the weight of the rest moments it reads
     rng = np.random.default_rng(3)
     A = np.eye(3) + 0.3 * rng.standard_normal((3, 3))
     X, nbr, count = model.rest_neighbors()
