@@ -168,6 +168,8 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
 
 # --------------------------------------------------------------------- floors
 FLOORS = ("ground", "particles", "ground_images", "elastic_particles", "ghost_particles", "slip_ghost_particles")
+#: The floors of pinned particles (``SceneBuilder.add_particle_floor``), the others colliders.
+PARTICLE_FLOORS = ("particles", "elastic_particles", "ghost_particles", "slip_ghost_particles")
 #: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
 #: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
 #: neighbourhood at the base).
@@ -623,10 +625,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be; ``"elastic_particles"``, the
     same floor made elastic (``add_particle_floor(elastic=True)``). ``floor_margin``: how many
-    spacings the particle floors reach past the strip's ends, not past its walls (0: under
-    its starting footprint only, where the ends, slumping off it, make the middle run in
-    bursts from about 0.8 s; 8 leaves no burst, docs/physics.md, "Read against the thinned
-    strip"). mu = Y / (2 yield_strain), nu = 0.3.
+    spacings (a whole number; particle floors only) the particle floors reach past the strip's
+    ends, not past its walls (0: under its starting footprint only, where the ends, slumping
+    off it, make the middle run in bursts from about 0.8 s; 8 leaves no burst, docs/physics.md,
+    "Read against the thinned strip"). mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
     release (up to twice the static stress).
@@ -652,6 +654,18 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     _check_floor(floor)
     if walls not in INCLINE_WALLS:
         raise ValueError(f"walls = {walls!r} is not allowed: one of {INCLINE_WALLS}")
+    from warp_esph import checks
+
+    margin = checks.non_negative("floor_margin", floor_margin)
+    if margin != math.floor(margin):
+        # The floor is on the strip's lattice: 2.5 reached 2 spacings, recorded as 2.5.
+        raise ValueError(f"floor_margin = {checks.shorten(floor_margin)!r} is not allowed: must be a whole number of spacings (the floor "
+                         "lies on the strip's lattice)")
+    if margin and floor not in PARTICLE_FLOORS:
+        # The ground collider has no edge to reach past: the margin was dropped, the row recorded it.
+        raise ValueError(f"floor_margin = {checks.shorten(floor_margin)!r} is not allowed with floor = {floor!r}: it is how far "
+                         f"a particle floor reaches past the strip's ends; give floor one of {', '.join(map(repr, PARTICLE_FLOORS))}, "
+                         "or leave floor_margin at 0")
     dx = spacing
     h = layers * dx
     tau_y = RHO * G * h * math.sin(math.radians(critical_angle))
@@ -668,12 +682,19 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     L = length * h
     W = width * dx
     b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
-    if floor in ("particles", "elastic_particles", "ghost_particles", "slip_ghost_particles"):
+    if floor in PARTICLE_FLOORS:
         # The walls normal to z bound the strip, its ends are free: the floor reaches past
         # them by floor_margin spacings along x only (not past the walls, where it would
         # add only pinned particles to the neighbour search).
-        b.add_particle_floor("layer", margin=floor_margin * dx, where=lambda p: (p[:, 2] > 0.0) & (p[:, 2] < W), layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles",
-                             ghost=floor in ("ghost_particles", "slip_ghost_particles"), slip=floor == "slip_ghost_particles")
+        try:
+            b.add_particle_floor("layer", margin=margin * dx, where=lambda p: (p[:, 2] > 0.0) & (p[:, 2] < W), layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles",
+                                 ghost=floor in ("ghost_particles", "slip_ghost_particles"), slip=floor == "slip_ghost_particles")
+        except ValueError as e:
+            # The builder's margin is in metres ('margin = 5000.0' for floor_margin = 1e6 spacings).
+            if not str(e).startswith("margin = "):
+                raise
+            raise ValueError(f"floor_margin = {checks.shorten(floor_margin)!r} is not allowed: "
+                             f"{str(e).split(' is not allowed: ', 1)[1]}") from None
     else:
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
     inset = 0.5 * dx if walls == "centres" else 0.0
@@ -715,7 +736,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         "case": "incline", "layers": layers, "load": load, "floor": floor, "fit_weight": fit_weight,
         "theta_deg": math.degrees(theta),
         "particles": model.particle_count, "dt": dt, "steps": steps, "duration": float(times[-1]),
-        "tau_y": tau_y, "bingham_surface_speed": bingham, "floor_margin": floor_margin,
+        "tau_y": tau_y, "bingham_surface_speed": bingham, "floor_margin": margin,
         "thickness": h_eff, "plug_thickness": h_p, "thinned_bingham_surface_speed": bingham_thinned,
         # The top's speed at the end and at two thirds of the run (mean of 3 samples each):
         # a flowing layer keeps it, a stopping one loses it.

@@ -659,6 +659,24 @@ def test_thin_strip_on_a_floor_past_its_ends_comes_to_rest_just_above_its_plug_t
     assert r["thinned_bingham_surface_speed"] < 0.11 * scale, (r["thickness"] / r["plug_thickness"], r["thinned_bingham_surface_speed"], scale)
 
 
+@pytest.mark.parametrize("kwargs, words", [
+    ({"floor": "particles", "floor_margin": -1}, r"floor_margin = -1 is not allowed: must be >= 0"),
+    ({"floor": "particles", "floor_margin": float("nan")}, r"floor_margin = nan is not allowed: must be a finite number"),
+    ({"floor": "particles", "floor_margin": True}, r"floor_margin = True is not allowed: must be a number"),
+    ({"floor": "particles", "floor_margin": 2.5}, r"floor_margin = 2.5 is not allowed: must be a whole number of spacings"),
+    ({"floor": "particles", "floor_margin": 1e6}, r"floor_margin = 1000000.0 is not allowed: at spacing 0.005 "),
+    ({"floor": "ground", "floor_margin": 8}, r"floor_margin = 8 is not allowed with floor = 'ground': "),
+    ({"floor": "ground_images", "floor_margin": 8.0}, r"floor_margin = 8.0 is not allowed with floor = 'ground_images': "),
+])
+def test_incline_refuses_a_floor_margin_it_would_not_build_naming_it(kwargs, words):
+    """incline's floor_margin (spacings) is refused by its own name and value: a negative or
+    huge one was refused as the builder's margin in metres ('margin = -0.005'), 2.5 reached
+    2 spacings (the floor is on the strip's lattice) and True one, and on a ground collider
+    any margin was dropped while the result row recorded it."""
+    with pytest.raises(ValueError, match="^" + words):
+        validation.incline(duration=0.01, **kwargs)
+
+
 def test_incline_refuses_unknown_walls_by_name():
     with pytest.raises(ValueError, match="walls = 'glass'"):
         validation.incline(walls="glass")
