@@ -365,6 +365,33 @@ def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
     assert not (tmp_path / "out" / "fit.json").exists()
 
 
+def test_fit_refusing_an_output_that_is_a_mesh_its_scene_reads_names_a_long_scene_path_by_its_ends(tmp_path, capsys):
+    """The refusal above names the scene whose mesh the output is: a scene path over
+    checks.PATH_SHOWN_WHOLE characters by its ends (checks.shown_path), as it names the
+    output and the mesh; it was named whole, a path with spaces whole on the command line."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    scene = folder / "part.toml"
+    scene.write_text('[scene]\nspacing = 0.05\nframes = 1\n'
+                     '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.usdc"\ntranslation = [0, 0.01, 0]\n'
+                     '[[colliders]]\ntype = "ground"\n')
+    write_usd(folder / "part.usdc", {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
+    np.savez(tmp_path / "t.npz", positions=load_scene(str(scene)).builder.finalize().particle_x0[None], frames=[1])
+    mesh = (folder / "part.usdc").read_bytes()
+    assert main(["fit", str(scene), "--target", str(tmp_path / "t.npz"), "--params", "yield_stress", "--iterations", "0",
+                 "--no-progress", "--no-diagnostics", "-o", str(folder / "part.usdc")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
+    assert (f"--output = {shown_path(folder / 'part.usdc')} is not allowed: it is the mesh of [[bodies]] #1 of "
+            f"{shown_path(scene, False)} {shown_path(folder / 'part.usdc')} of this fit") in err, err
+    assert str(folder) not in err
+    assert (folder / "part.usdc").read_bytes() == mesh
+
+
 def test_a_mesh_file_in_a_folder_named_in_bytes_that_are_not_utf8_is_refused_naming_what_is_allowed(tmp_path, capsys,
                                                                                                      monkeypatch):
     """USD takes file names as UTF-8: a scene file's mesh in a folder named b'\\xfb' was refused

@@ -349,7 +349,7 @@ def run_fit(args, out=None, err=None) -> int:
         + ([("--experiments", str(args.experiments))] if _arg(args, "experiments") else [])
         # The meshes a scene file reads (Scene.inputs, as run refuses them): -o part.usdc beside
         # part.toml replaced its mesh with the fit's JSON. (Its own file is "the scene" above.)
-        + [(f"{what} of {os.fsdecode(spec.get('scene_as_written') or spec['scene'])}", path)
+        + [(f"{what} of {checks.shown_path(spec.get('scene_as_written') or spec['scene'], False)}", path)
            for (_, spec), e in zip(specs, exps) for what, path in e.scene.inputs])
     if _arg(args, "output"):
         from .usd import USD_EXTENSIONS  # noqa: PLC0415
