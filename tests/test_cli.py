@@ -961,6 +961,30 @@ def test_an_output_folder_holding_a_fit_input_is_refused_naming_long_paths_by_th
     assert (folder / "fitted.usdc").read_bytes() == measured
 
 
+@pytest.mark.parametrize("scene", ["nope.toml", "nosuch"])
+def test_an_experiment_s_scene_looked_for_in_a_long_folder_names_the_folder_by_its_ends(tmp_path, capsys, scene):
+    """An --experiments file's scene that is not there (a file, or a name neither built in nor
+    beside the JSON) is refused naming the folder it was looked for in, the JSON's: one over
+    checks.PATH_SHOWN_WHOLE characters by its ends (checks.shown_path), as the JSON itself is
+    named; it was named whole, a path with spaces whole on the command line."""
+    from warp_esph.checks import PATH_SHOWN_WHOLE, shown_path
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    capsys.readouterr()
+    folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
+    folder.mkdir()
+    (folder / "exp.json").write_text(json.dumps([{"scene": scene, "target": str(run)}]))
+    assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1",
+                 "--experiments", str(folder / "exp.json")]) == 2
+    captured = capsys.readouterr()
+    assert_one_line_error(captured.err, f"error: {shown_path(folder / 'exp.json', False)}: experiment #1: ",
+                          f"relative to {shown_path(folder, False)}, the folder of the --experiments file")
+    assert str(folder) not in captured.err
+    assert not captured.out, captured
+
+
 @pytest.mark.parametrize("where", ["plots", "fitted run"])
 def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_path, monkeypatch, capsys, where):
     """A Ctrl-C after the fit (and its diagnostics) had finished, while its pictures or its

@@ -265,7 +265,7 @@ def run_fit(args, out=None, err=None) -> int:
                 if message.startswith(unread):
                     # The name alone read as a file missing from the working folder, where nobody
                     # looked.
-                    message = (f"{unread} (looked for relative to {spec['scene_folder']}, the folder of the "
+                    message = (f"{unread} (looked for relative to {checks.shown_path(spec['scene_folder'], False)}, the folder of the "
                                f"--experiments file){message[len(unread):]}")
             if where and f"{where}{message}" != said:
                 raise ValueError(f"{where}{message}") from None
@@ -614,7 +614,7 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
             # name from the working folder, which an experiment's names are never relative to.
             from .scenes import _unknown  # noqa: PLC0415
 
-            raise ValueError(f"{where}{_unknown(scene)} (relative to {base}, the folder of the --experiments file)")
+            raise ValueError(f"{where}{_unknown(scene)} (relative to {checks.shown_path(base, False)}, the folder of the --experiments file)")
         cams = spec.get("cameras")
         if cams is not None and not (isinstance(cams, str) and cams.strip()):
             # "" was taken as no cameras: the masks were then read as other targets, or refused for another reason.
