@@ -1212,6 +1212,41 @@ def test_a_target_whose_fps_is_not_one_number_is_refused_by_name(tmp_path):
     load_target(path)
 
 
+def test_load_target_s_body_and_tool_refusals_name_the_python_arguments_and_an_experiment_its_keys(tmp_path, capsys):
+    """load_target(body=, tool=) is refused naming body and tool, as its frames are named
+    frames (the command passes its own names): it named --target-body and --target-tool, which
+    an --experiments file's target_body and target_tool were refused as too."""
+    import json
+
+    from run_files import box_on_ground
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    (tmp_path / "s.toml").write_text(box_on_ground("tiny", 2, "soft", "dough", "1.5e4"))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    npz = tmp_path / "t.npz"
+    np.savez(npz, positions=np.zeros((2, 4, 3)))
+    log = tmp_path / "two_tools.csv"
+    log.write_text("frame,time,tool,fx,fy,fz\n1,0.1,a,0,0,1\n1,0.1,b,0,0,1\n")
+    for call, words in ((lambda: load_target(run, body="nosuch"), "body = 'nosuch' is not allowed: "),
+                        (lambda: load_target(npz, body="dough"), "body = 'dough' is not allowed with the target "),
+                        (lambda: load_target(log), "tool is required: "),
+                        (lambda: load_target(log, tool="c"), "tool = 'c' is not allowed: ")):
+        with pytest.raises(ValueError) as e:
+            call()
+        assert str(e.value).startswith(words), str(e.value)
+    capsys.readouterr()
+    for key, target, words in (("target_body", "run.usdc", "target_body = 'nosuch' is not allowed: "),
+                               ("target_tool", "two_tools.csv", "target_tool = 'nosuch' is not allowed: ")):
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": target, key: "nosuch"}]))
+        assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1",
+                     "--experiments", str(tmp_path / "exp.json")]) == 2
+        err = capsys.readouterr().err
+        assert f"exp.json: experiment #1: {words}" in err, err
+        assert "--target-" not in err, err
+
+
 def test_a_target_body_or_a_force_log_the_target_cannot_serve_is_refused_by_name(tmp_path):
     """``--target-body`` with a target that holds no bodies was ignored (every position was
     the target); a reaction-force log that lost a column was read as a point cloud and
@@ -1220,7 +1255,7 @@ def test_a_target_body_or_a_force_log_the_target_cannot_serve_is_refused_by_name
 
     npz = tmp_path / "t.npz"
     np.savez(npz, positions=np.zeros((2, 4, 3)))
-    with pytest.raises(ValueError, match=r"--target-body 'dough' is not allowed with the target .*t\.npz: only the USD"):
+    with pytest.raises(ValueError, match=r"^body = 'dough' is not allowed with the target .*t\.npz: only the USD"):
         load_target(npz, body="dough")
     log = tmp_path / "run_tools.csv"
     log.write_text("frame,time,tool,fx,fz\n1,0.1,plane0,0.0,0.0\n")

@@ -695,7 +695,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         # load_target's frames are the command's --target-frames: 'frames' named no option (an
         # experiment's refusal is prefixed with its name by the caller).
         t = load_target(path, body=spec.get("target_body") if usd else None, frames=fspec if usd else None,
-                        tool=spec.get("target_tool"), frames_name=key("target_frames"))
+                        tool=spec.get("target_tool"), frames_name=key("target_frames"), body_name=key("target_body"),
+                        tool_name=key("target_tool"))
         if fspec is not None and not usd and t.frames_stored:
             # The file numbers its frames: --target-frames chooses among them, as of a run's USD
             # (all, last, A:B:STEP, ...; it renumbered them: frame 2's positions were fitted at

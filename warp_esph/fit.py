@@ -3805,14 +3805,15 @@ def choose_stored_frames(target: Target, spec, name: str = "frames") -> None:
     target.frames = chosen
 
 
-def load_target(path, body: str | None = None, frames=None, tool: str | None = None, frames_name: str = "frames") -> Target:
+def load_target(path, body: str | None = None, frames=None, tool: str | None = None, frames_name: str = "frames",
+                body_name: str = "body", tool_name: str = "tool") -> Target:
     """Read a target file.
 
     - the ``.usd/.usda/.usdc`` of a previous ``warp-esph run`` (``UsdGeom.Points`` under
       ``/World``): particle positions per rendered frame; ``body`` (a body or prim name)
       keeps one body's particles, ``frames`` (``all``, ``2,4,6``, ``10:60:10``, ...; default
       every frame after the first) chooses frames (a refusal names them ``frames_name``: the
-      CLI's ``--target-frames``). Any other USD file is read as a mesh.
+      CLI's ``--target-frames``; ``body`` and ``tool`` likewise ``body_name`` and ``tool_name``). Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``, no other array (a ``times`` is refused, not
@@ -3851,7 +3852,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                          "positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud")
     if body is not None and ext not in (".usd", ".usda", ".usdc"):
         # It was ignored: every position of the file was the target.
-        raise ValueError(f"--target-body {body!r} is not allowed with the target {checks.shown_path(p, False)}: only the USD of a run holds bodies "
+        raise ValueError(f"{body_name} = {checks.shorten(body)!r} is not allowed with the target {checks.shown_path(p, False)}: only the USD of a run holds bodies "
                          "to choose from")
     if ext in (".npz", ".npy"):
         chosen = frames  # the caller's choice among the file's frames ('frames' below is the file's)
@@ -3932,7 +3933,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             choose_stored_frames(target, chosen, frames_name)
         return target
     if ext == ".csv" and is_tools_csv(p):
-        return _forces_target(p, tool)
+        return _forces_target(p, tool, tool_name)
     if ext == ".csv":
         _refuse_other_force_logs(p)
     if ext in _CLOUD_TEXT:
@@ -3952,11 +3953,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if ext in (".usd", ".usda", ".usdc"):
         # Before the run's reader, whose refusals are taken as a damaged file's.
         checks.usd_input(p)
-        run = _usd_run_target(p, body, frames, frames_name)
+        run = _usd_run_target(p, body, frames, frames_name, body_name)
         if run is not None:
             return run
         if body is not None:
-            raise ValueError(f"--target-body {body!r} is not allowed with the target {checks.shown_path(p, False)}: it is a mesh, not the USD of a "
+            raise ValueError(f"{body_name} = {checks.shorten(body)!r} is not allowed with the target {checks.shown_path(p, False)}: it is a mesh, not the USD of a "
                              "run, and holds no bodies to choose from")
         from .meshes import load_mesh  # noqa: PLC0415
 
@@ -4314,17 +4315,17 @@ def read_arrays(path: str):
         return data
 
 
-def _forces_target(path: str, tool: str | None) -> Target:
+def _forces_target(path: str, tool: str | None, tool_name: str = "tool") -> Target:
     """The reaction-force curve of one tool from a ``<output>_tools.csv``."""
     rows = read_tools_csv(path)
     names = list(dict.fromkeys(r["tool"] for r in rows))
     if tool is None:
         if len(names) > 1:
-            raise ValueError(f"--target-tool is required: {checks.shown_path(path, False)} holds the forces of tools and static colliders "
+            raise ValueError(f"{tool_name} is required: {checks.shown_path(path, False)} holds the forces of tools and static colliders "
                              f"{', '.join(names)}")
         tool = names[0]
     if tool not in names:
-        raise ValueError(f"--target-tool = {checks.shorten(tool)!r} is not allowed: {checks.shown_path(path, False)} holds the forces of {', '.join(names)}")
+        raise ValueError(f"{tool_name} = {checks.shorten(tool)!r} is not allowed: {checks.shown_path(path, False)} holds the forces of {', '.join(names)}")
     mine = [r for r in rows if r["tool"] == tool]
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:
@@ -4373,7 +4374,7 @@ def _refuse_shifted_or_repeated_times(path: str, tool: str, rows: list[dict]) ->
                          "frames are what is off, number the rows so that time 0 is frame 0)")
 
 
-def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Target | None:
+def _usd_run_target(path: str, body, frames, frames_name: str = "frames", body_name: str = "body") -> Target | None:
     """Positions from a ``warp-esph run`` USD file, or None when the file is not one."""
     try:
         from .render import UsdFrames, parse_frames  # noqa: PLC0415
@@ -4399,7 +4400,7 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
         elif body in names:
             index = names.index(body)
         else:
-            raise ValueError(f"--target-body {body!r} is not allowed: {checks.shown_path(path, False)} holds bodies {', '.join(given)}")
+            raise ValueError(f"{body_name} = {checks.shorten(body)!r} is not allowed: {checks.shown_path(path, False)} holds bodies {', '.join(given)}")
         body = given[index]
     chosen = parse_frames(frames, data.frames, frames_name) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
