@@ -911,7 +911,9 @@ def test_a_run_target_read_whole_must_hold_the_scenes_bodies_in_order(tmp_path):
     for names, sizes in ((["c", "a b"], (0.06, 0.06)), (["a b", "c"], (0.04, 0.08)), (["c", "d"], (0.06, 0.06)),
                          (["e", "a b"], (0.06, 0.06))):
         with pytest.raises(ValueError, match=r"run\.usdc is not allowed: it holds the bodies a b \(27 particles\), c \(27 "
-                                             r"particles\) in that order, the scene .*; particles are compared in order"):
+                                             r"particles\) in that order, the scene .*; particles are compared in order: use the scene the run "
+                                             r"was made with, or observe one body of the run \(--target-body NAME; "
+                                             r"load_target\(path, body=NAME\) in Python\)"):
             load_target(path).loss(model(names, sizes), {1: 10})
     # A scene that renamed its bodies (a guess scene of its own) is matched by the counts.
     for names in (["sample", "other"], ["a b", "d"]):

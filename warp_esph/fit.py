@@ -3718,7 +3718,8 @@ class Target:
 
                     raise ValueError(f"target {checks.shown_path(self.path, False)} is not allowed: it holds the bodies {listed(self.bodies)} "
                                      f"in that order, the scene {listed((b.name, b.count) for b in model.bodies)}; particles "
-                                     "are compared in order: use the scene the run was made with, or --target-body NAME")
+                                     "are compared in order: use the scene the run was made with, or observe one body of the run "
+                                     "(--target-body NAME; load_target(path, body=NAME) in Python)")
             self._check_start_order(model)
             keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
