@@ -744,6 +744,43 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     assert np.isfinite(r.forward()).all()
 
 
+def test_a_start_targets_or_gradients_of_text_booleans_or_complex_numbers_are_refused_by_name():
+    """numpy reads text, booleans and complex numbers as float64 without a word (the last with a
+    ComplexWarning): a start of ``'0.01'`` strings ran as numbers, ``v0=[True, False, False]``
+    as 1 m/s, ``PositionLoss(x > 0)`` fitted positions of 0 and 1 m, a force curve of complex
+    newtons its real part, a gradient of strings was seeded. Each is refused naming its input."""
+    from warp_esph.losses import ReactionForceLoss  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    n = model.particle_count
+    r = Rollout(model, 2, 1e-3, frames=[2])
+    x = r.forward()
+    starts = [("x0", model.particle_x0.astype(str), "text"), ("v0", np.array([True, False, False]), "booleans"),
+              ("v0", np.array([1.0 + 1.0j, 0.0, 0.0]), "complex numbers"), ("F0", np.eye(3).astype(str), "text"),
+              ("alpha0", True, "booleans"), ("alpha0", "0.01", "text")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning either
+        for name, value, what in starts:
+            with pytest.raises(ValueError, match=rf"^{name} = .* is not allowed: it holds {what}; must be numbers of shape"):
+                r.forward(**{name: value})
+        for make, what in ((lambda: PositionLoss(x.astype(str), frames=[2]), "text"),
+                           (lambda: PositionLoss(x > 0.1, frames=[2]), "booleans"),
+                           (lambda: PositionLoss([x[0].astype(str)], frames=[2]), "text"),
+                           (lambda: ChamferLoss(x.astype(str), 0.05, frames=[2]), "text"),
+                           (lambda: ReactionForceLoss(np.zeros((1, 3)).astype(str), "plate", [2]), "text"),
+                           (lambda: ReactionForceLoss(np.zeros((1, 3)) + 1j, "plate", [2]), "complex numbers")):
+            with pytest.raises(ValueError, match=rf"^targets.* is not allowed: it holds {what}; "):
+                make()
+        for grads, what in (([np.ones((n, 3)).astype(str)], "text"), ([np.ones((n, 3), dtype=bool)], "booleans"),
+                            ([np.ones((n, 3)) + 0j], "complex numbers")):
+            with pytest.raises(ValueError, match=rf"^gradient for step 2 = .* is not allowed: it holds {what}; "):
+                r.backward(grads)
+    # Numbers of every real kind still serve: integers as floats.
+    np.testing.assert_array_equal(r.forward(v0=np.zeros(3, dtype=int), alpha0=0), x)
+
+
 def test_float64_values_a_float32_rollout_cannot_hold_are_refused_as_given():
     """Values given in float64 were cast to a float32 model's precision before any check: mu
     = 1e39 (from Python, or a torch tensor) was refused as 'array([inf]) ... must be finite',

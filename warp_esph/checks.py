@@ -347,6 +347,26 @@ def host_values(name: str, value):
 #: velocity, a target or a camera's R ended in numpy's 'int too large to convert to float').
 ARRAY_ERRORS = (TypeError, ValueError, OverflowError)
 
+#: The dtype kinds numpy casts to float64 without holding real numbers, as a refusal names
+#: them: text (numpy parsed '0.5' as 0.5), booleans (True as 1) and complex numbers (the
+#: imaginary part dropped with only a ComplexWarning).
+NOT_REAL = {"U": "text", "S": "text", "b": "booleans", "c": "complex numbers"}
+
+
+def real_numbers(name: str, value, allowed: str) -> None:
+    """Refuses ``value`` naming ``name`` where numpy would read text, booleans or complex
+    numbers as float64 (``NOT_REAL``); ``allowed`` says what is. What numpy cannot read as
+    float64 (text that is no number, ragged rows, an int past the floats) is left to the
+    caller's conversion and its refusal."""
+    try:
+        kind = np.asarray(value).dtype.kind
+        if kind in "US":
+            np.asarray(value, dtype=np.float64)
+    except ARRAY_ERRORS:
+        return
+    if kind in NOT_REAL:
+        _fail(name, value, f"it holds {NOT_REAL[kind]}; {allowed}")
+
 
 def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__len__"):

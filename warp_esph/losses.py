@@ -317,6 +317,7 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
             raise ValueError(f"{name} is not allowed: give an array, a sequence of arrays or a {{step: array}} mapping") from None
         if complex_:
             raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
+        checks.real_numbers(name, data, "positions are numbers (m)")
         if a.ndim == item_ndim:
             return {f: a for f in frames}
         if a.ndim != item_ndim + 1:
@@ -335,6 +336,7 @@ def _points(name: str, p, missing: bool = False, unseen: str = "") -> np.ndarray
     p = checks.host_values(name, p)
     if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
+    checks.real_numbers(name, p, "positions are numbers (m)")
     try:
         a = np.asarray(p, dtype=np.float64)
     except checks.ARRAY_ERRORS:  # numpy's "could not convert string to float" named no parameter
@@ -1540,6 +1542,7 @@ class ReactionForceLoss(Loss):
         self.components = comps
         self._axes = [_AXES[c] for c in comps]
         targets = checks.host_values("targets", targets)
+        checks.real_numbers("targets", targets, "must be numbers (N)")
         try:
             t = np.asarray(targets, dtype=np.float64)
         except checks.ARRAY_ERRORS:

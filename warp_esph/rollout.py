@@ -516,6 +516,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     if isinstance(value, wp.array):
         value = value.numpy()
     value = checks.host_values(name, value)
+    checks.real_numbers(name, value, f"must be numbers of shape {initial_shapes(name, n)}")
     try:
         v = np.asarray(value, dtype=np.float64)
     except checks.ARRAY_ERRORS:
@@ -1306,7 +1307,9 @@ class Rollout:
                     out[f] = g
                     continue
                 g = g.numpy()
-            a = np.asarray(checks.host_values(f"gradient for step {f}", g), dtype=T.np_dtype)
+            g = checks.host_values(f"gradient for step {f}", g)
+            checks.real_numbers(f"gradient for step {f}", g, f"must be numbers of shape {shape}")
+            a = np.asarray(g, dtype=T.np_dtype)
             if a.shape != shape:
                 raise ValueError(f"gradient for step {f} with shape {a.shape} is not allowed: must be {shape}")
             if not np.isfinite(a).all():  # NaN gradients came back as a result
