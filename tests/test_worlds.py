@@ -386,6 +386,20 @@ def test_views_and_per_world_split():
     assert model.mu.numpy().tolist() == [MAT_A.mu, MAT_A.mu, MAT_B.mu]
 
 
+def test_a_material_index_that_is_no_integer_is_refused_as_such():
+    """``set_material(0.0, m)`` was refused as 'index = 0.0 is not allowed: must be in [0, 0]',
+    a range 0.0 lies in: the refusal now says an integer is needed, as ``world`` says it."""
+    model = _builder(MAT_A).finalize(worlds=2)
+    for index in (0.0, "0", True, np.float64(1.0)):
+        with pytest.raises(ValueError, match=rf"^index = {re.escape(repr(index))} is not allowed: must be an integer in \[0, 1\]$"):
+            model.set_material(index, MAT_B)
+        with pytest.raises(ValueError, match=rf"^index = {re.escape(repr(index))} is not allowed: must be an integer; world 1 has "
+                                             r"materials 0\.\.0$"):
+            model.set_material(index, MAT_B, world=1)
+    model.set_material(np.int64(1), MAT_B)
+    assert model.mu.numpy().tolist() == [MAT_A.mu, MAT_B.mu]
+
+
 def test_bad_input_names_the_parameter():
     b = _builder(MAT_A)
     for bad in (0, -1, 1.5, True, "2"):

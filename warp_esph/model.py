@@ -873,14 +873,17 @@ class Model:
         ``world=None``: ``index`` counts every material of the model (worlds after each
         other); ``world=w``: ``index`` is the material's index within world ``w`` (as in its
         builder), and only world ``w``'s copy changes."""
+        # 0.0 was refused as 'must be in [0, 0]', a range it lies in.
+        integer = not isinstance(index, bool) and isinstance(index, (int, np.integer))
         if world is not None:
             w = self._world_index(world)
             first, end = self.world_material_start[w], self.world_material_start[w + 1]
-            if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < end - first:
-                raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: world {w} has materials 0..{end - first - 1}")
+            if not integer or not 0 <= index < end - first:
+                raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: {'' if integer else 'must be an integer; '}"
+                                 f"world {w} has materials 0..{end - first - 1}")
             index = int(first + index)
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
-            raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
+        if not integer or not 0 <= index < len(self.materials):
+            raise ValueError(f"index = {checks.shorten(index)!r} is not allowed: must be an integer in [0, {len(self.materials) - 1}]")
         if not isinstance(material, Material):
             raise ValueError(f"material = {checks.shorten(material)!r} is not allowed: must be a warp_esph.Material")
         old = self.materials[index]
