@@ -1982,6 +1982,29 @@ def test_init_warp_holds_back_only_the_native_cuda_note(capfd, monkeypatch, tmp_
     assert capfd.readouterr().err == "native note A\n"
 
 
+def test_init_warp_refuses_a_device_a_log_level_or_echo_it_cannot_take():
+    """``init_warp(log_level="debug")`` ended in Python's 'invalid literal for int()', naming no
+    parameter; ``log_level=2.5`` was taken as 2, ``device="gpu"`` (a name no Warp device has)
+    and ``echo="no"`` (echoed) without a word. Each is refused naming it, before the log level
+    is touched; Warp's own device names still serve."""
+    import warp as wp
+
+    from warp_esph.startup import init_warp
+
+    level = wp.config.log_level
+    for kw, said in (({"log_level": "debug"}, r"log_level = 'debug' is not allowed: must be an integer, e.g. wp\.LOG_WARNING"),
+                     ({"log_level": 2.5}, r"log_level = 2\.5 is not allowed: must be an integer"),
+                     ({"log_level": True}, r"log_level = True is not allowed: must be an integer"),
+                     ({"device": "gpu"}, r"device = 'gpu' is not allowed: must be None, 'cpu', 'cuda' or 'cuda:N'"),
+                     ({"device": 0}, r"device = 0 is not allowed: must be None, 'cpu', 'cuda' or 'cuda:N'"),
+                     ({"echo": "no"}, r"echo = 'no' is not allowed: must be True or False")):
+        with pytest.raises(ValueError, match=f"^{said}"):
+            init_warp(**kw)
+        assert wp.config.log_level == level
+    for device in (None, "cpu", "cuda", "cuda:1"):
+        assert init_warp(device, log_level=level, echo=False) == []  # Warp has started: nothing held back
+
+
 def test_a_process_started_with_its_standard_error_closed_runs(tmp_path, monkeypatch):
     """Started with descriptor 2 closed (2>&-), Python leaves sys.stderr None: Warp's start
     (``sys.stderr.flush()``) and then the progress bar raised AttributeError, exit 1, and the
