@@ -13,6 +13,7 @@
 """
 
 import contextlib
+import copy
 import pathlib
 import types
 
@@ -251,6 +252,30 @@ def test_a_step_leaves_every_bit_of_state_in_as_it_was(option, dtype, fused, tap
         assert field in seen, field
     if taped:
         assert "State.x.grad" in seen
+
+
+@pytest.mark.parametrize("option", OPTIONS)
+def test_a_step_refuses_a_state_out_that_shares_an_array_with_state_in(option):
+    """Two states of ``model.state()`` share no array. A shallow copy of ``state_in``
+    (``copy.copy``) given as ``state_out``, or a state given one of ``state_in``'s arrays
+    (``out.v = state_in.v``), passed the step's checks (only ``state_out is state_in`` was
+    refused): the step wrote the arrays it read, and ``state_in`` came back holding the step's
+    result. Refused naming the arrays shared, before any kernel runs."""
+    model, kw = _scene(option, wp.float32)
+    solver = we.Solver(model, **kw)
+    a, b = _stirred(model, model.state()), model.state()
+    mine = (we.Model, we.Solver)  # a state's arrays, not its model's
+    assert {id(x) for x in _arrays(a, mine).values()}.isdisjoint(id(x) for x in _arrays(b, mine).values())
+    dt = 0.5 * model.stable_dt()
+    solver.step(a, b, dt)
+    given = model.state()
+    given.v = a.v
+    before = _snapshot(a)
+    for out, named in ((copy.copy(a), r"x, v, F, alpha, F_p, \.\.\. \(\d+ arrays\)"), (given, r"v")):
+        with pytest.raises(ValueError, match=rf"^state_out is not allowed: it shares state_in's {named}"):
+            solver.step(a, out, dt)
+    assert _changed(before, _snapshot(a)) == []
+    solver.step(b, a, dt)  # the pair as it was still steps
 
 
 @pytest.mark.parametrize("option", OPTIONS)

@@ -546,15 +546,27 @@ def same_state(model, name: str, state) -> None:
             )
         if arr.device != dev:
             raise ValueError(f"{name} does not belong to this model: {field} is on {arr.device}, the model on {dev}")
+    # Which arrays it holds, for step_states to see two states share none; forgotten with the
+    # memo above when an array is replaced (State.__setattr__).
+    state.__dict__["_arrays"] = {id(getattr(state, field)): field for field in want}
     state.__dict__["_checked_for"] = model
 
 
 def step_states(model, state_in, state_out) -> None:
-    """The checks of ``Solver.step``: two distinct states that both fit ``model``."""
+    """The checks of ``Solver.step``: two distinct states that both fit ``model`` and share no
+    array."""
     same_state(model, "state_in", state_in)
     same_state(model, "state_out", state_out)
     if state_in is state_out:
         raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
+    if not state_in._arrays.keys().isdisjoint(state_out._arrays):
+        # A shallow copy (copy.copy(state_in)), or an array handed over (out.v = state_in.v):
+        # the step wrote what it read, and state_in came back holding its result.
+        shared = [field for key, field in state_in._arrays.items() if key in state_out._arrays]
+        named = ", ".join(shared) if len(shared) <= 5 else f"{', '.join(shared[:5])}, ... ({len(shared)} arrays)"
+        raise ValueError(f"state_out is not allowed: it shares state_in's {named}; the step reads state_in and writes "
+                         "state_out, so each needs arrays of its own: make each with model.state() (out.assign(state_in) "
+                         "copies one; copy.copy shares its arrays)")
     number("state_in.time", state_in.time)  # NaN ran on, a string failed deep in the step
 
 

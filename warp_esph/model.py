@@ -384,6 +384,7 @@ class State:
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
         if name not in self.BOOKKEEPING:
             self.__dict__.pop("_checked_for", None)
+            self.__dict__.pop("_arrays", None)
         object.__setattr__(self, name, value)
 
     def has_flowed(self) -> bool:
