@@ -2603,3 +2603,28 @@ def test_the_work_a_turned_pinned_set_does_is_read_in_the_world_s_frame():
     spin = 0.5 * (mass * SPUN_UP ** 2 * (r[:, 0] ** 2 + r[:, 1] ** 2)).sum()
     assert kinetic == pytest.approx(spin, rel=0.02)  # it spun as the keys say
     assert solver.tool_work_done >= kinetic
+
+
+def test_a_solver_refuses_a_guard_threshold_or_skin_set_after_it_was_made():
+    """``solver.min_neighbors = 30`` (or ``max_condition``, ``neighbor_skin``) set on a made
+    Solver was taken without a word and never read by its steps: its neighbour search and
+    scratch keep the values it was made with, so 100 steps of a dropped box gave the very F of
+    the default solver, where ``Solver(model, min_neighbors=30)`` held 3600 particle-steps' fits
+    back, and a checkpoint recorded the value set. Each is refused naming it and the way in."""
+    b = we.SceneBuilder(spacing=0.03)
+    b.add_box((0.0, 0.1, 0.0), (0.12, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
+    b.add_ground()
+    model = b.finalize()
+    solver = we.Solver(model)
+    for name, value, made in (("min_neighbors", 30, 6), ("max_condition", 1.5, 20.0), ("neighbor_skin", 0.5, 0.15)):
+        before = getattr(solver, name)
+        with pytest.raises(ValueError, match=rf"^Solver\.{name} = {value!r} is not allowed: the solver was made with "
+                                             rf"{name} = {made!r}, which its neighbour search and guards keep; "
+                                             rf"make a Solver\(model, {name}={value!r}\)$"):
+            setattr(solver, name, value)
+        assert getattr(solver, name) == before
+    held = we.Solver(model, min_neighbors=30)
+    a, c = model.state(), model.state()
+    with pytest.warns(RuntimeWarning, match=r"min_neighbors = 30: every particle's deformation update was dropped"):
+        held.step(a, c, 1e-4)
+    assert held.min_neighbors == 30 and held.guard_counts()["few_neighbors"] == model.particle_count

@@ -328,7 +328,7 @@ class Solver:
             raise ValueError(f"fit = {checks.shorten(fit)!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         if hourglass is not None:
             checks.hourglass("hourglass", hourglass)
-        self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
+        self._made_with = {"min_neighbors": checks.positive_int("min_neighbors", min_neighbors)}
         if self.min_neighbors > model.max_neighbors and self.min_neighbors == neighbors.MIN_NEIGHBORS:
             # The default guard against a row the scene made too narrow: name what the user set.
             raise ValueError(f"max_neighbors = {model.max_neighbors} is not allowed with the default min_neighbors = "
@@ -340,7 +340,7 @@ class Solver:
             raise ValueError(f"min_neighbors = {checks.shorten(min_neighbors)!r} is not allowed: must be at most the model's max_neighbors = "
                              f"{model.max_neighbors} (a neighbour row holds no more; the default is "
                              f"{neighbors.MIN_NEIGHBORS})")
-        self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
+        self._made_with["max_condition"] = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {checks.shorten(fused)!r} is not allowed: must be True or False")
@@ -396,7 +396,7 @@ class Solver:
         self._choose()
         if model.ghost_floor is not None:
             _check_ghost_floor(model, self.fit)
-        self.neighbor_skin = skin
+        self._made_with["neighbor_skin"] = skin
         self.search = neighbors.NeighborSearch(
             model.particle_count, model.scalar, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
@@ -493,6 +493,41 @@ class Solver:
         # or another model's state was answered for as a state of this one.
         checks.same_state(self.model, "state", state)
         return rest and not keeps_incremental(state)
+
+    def _refuse_remade(self, name: str, value):
+        # Set on a made solver these were taken without a word and never read by its steps
+        # (the search and the scratch keep what they were made with), while a checkpoint
+        # recorded the value set.
+        raise ValueError(f"Solver.{name} = {checks.shorten(value)!r} is not allowed: the solver was made with {name} = "
+                         f"{self._made_with[name]!r}, which its neighbour search and guards keep; make a "
+                         f"Solver(model, {name}={checks.shorten(value)!r})")
+
+    @property
+    def min_neighbors(self) -> int:
+        """The fewest neighbours a particle's fit takes (``Solver(min_neighbors=...)``)."""
+        return self._made_with["min_neighbors"]
+
+    @min_neighbors.setter
+    def min_neighbors(self, value):
+        self._refuse_remade("min_neighbors", value)
+
+    @property
+    def max_condition(self) -> float:
+        """The fit's condition number where the guard starts to fade it out (``Solver(max_condition=...)``)."""
+        return self._made_with["max_condition"]
+
+    @max_condition.setter
+    def max_condition(self, value):
+        self._refuse_remade("max_condition", value)
+
+    @property
+    def neighbor_skin(self) -> float:
+        """The neighbour search's skin, in units of the support radius (``Solver(neighbor_skin=...)``)."""
+        return self._made_with["neighbor_skin"]
+
+    @neighbor_skin.setter
+    def neighbor_skin(self, value):
+        self._refuse_remade("neighbor_skin", value)
 
     @property
     def hourglass(self) -> float:
