@@ -2610,19 +2610,27 @@ def test_a_solver_refuses_a_guard_threshold_or_skin_set_after_it_was_made():
     Solver was taken without a word and never read by its steps: its neighbour search and
     scratch keep the values it was made with, so 100 steps of a dropped box gave the very F of
     the default solver, where ``Solver(model, min_neighbors=30)`` held 3600 particle-steps' fits
-    back, and a checkpoint recorded the value set. Each is refused naming it and the way in."""
+    back, and a checkpoint recorded the value set. ``yield_with_pressure = True`` set after was
+    read, past the refusal ``Solver()`` gives it with floor images. Each is refused naming it
+    and the way in."""
     b = we.SceneBuilder(spacing=0.03)
     b.add_box((0.0, 0.1, 0.0), (0.12, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
     b.add_ground()
     model = b.finalize()
     solver = we.Solver(model)
-    for name, value, made in (("min_neighbors", 30, 6), ("max_condition", 1.5, 20.0), ("neighbor_skin", 0.5, 0.15)):
+    for name, value, made in (("min_neighbors", 30, 6), ("max_condition", 1.5, 20.0), ("neighbor_skin", 0.5, 0.15),
+                              ("yield_with_pressure", True, False)):
         before = getattr(solver, name)
         with pytest.raises(ValueError, match=rf"^Solver\.{name} = {value!r} is not allowed: the solver was made with "
-                                             rf"{name} = {made!r}, which its neighbour search and guards keep; "
+                                             rf"{name} = {made!r}, and its steps are set up for that; "
                                              rf"make a Solver\(model, {name}={value!r}\)$"):
             setattr(solver, name, value)
         assert getattr(solver, name) == before
+    imaged = we.SceneBuilder(spacing=0.03)
+    imaged.add_box((0.0, 0.1, 0.0), (0.12, 0.1, 0.1), we.Material.preset("dough"))
+    imaged.add_ground(images=True)
+    with pytest.raises(ValueError, match=r"^Solver\.yield_with_pressure = True is not allowed: the solver was made with"):
+        we.Solver(imaged.finalize()).yield_with_pressure = True
     held = we.Solver(model, min_neighbors=30)
     a, c = model.state(), model.state()
     with pytest.warns(RuntimeWarning, match=r"min_neighbors = 30: every particle's deformation update was dropped"):

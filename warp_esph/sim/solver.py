@@ -407,10 +407,7 @@ class Solver:
         #: The ghost floor's stencil search (``sim/ghost_floor.py``); None without one.
         self.ghost_search = ghost_floor.StencilSearch(model) if model.ghost_floor is not None else None
         self.fused = bool(fused)
-        #: Whether the yield test adds each particle's SPH pressure stress to the elastic one
-        #: (``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the
-        #: non-fused kernels.
-        self.yield_with_pressure = yield_with_pressure
+        self._made_with["yield_with_pressure"] = yield_with_pressure
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
@@ -495,11 +492,12 @@ class Solver:
         return rest and not keeps_incremental(state)
 
     def _refuse_remade(self, name: str, value):
-        # Set on a made solver these were taken without a word and never read by its steps
-        # (the search and the scratch keep what they were made with), while a checkpoint
-        # recorded the value set.
+        # Set on a made solver these were taken without a word: the guards' and the skin never
+        # read by its steps (the search and the scratch keep what they were made with) while a
+        # checkpoint recorded the value set; yield_with_pressure read, past the checks Solver()
+        # runs of it (floor images, comparison models) and the kernel path it chose.
         raise ValueError(f"Solver.{name} = {checks.shorten(value)!r} is not allowed: the solver was made with {name} = "
-                         f"{self._made_with[name]!r}, which its neighbour search and guards keep; make a "
+                         f"{self._made_with[name]!r}, and its steps are set up for that; make a "
                          f"Solver(model, {name}={checks.shorten(value)!r})")
 
     @property
@@ -528,6 +526,17 @@ class Solver:
     @neighbor_skin.setter
     def neighbor_skin(self, value):
         self._refuse_remade("neighbor_skin", value)
+
+    @property
+    def yield_with_pressure(self) -> bool:
+        """Whether the yield test adds each particle's SPH pressure stress to the elastic one
+        (``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the non-fused
+        kernels (``Solver(yield_with_pressure=...)``)."""
+        return self._made_with["yield_with_pressure"]
+
+    @yield_with_pressure.setter
+    def yield_with_pressure(self, value):
+        self._refuse_remade("yield_with_pressure", value)
 
     @property
     def hourglass(self) -> float:
