@@ -2636,3 +2636,18 @@ def test_a_solver_refuses_a_guard_threshold_or_skin_set_after_it_was_made():
     with pytest.warns(RuntimeWarning, match=r"min_neighbors = 30: every particle's deformation update was dropped"):
         held.step(a, c, 1e-4)
     assert held.min_neighbors == 30 and held.guard_counts()["few_neighbors"] == model.particle_count
+
+
+def test_a_solvers_fused_set_by_hand_is_true_or_false():
+    """``Solver.fused`` is set by hand (a rollout sets it False for its taped steps), but
+    ``solver.fused = "no"`` was taken as the truthy text it is: the fused kernels ran. Refused
+    as ``Solver(fused="no")`` is; True and False serve."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    solver = we.Solver(b.finalize())
+    for bad in ("no", 0, None):
+        with pytest.raises(ValueError, match=rf"^Solver\.fused = {re.escape(repr(bad))} is not allowed: must be True or False$"):
+            solver.fused = bad
+        assert solver.fused is True
+    solver.fused = False
+    assert solver.fused is False

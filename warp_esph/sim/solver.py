@@ -406,7 +406,7 @@ class Solver:
         self.search.image_args = model.image_args() if model.image_plane is not None else None
         #: The ghost floor's stencil search (``sim/ghost_floor.py``); None without one.
         self.ghost_search = ghost_floor.StencilSearch(model) if model.ghost_floor is not None else None
-        self.fused = bool(fused)
+        self._fused = fused
         self._made_with["yield_with_pressure"] = yield_with_pressure
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
@@ -526,6 +526,18 @@ class Solver:
     @neighbor_skin.setter
     def neighbor_skin(self, value):
         self._refuse_remade("neighbor_skin", value)
+
+    @property
+    def fused(self) -> bool:
+        """Whether the steps run the fused kernels (``Solver(fused=...)``); a rollout sets it False
+        where a tape would not run them (``fast_under_tape``), so its untaped steps compute what
+        its taped ones do."""
+        return self._fused
+
+    @fused.setter
+    def fused(self, value):
+        # "no" was taken as the truthy text it is.
+        self._fused = checks.boolean("Solver.fused", value)
 
     @property
     def yield_with_pressure(self) -> bool:
