@@ -2651,3 +2651,30 @@ def test_a_solvers_fused_set_by_hand_is_true_or_false():
         assert solver.fused is True
     solver.fused = False
     assert solver.fused is False
+
+
+def test_numpy_text_or_booleans_given_for_a_bodys_numbers_are_refused_by_name():
+    """A Python string is refused where a number goes, but numpy's text scalars have
+    ``__float__``: ``add_box(size=np.array(['0.1', ...]))``, a keyframe position of numpy text
+    and a per-particle velocity of text or booleans were parsed and built without a word."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    dough = we.Material.preset("dough")
+
+    def box(**kw):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box(kw.pop("center", (0.0, 0.2, 0.0)), kw.pop("size", (0.1, 0.1, 0.1)), dough, **kw)
+        return b.finalize()
+
+    n = box().particle_count
+    for call, said in (
+            (lambda: box(size=np.array(["0.1", "0.1", "0.1"])), r"^size\[0\] = np\.str_\('0\.1'\) is not allowed: must be a number$"),
+            (lambda: box(center=np.array([b"0", b"0.2", b"0"])), r"^center\[0\] = np\.bytes_\(b'0'\) is not allowed: must be a number$"),
+            (lambda: box(velocity=np.array(["1", "0", "0"])), r"^velocity\[0\] = np\.str_\('1'\) is not allowed: must be a number$"),
+            (lambda: box(velocity=np.full((n, 3), "0")), r"^velocity = .* is not allowed: it holds text; must be 3 numbers or one row of 3 per particle$"),
+            (lambda: box(velocity=np.ones((n, 3), dtype=bool)), r"^velocity = .* is not allowed: it holds booleans; must be 3 numbers or one row of 3 per particle$"),
+            (lambda: tools.Keyframes([0.0, 1.0], np.array([["0", "0", "0"], ["0", "1", "0"]])), r"^positions = .* \(positions\[0\]\[0\] = np\.str_\('0'\): must be a number\)$"),
+            (lambda: we.Material(np.str_("1e4"), 1e4), r"^Material\.mu = np\.str_\('1e4'\) is not allowed: must be a number$")):
+        with pytest.raises(ValueError, match=said):
+            call()
+    assert box(velocity=np.zeros((n, 3), dtype=np.int64)).particle_count == n  # integers are numbers

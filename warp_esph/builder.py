@@ -300,6 +300,12 @@ class SceneBuilder:
                              f"coincide with another (first at {np.round(pts[i], 6).tolist()}); each particle needs "
                              "a place of its own")
         try:
+            per_particle = np.ndim(velocity) == 2
+        except checks.ARRAY_ERRORS:  # ragged rows: refused below
+            per_particle = False
+        if per_particle:  # (one velocity's entries are refused by name below)
+            checks.real_numbers("velocity", velocity, "must be 3 numbers or one row of 3 per particle")
+        try:
             vel = np.asarray(velocity, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):  # a dict, a generator, text, an int beyond a float (10**400)
             raise ValueError(f"velocity = {checks.shorten(velocity)!r} is not allowed: must be 3 numbers or one row "

@@ -209,7 +209,9 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
         if math.isnan(value) or not allow_inf:
             _fail(name, value, "must be a finite number")
         return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
+    # numpy's text scalars (np.str_, np.bytes_) have __float__: '0.1' was parsed where a
+    # Python string is refused.
+    if isinstance(value, (bool, str, bytes)) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         _fail(name, value, "must be a number")
     dtype = getattr(value, "dtype", None)
     is_complex = getattr(value, "is_complex", None)  # torch's tensors, every complex dtype
