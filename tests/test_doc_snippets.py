@@ -145,6 +145,20 @@ def test_the_fitting_md_quick_start_fits_and_leaves_the_model_holding_the_fit():
     assert set(result.diagnostics.summary().split()) >= {"yield_stress", "flow_rate"}
 
 
+def test_the_fitting_md_quick_start_names_the_terminations_as_they_are_printed():
+    """The quick start's comment on ``print(result.termination)`` lists what it prints: each
+    entry is how one of ``FitResult.TERMINATION``'s sentences begins ('flat' and 'not
+    informative' were the stop's code names; the sentences begin 'stopped at once' and
+    'learned nothing')."""
+    from warp_esph.fit import FitResult  # noqa: PLC0415
+
+    code = _python_blocks(ROOT / "docs" / "fitting.md")[0]
+    listed = re.search(r"print\(result\.termination\)\s*# (.*)", code).group(1).split(" / ")
+    assert len(listed) >= 4
+    for entry in listed:
+        assert any(sentence.startswith(entry) for sentence in FitResult.TERMINATION.values()), entry
+
+
 def test_the_fitting_md_worlds_snippet_gives_each_world_its_loss_and_gradient():
     """docs/fitting.md's worlds snippet, run whole (3 worlds of 150 particles, 200 steps), with the
     one name it leaves to the reader, ``targets``: each world's target the final positions of a
