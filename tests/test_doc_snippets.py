@@ -1,7 +1,7 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
 docs/scene_format.md's loader, example file and lab material, docs/tools.md's press and docs/fitting.md's quick start and worlds, docs/cli.md's sweep;
 and the pages' example command lines,
-the CLI's and the benchmarks', parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
+the CLI's and the benchmarks', parsed; every Python block's imports and the keywords of its calls of them. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
 is longer than a test's, and the page is checked to hold the line that is cut."""
 
@@ -277,3 +277,64 @@ def test_the_pages_benchmark_commands_are_command_lines_their_parsers_take(monke
             continue
         wrong.append(f"{page}: {' '.join(argv)} ran past its parser")
     assert not wrong, "\n".join(wrong)
+
+
+def _called_names(code: str):
+    """Each call of a name the block imports (``fit(...)``, ``Rollout(...)``,
+    ``ReactionForceLoss.from_csv(...)``, ``we.SceneBuilder(...)``) with its keyword names, and
+    the block's imports, as ``(imports, [(dotted name, keywords, line)])``."""
+    import ast  # noqa: PLC0415
+
+    tree = ast.parse(code)
+    imports = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            imports.update({a.asname or a.name: f"{node.module}.{a.name}" for a in node.names})
+        elif isinstance(node, ast.Import):
+            imports.update({a.asname or a.name: a.name for a in node.names})
+    calls = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        parts, f = [], node.func
+        while isinstance(f, ast.Attribute):
+            parts.insert(0, f.attr)
+            f = f.value
+        if isinstance(f, ast.Name) and f.id in imports:
+            calls.append((".".join([f.id, *parts]), [k.arg for k in node.keywords if k.arg], node.lineno))
+    return imports, calls
+
+
+def test_every_python_block_imports_what_the_package_has_and_calls_it_with_its_keywords():
+    """The blocks that leave names to the reader (a ``model``, a ``target``: fitting.md's lower
+    level, PyTorch, joint fits and force curves, tools.md's particle floor) are not run here;
+    what they import must still be there, and each call of an imported name (``Rollout(...,
+    checkpoint_every=...)``, ``Experiment(..., noise=...)``, ``ReactionForceLoss.from_csv(...)``)
+    must take the keywords it is given: a renamed function or keyword fails here."""
+    import importlib  # noqa: PLC0415
+    import inspect  # noqa: PLC0415
+
+    checked = 0
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for code in _python_blocks(page):
+            imports, calls = _called_names(code)
+            scope = {}
+            for name, path in imports.items():
+                module, _, attr = path.rpartition(".")
+                try:
+                    scope[name] = importlib.import_module(path)  # a module (import warp_esph as we)
+                except ImportError:
+                    assert hasattr(importlib.import_module(module), attr), f"{page.name}: {module} has no {attr} to import"
+                    scope[name] = getattr(importlib.import_module(module), attr)
+            for dotted, keywords, line in calls:
+                target = scope[dotted.split(".")[0]]
+                for part in dotted.split(".")[1:]:
+                    assert hasattr(target, part), f"{page.name}: {dotted} (line {line} of its block) is not there"
+                    target = getattr(target, part)
+                params = inspect.signature(target).parameters
+                if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+                    continue
+                unknown = [k for k in keywords if k not in params]
+                assert not unknown, f"{page.name}: {dotted} takes no keyword {unknown} (line {line} of its block)"
+                checked += 1
+    assert checked >= 25
