@@ -201,6 +201,12 @@ def _distinct(a: float, b: float) -> tuple[str, str]:
     return short if short[0] != short[1] else (repr(a), repr(b))
 
 
+def _fixed_when_made(name: str, doc: str) -> property:
+    """A ``Solver`` setting read from what it was made with (``_made_with``) and refused when
+    set on a made solver (``Solver._refuse_remade``)."""
+    return property(lambda self: self._made_with[name], lambda self, value: self._refuse_remade(name, value), doc=doc)
+
+
 class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
@@ -500,32 +506,12 @@ class Solver:
                          f"{self._made_with[name]!r}, and its steps are set up for that; make a "
                          f"Solver(model, {name}={checks.shorten(value)!r})")
 
-    @property
-    def min_neighbors(self) -> int:
-        """The fewest neighbours a particle's fit takes (``Solver(min_neighbors=...)``)."""
-        return self._made_with["min_neighbors"]
-
-    @min_neighbors.setter
-    def min_neighbors(self, value):
-        self._refuse_remade("min_neighbors", value)
-
-    @property
-    def max_condition(self) -> float:
-        """The fit's condition number where the guard starts to fade it out (``Solver(max_condition=...)``)."""
-        return self._made_with["max_condition"]
-
-    @max_condition.setter
-    def max_condition(self, value):
-        self._refuse_remade("max_condition", value)
-
-    @property
-    def neighbor_skin(self) -> float:
-        """The neighbour search's skin, in units of the support radius (``Solver(neighbor_skin=...)``)."""
-        return self._made_with["neighbor_skin"]
-
-    @neighbor_skin.setter
-    def neighbor_skin(self, value):
-        self._refuse_remade("neighbor_skin", value)
+    min_neighbors = _fixed_when_made("min_neighbors", "The fewest neighbours a particle's fit takes "
+                                                      "(``Solver(min_neighbors=...)``).")
+    max_condition = _fixed_when_made("max_condition", "The fit's condition number where the guard starts to fade it "
+                                                      "out (``Solver(max_condition=...)``).")
+    neighbor_skin = _fixed_when_made("neighbor_skin", "The neighbour search's skin, in units of the support radius "
+                                                      "(``Solver(neighbor_skin=...)``).")
 
     @property
     def fused(self) -> bool:
@@ -539,16 +525,10 @@ class Solver:
         # "no" was taken as the truthy text it is.
         self._fused = checks.boolean("Solver.fused", value)
 
-    @property
-    def yield_with_pressure(self) -> bool:
-        """Whether the yield test adds each particle's SPH pressure stress to the elastic one
-        (``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the non-fused
-        kernels (``Solver(yield_with_pressure=...)``)."""
-        return self._made_with["yield_with_pressure"]
-
-    @yield_with_pressure.setter
-    def yield_with_pressure(self, value):
-        self._refuse_remade("yield_with_pressure", value)
+    yield_with_pressure = _fixed_when_made(
+        "yield_with_pressure", "Whether the yield test adds each particle's SPH pressure stress to the elastic one "
+        "(``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the non-fused kernels "
+        "(``Solver(yield_with_pressure=...)``).")
 
     @property
     def hourglass(self) -> float:
