@@ -561,11 +561,14 @@ def test_a_field_switched_on_later_counts_what_the_particles_may_travel_before_i
     swing[:, 0] -= 2.0
     assert mon.check(swing, 20.0 * v, 2.3) is None  # through the axis
     # The fit weight named: this blow-up is poly6's (with the biweight the run ends unstopped).
+    # Either bound that counts the field may trip first in that check: the energy's did, until
+    # the viscosity's zero-slope edge (smoothing.VISCOSITY_EDGE) changed the crushed block's
+    # blow-up, and the speed's (1.72e4 m/s against 10 x 1.22e3) now does, at the same step.
     b = we.SceneBuilder(spacing=0.05, fit_weight="poly6")
     b.add_box((0.0, 0.5, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
     b.add_compression_field((0.0, 0.0, 0.0), 1.0e6, 0.1, 0.6)
-    with pytest.raises(we.SimulationError, match=r"diverged after step 210 \(frame 5.*: kinetic energy and the fields' "
-                                                 r"potential energy"):
+    with pytest.raises(we.SimulationError, match=r"diverged after step 210 \(frame 5.*: (kinetic energy and the fields' "
+                                                 r"potential energy|speed .* the fields' sqrt\(k\) R\))"):
         we.simulate(b.finalize(), 6, dt=1.0 / 30.0 / 42.0, progress=False)
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.5, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))

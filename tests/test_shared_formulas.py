@@ -429,6 +429,52 @@ def test_spiky_gradient_factor_and_its_slope():
 
 
 @functools.cache
+def _viscosity_kernel():
+    S = wp.float64
+    sm = smoothing.funcs(S)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def run(rl: wp.array(dtype=S), h: S, out: wp.array2d(dtype=S)):
+        i = wp.tid()
+        c = sm.viscosity_coef(h)
+        out[i, 0] = sm.lap_w_viscosity_at(rl[i], h, c)
+        out[i, 1] = sm.lap_w_viscosity_slope_at(rl[i], h, c)
+
+    return run
+
+
+def test_the_viscosity_laplacian_meets_zero_with_zero_slope():
+    """``lap_w_viscosity_at`` is Müller et al.'s ``45/(pi h^6) (h - |r|)`` to the bit up to the
+    last ``VISCOSITY_EDGE`` of ``h``, then a cubic that meets the line with its value and slope
+    and reaches 0 at ``h`` with slope 0 (the line's slope there was ``-coef``: a kink of the
+    step wherever a pair crossed the support); ``lap_w_viscosity_slope_at``, the slope the
+    SPH adjoint takes, matches central differences on the line and in the band."""
+    h, eps = 0.1, 1e-9
+    a = smoothing.VISCOSITY_EDGE * h
+    coef = 45.0 / (np.pi * h ** 6)
+    line = np.array([0.01, 0.05, 0.09, h - a])
+    band = h - a * np.array([0.9, 0.5, 0.1, 1e-3])
+
+    def run(r):
+        out = wp.zeros((len(r), 2), dtype=wp.float64)
+        wp.launch(_viscosity_kernel(), len(r), [wp.array(r, dtype=wp.float64), h], [out])
+        return out.numpy()
+
+    on, inside = run(line), run(band)
+    np.testing.assert_array_equal(on[:, 0], coef * (h - line))
+    assert np.all(on[:, 1] == -coef)
+    u = h - band
+    np.testing.assert_allclose(inside[:, 0], coef * u * u * (2 * a - u) / a ** 2, rtol=1e-12)
+    assert np.all((0.0 < inside[:, 0]) & (inside[:, 0] < coef * u)), "below the line, above 0"
+    for r, out in ((line[:-1], on[:-1]), (band, inside)):
+        fd = (run(r + eps)[:, 0] - run(r - eps)[:, 0]) / (2 * eps)
+        np.testing.assert_allclose(out[:, 1], fd, rtol=1e-5)
+    edge = run(np.array([h - a - eps, h - a + eps, h - eps]))
+    assert edge[0, 1] == pytest.approx(edge[1, 1], rel=1e-5), "the slope is continuous where the cubic meets the line"
+    assert abs(edge[2, 1]) < 1e-5 * coef, "and reaches 0 at h"
+
+
+@functools.cache
 def _moments_kernel(scalar, fit):
     T = type_set(scalar)
     df = deformation.funcs(scalar, "poly6")

@@ -112,6 +112,44 @@ def test_loss_is_smooth_in_the_parameters(h_over_dx, name, taped_base):
     assert grad == pytest.approx(fd, rel=1e-3)
 
 
+def _receding_pair_speed(d, viscosity):
+    """Particle 0's speed along x after one step of 0.1 ms, float64, no gravity, of two
+    particles ``d`` apart along x receding at 1 m/s (the SPH pressure off)."""
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_particles([[0.0, 0.0, 0.0], [d, 0.0, 0.0]],
+                    we.Material(density=1000.0, **dict(PARAMS, pressure_stiffness=0.0, viscosity=viscosity)),
+                    velocity=[[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    model = b.finalize(dtype=wp.float64)
+    start, out = model.state(), model.state()
+    we.Solver(model).step(start, out, 1.0e-4)
+    return out.v.numpy()[0, 0]
+
+
+def test_a_pair_leaves_the_viscous_force_with_zero_slope():
+    """Müller et al.'s viscosity Laplacian ``(h - r)`` reaches 0 at ``h`` with a slope, so the
+    step kinked wherever a pair crossed the support radius: in the biweight's landing
+    (``_landing_model`` with ``fit_weight="biweight"``) the tape's ``lam`` gradient stepped
+    from 2.026e-8 to 1.418e-8 (30 %) within 1e-15 of ``lam`` at -3.6e-5 of it, where a landing
+    particle and one 1.5 spacings above it crossed ``h`` at step 42 (docs/physics.md, "The
+    landing loss's kinks"). A cubic now joins it to 0 over the last 1 % of ``h``
+    (``smoothing.VISCOSITY_EDGE``): a receding pair's velocity after a step is C1 in its
+    distance at ``h``. Measured: the slope just inside ``h`` 2.1e-4 of the slope at 0.9 h
+    (1.05 of it before), 0 outside."""
+    h = 2.0 * DX
+    step = 1e-6 * h
+    for viscosity in (PARAMS["viscosity"], 0.0):
+        v = {d: _receding_pair_speed(d * h, viscosity) for d in (0.9 - 1e-6, 0.9, 1.0 - 1e-6, 1.0, 1.0 + 1e-6)}
+        line = (v[0.9] - v[0.9 - 1e-6]) / step
+        inside = (v[1.0] - v[1.0 - 1e-6]) / step
+        outside = (v[1.0 + 1e-6] - v[1.0]) / step
+        assert v[1.0] == -0.5 and outside == 0.0, "no force from h on"
+        if viscosity == 0.0:
+            assert line == 0.0 and inside == 0.0, "the viscosity is all that acts on the pair"
+            continue
+        assert line < -0.5, "the viscous force slows the receding pair less as it parts"
+        assert abs(inside) < 1e-3 * abs(line), (inside, line)
+
+
 @pytest.mark.parametrize("elastic_force", ["paper", "variational"])
 def test_rows_cover_the_stretched_elastic_support(elastic_force):
     """With the paper's force every pair with a non-zero elastic kernel, |F_i^-1 (x_j - x_i)|

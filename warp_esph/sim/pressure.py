@@ -714,7 +714,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             adj_visc_i += scalar(0.5) * adj_eta
             wp.atomic_add(adj_visc, mj, scalar(0.5) * adj_eta)
             adj_VV += adj_s * base * eta
-            adj_rl -= c_visc * adj_s * scalar(5.0) * eta * VV / r2
+            adj_rl += sm.lap_w_viscosity_slope_at(rl, h, c_visc) * adj_s * scalar(5.0) * eta * VV / r2
             adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
         if rl > scalar(0.0):
             adj_r += (adj_rl / rl) * r
@@ -784,7 +784,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj f_j) / 2`` against the pair's force on ``i`` (pressure, ``energy``: ``6 c6 m_i m_j
         (A_i + A_j) (h^2 - |r|^2)^2 r`` with ``A = p / rho_p^2``; ``spiky``: ``-VV (p_i + p_j)/2
         psi(|r|) r``, ``psi = c_s (h - |r|)^2 / |r|``; viscosity ``s (v_ji . r) r``,
-        ``s = 5 eta VV c_v (h - |r|) / |r|^2``), the chain rule to ``r = x_i - x_j``,
+        ``s = 5 eta VV lap(|r|) / |r|^2``, ``lap`` the Laplacian ``lap_w_viscosity_at`` with
+        its slope ``lap_w_viscosity_slope_at``), the chain rule to ``r = x_i - x_j``,
         ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)`` (then the SPH density ``rho``), ``A`` and
         ``p`` (then the pressure density ``rho_p`` and ``k_p``) and
         ``eta``. ``adj_rho`` and ``adj_rho_p`` may be one array (``rho_p`` is ``rho``)."""

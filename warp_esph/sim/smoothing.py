@@ -33,6 +33,14 @@ def elastic_kernel_constant(h: float) -> float:
 # float64: 1.4e-7, libm cosf: 1.1e-7).
 _COS_COEFFS = [(-1) ** k * (math.pi / 2) ** (2 * k) / math.factorial(2 * k) for k in range(8)]
 
+#: The viscosity Laplacian's ``h - |r|`` meets 0 at ``h`` with a slope, so every pair crossing the
+#: support made the step, and a loss, kinked there (docs/physics.md, "The landing loss's kinks are
+#: pairs leaving the viscosity's support"). Over the last ``VISCOSITY_EDGE h`` a cubic joins it to 0
+#: with zero slope; the band is narrower than the gap from ``h`` to the nearest lattice distance
+#: below it at ``h`` = 2 dx and 2.5 dx (0.134 h, 0.020 h), so on a lattice only pairs a rounding
+#: error inside ``h`` fall in it.
+VISCOSITY_EDGE = 0.01
+
 
 @functools.cache
 def funcs(scalar) -> types.SimpleNamespace:
@@ -180,10 +188,28 @@ def funcs(scalar) -> types.SimpleNamespace:
     def viscosity_coef(h: scalar) -> scalar:
         return scalar(45.0) / (PI * wp.pow(h, scalar(6.0)))
 
+    edge = scalar(VISCOSITY_EDGE)
+
     @wp.func
     def lap_w_viscosity_at(rl: scalar, h: scalar, coef: scalar) -> scalar:
-        """45/(pi h^6) (h - |r|) (Müller et al. 2003) given ``rl = |r| < h``."""
-        return coef * (h - rl)
+        """45/(pi h^6) (h - |r|) (Müller et al. 2003) given ``rl = |r| < h``, joined to 0 at
+        ``h`` with zero slope by ``coef u^2 (2a - u) / a^2`` (``u = h - |r| < a = VISCOSITY_EDGE h``),
+        which meets the line with its value and slope at ``u = a``."""
+        u = h - rl
+        a = edge * h
+        if u < a:
+            return coef * u * u * (scalar(2.0) * a - u) / (a * a)
+        return coef * u
+
+    @wp.func
+    def lap_w_viscosity_slope_at(rl: scalar, h: scalar, coef: scalar) -> scalar:
+        """``d lap_w_viscosity_at / d |r|``: ``-coef`` on the line, ``-coef u (4a - 3u) / a^2`` in the
+        edge band (0 at ``h``)."""
+        u = h - rl
+        a = edge * h
+        if u < a:
+            return -coef * u * (scalar(4.0) * a - scalar(3.0) * u) / (a * a)
+        return -coef
 
     @wp.func
     def lap_w_viscosity_c(r2: scalar, h: scalar, coef: scalar) -> scalar:
@@ -204,6 +230,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at, spiky_gradient_factor=spiky_gradient_factor,
         spiky_gradient_factor_slope=spiky_gradient_factor_slope,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
+        lap_w_viscosity_slope_at=lap_w_viscosity_slope_at,
     )
 
 
