@@ -541,7 +541,10 @@ def test_thin_star_x0_gradient_is_smooth_only_without_the_pressure_clamp(clamp_p
     one-sided slopes at 1e-6 h are 4.7e-4 and 3.0e-4 apart and the tape matches their mean
     within 5e-8 through the fall, the touchdown, the contact and the guards: the gap is the
     clamp's kink, not an adjoint's error. Mutation: the count's slope left out of the
-    adjoints (``dn = 0`` in ``guards.guard``) puts the inner particle's 2.2e-3 off."""
+    adjoints (``dn = 0`` in ``guards.guard``) puts the inner particle's 2.2e-3 off. With the
+    biweight fit the clamp's kink is there too, smaller at the tip: one-sided slopes 5.5-6.4 %
+    and 3.0-3.4 % apart at 1e-5 to 1e-7 h (6.4 % and 3.1 % at the test's 1e-6 h; without the
+    clamp 0.39 % and 0.02 % there, falling tenfold with the step), so the bound is 2 %."""
     mu, dt, steps, frames, target = thin_star_truth(clamp_pressure)
     loss = PositionLoss(target, frames=frames)
     rollout = Rollout(_thin_star(1.5 * mu, clamp_pressure), steps, dt, frames=frames)
@@ -558,7 +561,7 @@ def test_thin_star_x0_gradient_is_smooth_only_without_the_pressure_clamp(clamp_p
     for i in (int(np.argmin(radius)), int(np.argmax(radius))):  # an inner particle, a tip
         ahead, behind = (loss_with(i, eps) - value) / eps, (value - loss_with(i, -eps)) / eps
         if clamp_pressure:
-            assert abs(ahead - behind) > 0.04 * abs(behind), (i, ahead, behind)
+            assert abs(ahead - behind) > 0.02 * abs(behind), (i, ahead, behind)
         else:
             assert grads["x0"][i, 1] == pytest.approx(0.5 * (ahead + behind), rel=1e-6, abs=0.0)
 
