@@ -862,3 +862,26 @@ def test_a_writer_whose_record_solver_takes_the_solver_alone_is_told_it_at_the_s
     assert alone.written == each.written == keyword.written == [0, 1, 2]
     assert len(alone.told) == 1 and alone.told[0].startswith(("rest ", "incremental "))
     assert each.told == keyword.told == [None, 0, 1, 2]
+
+
+def test_a_damaged_collider_whose_bad_value_holds_the_files_path_is_named_as_every_damage(tmp_path):
+    """The reader let a ValueError out unchanged where its text held the file's path (meant for
+    a message already naming the file, which nothing in the collider and tool readers raises):
+    a plane offset holding that path as text failed as float()'s bare 'could not convert string
+    to float', naming no damage. Every damage is now said the one way."""
+    from warp_esph.usd import UsdFrames
+
+    path = tmp_path / "damaged.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(30.0)
+    UsdGeom.Points.Define(stage, "/World/blob").GetPointsAttr().Set([(0.0, 0.1, 0.0), (0.02, 0.1, 0.0)], Usd.TimeCode(0.0))
+    plane = UsdGeom.Mesh.Define(stage, "/World/Colliders/plane_0")
+    plane.GetPointsAttr().Set([(-1.0, 0.0, -1.0), (1.0, 0.0, -1.0), (1.0, 0.0, 1.0), (-1.0, 0.0, 1.0)])
+    prim = plane.GetPrim()
+    prim.SetCustomDataByKey("warp_esph:collider", "plane")
+    prim.SetCustomDataByKey("warp_esph:normal", (0.0, 1.0, 0.0))
+    prim.SetCustomDataByKey("warp_esph:offset", str(path))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"^cannot read .*damaged\.usda: a collider or tool is damaged \(could not convert "):
+        UsdFrames(path)

@@ -1127,9 +1127,9 @@ class UsdFrames:
             self.tools = self._read_tools()
         except (TypeError, IndexError, KeyError, AttributeError, ValueError) as e:
             # A damaged file can hold a collider or tool prim whose custom data or geometry is
-            # missing or of the wrong type; say which file, not the parser's traceback.
-            if isinstance(e, ValueError) and str(self.path) in str(e):
-                raise
+            # missing or of the wrong type; say which file, not the parser's traceback. Nothing
+            # they call raises a message naming the file, so every error is wrapped: a re-raise of
+            # those whose text held the path let float()'s bare words out for a value that held it.
             detail = (str(e).strip().splitlines() or [type(e).__name__])[0]
             raise ValueError(f"cannot read {checks.shown_path(self.path, False)}: a collider or tool is damaged ({detail})") from None
         # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
