@@ -615,6 +615,33 @@ def test_outputs_over_a_link_or_a_special_file_in_an_output_folder_are_refused_b
     assert (tmp_path / "real.png").read_bytes() == b"kept"
 
 
+@pytest.mark.parametrize("command, name", [("export", "frame_00001.vtu"), ("export", "frames.pvd"),
+                                           ("render", "frame_00001.png"), ("run", "frame_00001.vtu")])
+def test_a_folder_where_a_folder_output_writes_a_file_is_refused_before_any_work(tmp_path, capsys, command, name):
+    """A folder where ``export -o DIR`` (``render -o DIR``, ``run --export``) writes one of its
+    files was met only when that file came: frame 0 written, then 'cannot write
+    DIR/frame_00001.vtu: Is a directory', exit 4 as a full disk is, and ``run --export`` ran the
+    whole simulation first. It is refused before any work, exit 2, naming the option and the
+    folder in the way, as a named pipe there is."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    if command == "run":
+        out, what = tmp_path / "r.usdc_vtu", "--export vtu's folder"
+        argv = ["run", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(tmp_path / "r.usdc"), "--export", "vtu"]
+    else:
+        write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+        out, what = tmp_path / "out", "--output"
+        argv = [command, str(path), "-o", str(out)] + ["--width", "40", "--height", "30"] * (command == "render")
+    (out / name).mkdir(parents=True)
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"warp-esph: error: {what} = '{out}' is not allowed: '{out / name}' in it is a folder, where a file is "
+                   "written: remove it, or give another folder"]
+    assert os.listdir(out) == [name] and not (tmp_path / "r.usdc").exists()
+
+
 @pytest.mark.parametrize("fmt", ["vtu", "ply"])
 def test_an_export_into_a_folder_of_an_earlier_one_leaves_its_own_frames_alone(tmp_path, capsys, fmt):
     """An export of fewer frames into the folder of an earlier one left the earlier frames

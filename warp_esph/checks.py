@@ -812,7 +812,9 @@ def output_files(what: str, folder, names) -> None:
     """Refuse, before the work, a folder output ``folder`` (the option ``what``) in which a
     file of ``names`` the command writes is a special file or a symbolic link
     (``_not_plain``), naming the option and the file: ``export -o dir`` over a named pipe
-    ``dir/frame_00001.vtu`` wrote frame 0 and then stopped, naming a ``path`` no option is."""
+    ``dir/frame_00001.vtu`` wrote frame 0 and then stopped, naming a ``path`` no option is. A
+    folder there is refused too: met when its file came, it was 'Is a directory', exit 4 as a
+    full disk, and ``run --export`` had run the whole simulation first."""
     folder = os.fspath(folder)
     if not os.path.isdir(folder):
         return
@@ -823,6 +825,9 @@ def output_files(what: str, folder, names) -> None:
             raise ValueError(f"{what} = {shown_path(folder)} is not allowed: {shown_path(file)} in it is {found[0]}, not a file; the "
                              f"output is written beside it and renamed over it, which would replace it: remove it, "
                              f"or give another folder")
+        if os.path.isdir(file):
+            raise ValueError(f"{what} = {shown_path(folder)} is not allowed: {shown_path(file)} in it is a folder, where a file is "
+                             "written: remove it, or give another folder")
 
 
 def remove_frame_files(folder, ext: str, keep=()) -> None:
