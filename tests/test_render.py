@@ -228,6 +228,18 @@ def test_parse_frames():
 
 
 
+def test_a_range_whose_step_is_not_above_0_is_refused_naming_the_step():
+    """'0:10:0' and '10:0:-2' are of the form A:B:STEP, yet were refused as not being it ("'0:10:0'
+    is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"), which left the user to guess what
+    was wrong: the refusal names the step and what it must be."""
+    have = list(range(11))
+    for spec, part, step in (("0:10:0", "0:10:0", "0"), ("1,10:0:-2", "10:0:-2", "-2")):
+        with pytest.raises(ValueError, match=rf"^--frames = '{spec}' is not allowed: '{part}' steps by {step}: the STEP of "
+                                             r"A:B:STEP must be an integer >= 1 \(B included\)$"):
+            parse_frames(spec, have, "--frames")
+    assert parse_frames("0:10:3", have) == [0, 3, 6, 9]
+
+
 def test_parse_frames_refusal_shows_numpy_integers_as_plain_ints():
     """Frames picked with numpy (``np.arange``, ``np.where``) were shown in the refusal as numpy
     writes them, ``frames = [np.int64(3), np.int64(99)]``: they are shown as the ints they are."""

@@ -1535,7 +1535,7 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
         return last + 1 + v if v < 0 else v
 
     out: list[int] = []
-    past = None
+    past = bad_step = None
     for part in spec.split(","):
         p = part.strip().lower()
         try:
@@ -1553,7 +1553,9 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
                 b = one(bits[1]) if bits[1] else last
                 step = int(bits[2]) if len(bits) == 3 and bits[2] else 1
                 if step < 1:
-                    raise ValueError
+                    # Of the form A:B:STEP: refused as not being it, which left the step to be guessed.
+                    bad_step = (part.strip(), step)
+                    break
                 if b > last or a > last:
                     # Cut at the last frame without a word: render 0:100 of 11 frames drew 11.
                     # One starting past it was told to end there, which selects nothing.
@@ -1571,6 +1573,9 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
             raise ValueError(
                 f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(part)!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
+    if bad_step is not None:
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: {checks.shorten(bad_step[0])!r} steps by {bad_step[1]}: "
+                         "the STEP of A:B:STEP must be an integer >= 1 (B included)")
     if past is not None:
         held = f"{last}: it holds {len(available)} frames, {first}..{last}"
         if late is None:
