@@ -776,6 +776,19 @@ size = [0.06, 0.06, 0.06]
     assert not (tmp_path / "taken" / "sweep.json").exists()
 
 
+def test_the_command_s_missing_param_and_frames_beside_duration_are_said_as_its_other_refusals(tmp_path, capsys):
+    """Without --param the command said 'params = [] is not allowed', a Python argument nobody
+    typed, and --frames beside --duration was argparse's 'argument --duration: not allowed with
+    argument --frames', naming no value. Both are one line naming the options, before any sample."""
+    out = tmp_path / "sw"
+    for argv, line in (([], "--param is required: give at least one --param NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8)"),
+                       (["--param", "yield_stress=10,100", "--frames", "2", "--duration", "1"],
+                        "--frames = 2 and --duration = 1.0 are not allowed together: give one")):
+        rc = cli.main(["sweep", "dough_drop", "--scale", "0.3", "--workers", "1", "-o", str(out), "--no-progress", *argv])
+        assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [f"warp-esph: error: {line}"]
+    assert not out.exists()
+
+
 def _extra_taking_a_column(model, state, seed):
     return {"status": "hacked", "top": 1.0}
 

@@ -325,9 +325,9 @@ def _add_sweep_parser(sub) -> None:
     sw.add_argument("--seed", type=int, default=0, metavar="S", action=_Given,
                     help="seed of random and lhs samples (default 0; not with grid, which draws nothing)")
     sw.add_argument("--max-samples", type=int, default=10000, metavar="N", help="refuse more samples (default 10000)")
-    when = sw.add_mutually_exclusive_group()
-    when.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's)")
-    when.add_argument("--duration", type=float, metavar="SEC", help="simulated seconds per sample")
+    # Not a mutually exclusive group: argparse's refusal of both named no value; sweep's own says them.
+    sw.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's; not with --duration)")
+    sw.add_argument("--duration", type=float, metavar="SEC", help="simulated seconds per sample (not with --frames)")
     sw.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
     sw.add_argument("--dt", type=float, metavar="DT", help="time step; must divide 1/fps (default: the scene's dt, else each sample's stable step)")
     sw.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")

@@ -1951,6 +1951,8 @@ def sweep_cli(args, out=None) -> int:
     from .cli import _solver_options  # noqa: PLC0415
 
     options = _solver_options(args)
+    if not args.param:  # (sweep()'s own refusal names its argument, 'params = []', which nobody typed here)
+        raise ValueError("--param is required: give at least one --param NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8)")
     if args.sample == "grid" and getattr(args, "seed_given", False):
         # Refused, not ignored, as fit refuses it where nothing is drawn: a grid's samples ran
         # exactly as without it, only the table's seed column differed (the CLI passes no extra
