@@ -1086,6 +1086,28 @@ def test_fit_refuses_an_empty_path_instead_of_dropping_it(tmp_path, capsys, monk
     assert not (tmp_path / "o").exists() and not (tmp_path / "fit_tiny").exists()
 
 
+@pytest.mark.parametrize("argv, said", [
+    (["render", ""], "cannot read '': the path is empty; give the path of a warp-esph USD file"),
+    (["export", ""], "cannot read '': the path is empty; give the path of a warp-esph USD file"),
+    (["run", "--resume", ""], "--resume = '' is not allowed: must be a path (not empty, no NUL character)"),
+    (["fit", "dough_drop", "--target", "", "--scale", "0.3"], "--target = '' is not allowed: must be a path (not empty, no NUL character)"),
+])
+def test_an_empty_input_path_is_named_as_typed(argv, said, tmp_path, monkeypatch, capsys):
+    """'' (an unset shell variable) for an input was said as nothing, or as a path nobody typed:
+    'cannot read : no such file' (render, export), 'target file does not exist' (fit), and
+    --resume read it as the working folder, "--resume = '.' is not allowed: it cannot be read (Is
+    a directory)". Each names '' and what is allowed."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [f"warp-esph: error: {said}"]
+    assert os.listdir(tmp_path) == []
+    if argv[0] == "fit":  # the Python API's reader, as the command's check names its option
+        from warp_esph.fit import load_target
+
+        with pytest.raises(ValueError, match=r"^path = '' is not allowed: must be the path of a target file$"):
+            load_target("")
+
+
 def _fail_after(monkeypatch, steps: int, action):
     """Make Solver.step call ``action(state_out)`` once ``steps`` steps have run."""
     original = solver_module.Solver.step

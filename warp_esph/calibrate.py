@@ -219,6 +219,9 @@ def run_fit(args, out=None, err=None) -> int:
             # '' (an unset shell variable) was taken as not given: the experiments or cameras
             # were dropped and the fit ran without them, the results went to the default place.
             raise ValueError(f"{flag} = {checks.shorten(value)!r} is not allowed: must be a path (not empty, no NUL character)")
+    for value in _arg(args, "target") or []:
+        if isinstance(value, str) and (not value or "\0" in value):  # '' was 'target file  does not exist'
+            raise ValueError(f"--target = {checks.shorten(value)!r} is not allowed: must be a path (not empty, no NUL character)")
     dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
     if ck != "auto":

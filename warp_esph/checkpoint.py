@@ -278,6 +278,9 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
     file as ``what`` (the CLI's ``--resume``)."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from pathlib
         raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: must be a path")
+    if not os.fspath(path) or "\0" in os.fspath(path):
+        # pathlib reads '' (an unset shell variable) as '.': "--resume = '.' ... (Is a directory)".
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: must be a path (not empty, no NUL character)")
     path = pathlib.Path(path)
     single = None
     try:

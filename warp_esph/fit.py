@@ -3841,6 +3841,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
     p = os.fspath(path)
+    if not p:  # said as nothing: 'target file  does not exist'
+        raise ValueError("path = '' is not allowed: must be the path of a target file")
     if os.path.isdir(p):
         raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a folder; give a target file")
     if not os.path.isfile(p):

@@ -1035,6 +1035,8 @@ class UsdFrames:
         if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
             raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be the path of a warp-esph USD file")
         self.path = os.fspath(path)
+        if not self.path:  # (an unset shell variable) said as nothing: 'cannot read : no such file'
+            raise FileNotFoundError("cannot read '': the path is empty; give the path of a warp-esph USD file")
         if not os.path.isfile(self.path):
             why = "it is a folder" if os.path.isdir(self.path) else f"no such file{checks.tilde_note(self.path)}"
             raise FileNotFoundError(f"cannot read {checks.shown_path(self.path, False)}: {why}")
