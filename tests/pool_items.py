@@ -49,3 +49,19 @@ def _exits_at(i):
     if i == 1:
         sys.exit(5)
     return i
+
+
+def _waits_in(i, notes):
+    """A parallel_map item: notes its worker's pid in ``notes/<i>.pid``, then waits for the
+    file ``notes/release`` (at most 120 s), so that it is in flight when the test kills the
+    process that runs the pool."""
+    import time
+
+    with open(os.path.join(notes, f"{i}.pid.part"), "w") as f:
+        f.write(str(os.getpid()))
+    os.replace(os.path.join(notes, f"{i}.pid.part"), os.path.join(notes, f"{i}.pid"))
+    for _ in range(2400):
+        if os.path.exists(os.path.join(notes, "release")):
+            break
+        time.sleep(0.05)
+    return i

@@ -11,8 +11,11 @@ import math
 import os
 import re
 import shutil
+import signal
+import subprocess
 import sys
 import textwrap
+import time
 import warnings
 
 import numpy as np
@@ -787,6 +790,49 @@ def test_the_command_s_missing_param_and_frames_beside_duration_are_said_as_its_
         rc = cli.main(["sweep", "dough_drop", "--scale", "0.3", "--workers", "1", "-o", str(out), "--no-progress", *argv])
         assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [f"warp-esph: error: {line}"]
     assert not out.exists()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_the_worker_processes_end_with_the_process_that_runs_the_pool(tmp_path):
+    """A sweep killed outright (SIGKILL, out of memory), or ended at once by a second Ctrl-C
+    (timeout's, which signals the command and then its process group) before it had stopped
+    its workers, left them running: they ignore SIGINT, went on with their samples and then
+    waited forever for the next, each holding its memory and the terminal's pipes (a
+    'warp-esph sweep ... | tail' never returned). A worker now ends once the process that
+    started it is gone."""
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); from pool_items import _waits_in; "
+            "from warp_esph.sweep import parallel_map; parallel_map(_waits_in, [(0, sys.argv[2]), (1, sys.argv[2])], workers=2)")
+    parent = subprocess.Popen([sys.executable, "-c", code, os.path.dirname(__file__), str(notes)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(1200):  # both items in flight (at most 60 s)
+            if all((notes / f"{i}.pid").exists() for i in (0, 1)) or parent.poll() is not None:
+                break
+            time.sleep(0.05)
+        workers = [int((notes / f"{i}.pid").read_text()) for i in (0, 1)]
+        parent.kill()
+        parent.wait()
+        for _ in range(600):  # (at most 30 s; the items would wait 120 s)
+            if not any(_alive(pid) for pid in workers):
+                break
+            time.sleep(0.05)
+        assert not [pid for pid in workers if _alive(pid)]
+    finally:
+        (notes / "release").touch()
+        parent.kill()
+        for i in (0, 1):  # (without the fix they wait forever, once released, for another item)
+            if (notes / f"{i}.pid").exists() and _alive(int((notes / f"{i}.pid").read_text())):
+                os.kill(int((notes / f"{i}.pid").read_text()), signal.SIGKILL)
 
 
 def _extra_taking_a_column(model, state, seed):

@@ -853,12 +853,28 @@ def _words(e: BaseException) -> str:
     return str(e) if isinstance(e, ItemError) else _one_line(f"{type(e).__name__}: {e}")
 
 
-def _ignore_sigint():
+def _start_worker():
+    """A pool worker's start: SIGINT ignored, and ended once the process that started it is gone."""
     # Ctrl-C reaches every process of the terminal's group: the parent cancels the sweep
     # and stops the workers, so they need not print a traceback each.
     import signal  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+    import time  # noqa: PLC0415
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+
+    def watch():
+        # A parent killed outright (SIGKILL, out of memory) or ended at once by a second
+        # signal before it stopped its workers left them running: their samples finished for
+        # no one, then each waited forever for another (its own end of the task queue keeps
+        # the queue open), holding its memory and the terminal's pipes. (Warp's CPU launches
+        # release the GIL, so this runs during a sample too.)
+        while os.getppid() == parent:
+            time.sleep(0.25)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="warp_esph-parent-watch", daemon=True).start()
 
 
 def _cores() -> int:
@@ -1012,7 +1028,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     # threads), which Warp does not support; a spawned one initialises its own.
     def new_pool():
         return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_ignore_sigint)
+                                   initializer=_start_worker)
 
     def finish(i, result):
         results[i] = result
