@@ -642,6 +642,25 @@ def test_a_folder_where_a_folder_output_writes_a_file_is_refused_before_any_work
     assert os.listdir(out) == [name] and not (tmp_path / "r.usdc").exists()
 
 
+@pytest.mark.parametrize("command", ["export", "render", "sweep"])
+def test_a_special_file_where_a_folder_output_goes_is_named_for_what_it_is(tmp_path, capsys, command):
+    """``export a.usdc -o /dev/null`` said "it is a file; a folder is written there" of a
+    device (a named pipe likewise): it is named as the link or device refusals of a file
+    output name it."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=1)
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    argv = {"export": ["export", str(path)], "render": ["render", str(path)],
+            "sweep": ["sweep", "dough_drop", "--scale", "0.3", "--param", "yield_stress=10,100", "--workers", "1"]}[command]
+    capsys.readouterr()
+    assert main([*argv, "-o", str(pipe)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"warp-esph: error: --output = '{pipe}' is not allowed: it is a named pipe; a folder is written there"]
+
+
 @pytest.mark.parametrize("fmt", ["vtu", "ply"])
 def test_an_export_into_a_folder_of_an_earlier_one_leaves_its_own_frames_alone(tmp_path, capsys, fmt):
     """An export of fewer frames into the folder of an earlier one left the earlier frames

@@ -937,7 +937,8 @@ def output_place(what: str, path, folder: bool = False) -> str:
         raise ValueError(f"{what} = {shown_path(p)} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
                          "this folder's file names leave room for")
     if os.path.exists(p) and os.path.isdir(p) != folder:
-        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {'a file' if folder else 'a folder'}; "
+        # A device or a named pipe said as what it is: '/dev/null' was 'a file'.
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {(special_file(p) or 'a file') if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
     if not folder:
         refuse_special(what, p)
