@@ -878,6 +878,31 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
 
 
+def test_a_table_with_a_row_cut_short_is_refused_not_resumed_as_an_ok_row(scene_file, tmp_path, capsys):
+    """A sweep.csv whose last row was cut short (a damaged copy, a disk that filled in another
+    program's write) was read with the missing cells as empty: --resume kept the row as 'ok',
+    its summary empty and its last number cut to the digits left, and exited 0. A row of
+    another cell count than the header's is refused, naming the file and the row."""
+    out = tmp_path / "sw"
+    assert _sweep_three_samples(scene_file, out) == 0
+    text = (out / "sweep.csv").read_text()
+    header, *rows = text.splitlines()
+    cut = "\n".join([header, rows[0], rows[1][: len(rows[1]) // 2]]) + "\n"
+    (out / "sweep.csv").write_text(cut)
+    (out / "sweep.parquet").unlink(missing_ok=True)
+    capsys.readouterr()
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress", "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.fullmatch(rf"warp-esph: error: path = '{re.escape(str(out / 'sweep.csv'))}' is not allowed: "
+                                          r"must be a sweep table written by SweepTable\.to_csv .*; its row 2 below the header "
+                                          rf"has \d+ cells where the header has {len(header.split(','))} \(a row cut short or "
+                                          r"run together: the file is damaged\)", err[0]), err
+    assert (out / "sweep.csv").read_text() == cut
+    with pytest.raises(ValueError, match=r"its row 2 below the header has \d+ cells"):
+        SweepTable.read_csv(out / "sweep.csv")
+
+
 def _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys, signal_it):
     """``warp-esph sweep`` of 3 one-frame samples in this process, ``signal_it()`` called
     as the second sample starts; returns (status, stderr, the table's rows, samples begun)."""

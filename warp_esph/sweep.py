@@ -451,9 +451,17 @@ class SweepTable:
             with open(path, newline="", encoding="utf-8") as f:
                 reader = csv.reader(f)
                 columns = next(reader, [])
-                return columns, list(reader)
+                cells = [line for line in reader if line]  # (a blank line holds no row)
         except (UnicodeDecodeError, csv.Error) as e:
             raise ValueError(f"path = {checks.shown_path(path)} is not allowed: {wanted}; it is not CSV text ({e})") from None
+        for k, line in enumerate(cells):
+            if len(line) != len(columns):
+                # A row cut short was read with its missing cells empty: resumed as an 'ok' row
+                # with no summary and its last number cut to the digits left.
+                raise ValueError(f"path = {checks.shown_path(path)} is not allowed: {wanted}; its row {k + 1} below the header has "
+                                 f"{len(line)} cells where the header has {len(columns)} (a row cut short or run together: the "
+                                 "file is damaged)")
+        return columns, cells
 
     @classmethod
     def _from_cells(cls, path: str, columns: list[str], cells: list[list[str]], types: dict) -> "SweepTable":
