@@ -752,3 +752,30 @@ def test_a_scene_files_material_names_select_its_materials(tmp_path, two_materia
                                                                              PRESETS["clay"].yield_stress]
     assert (scene.material_index("soft"), scene.material_index("clay"), scene.material_index("a")) == (0, 1, None)
     assert get_scene("dough_drop", scale=0.35).material_index("dough") is None  # a built-in scene names none
+
+
+def test_a_scene_file_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Notepad's UTF-8 starts with a byte-order mark, which TOML does not take: such a scene
+    file was refused as 'invalid TOML: Invalid statement (at line 1, column 1)', a first line
+    that reads right. It is read past, as in the JSON, CSV and point-cloud files; a byte that
+    is not UTF-8 is still named by its place in the file."""
+    text = textwrap.dedent("""\
+        [scene]
+        name = "bom"
+        spacing = 0.05
+        [[bodies]]
+        shape = "box"
+        center = [0.0, 0.2, 0.0]
+        size = [0.2, 0.2, 0.2]
+        material = "dough"
+        """)
+    plain, marked = tmp_path / "plain.toml", tmp_path / "marked.toml"
+    plain.write_bytes(text.encode())
+    marked.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    a, b = load_scene_file(plain), load_scene_file(marked)
+    assert b.name == "bom" == a.name
+    np.testing.assert_array_equal(b.builder.finalize().particle_x0, a.builder.finalize().particle_x0)
+    bad = tmp_path / "bad.toml"
+    bad.write_bytes(b"\xef\xbb\xbf" + b'[scene]\nname = "\xff"\n')
+    with pytest.raises(ValueError, match=r"bad\.toml: invalid TOML: not UTF-8 text \(byte 19\)$"):
+        load_scene_file(bad)

@@ -7,6 +7,7 @@ the built-in scenes and re-exports ``Scene`` and ``load_scene_file`` from here.
 
 from __future__ import annotations
 
+import codecs
 import dataclasses
 import difflib
 import json
@@ -571,14 +572,19 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     file = str(checks.shown_path(path, quote=False))
     if tomllib is None:
         raise ValueError(f"cannot read scene file {checks.shown_path(path)}: reading TOML needs Python >= 3.11 or the tomli package")
+    mark = 0
     try:
         with open(path, "rb") as fh:
-            # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
-            data = tomllib.load(fh, parse_float=checks.read_number)
+            raw = fh.read()
+        # Notepad's UTF-8 starts with a byte-order mark, which TOML does not take: it was
+        # 'invalid TOML: Invalid statement (at line 1, column 1)', of a first line that reads right.
+        mark = len(codecs.BOM_UTF8) if raw.startswith(codecs.BOM_UTF8) else 0
+        # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
+        data = tomllib.loads(raw[mark:].decode("utf-8"), parse_float=checks.read_number)
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{file}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {e.start})") from None
+        raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {mark + e.start})") from None
     except RecursionError:
         raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
