@@ -779,3 +779,32 @@ def test_a_scene_file_saved_with_a_byte_order_mark_is_read(tmp_path):
     bad.write_bytes(b"\xef\xbb\xbf" + b'[scene]\nname = "\xff"\n')
     with pytest.raises(ValueError, match=r"bad\.toml: invalid TOML: not UTF-8 text \(byte 19\)$"):
         load_scene_file(bad)
+
+
+@pytest.mark.parametrize("bom", ["utf-16", "utf-16-be"])
+def test_text_inputs_saved_as_utf16_are_read(tmp_path, bom):
+    """Windows writes UTF-16 with a byte-order mark where a user saves 'Unicode Text' in Excel
+    or redirects with PowerShell 5's '>': a scene file was 'not UTF-8 text (byte 0)', an
+    --experiments file 'it is not text (a damaged or foreign file?)', and a force log or a point
+    cloud was refused by a header shown as '\\ufffd\\ufffdf\\x00r\\x00...'. They are read as
+    UTF-16, as the same text saved as UTF-8 is."""
+    from warp_esph.checks import json_file
+    from warp_esph.fit import load_target
+    from warp_esph.losses import read_tools_csv
+
+    def utf16(name, text):
+        path = tmp_path / name
+        data = text.encode(bom)
+        path.write_bytes(data if bom == "utf-16" else b"\xfe\xff" + data)  # (utf-16 writes its own mark)
+        return path
+
+    scene = load_scene_file(utf16("s.toml", '[scene]\nname = "wide"\nspacing = 0.05\n[[bodies]]\nshape = "box"\n'
+                                             'center = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\nmaterial = "dough"\n'))
+    assert scene.name == "wide" and scene.builder.finalize().particle_x0.shape == (64, 3)
+    assert json_file("--experiments", utf16("e.json", '[{"scene": "s.toml", "target": "t.npz"}]')) == [
+        {"scene": "s.toml", "target": "t.npz"}]
+    rows = read_tools_csv(utf16("log.csv", "frame\ttime\ttool\tfx\tfy\tfz\r\n0\t0\tplate\t0\t0\t0\r\n1\t0.0333333\tplate\t0\t-2.5\t0\r\n"))
+    assert [(r["frame"], r["tool"], r["force"][1]) for r in rows] == [(0, "plate", 0.0), (1, "plate", -2.5)]
+    cloud = load_target(utf16("c.xyz", "x,y,z\n0,0.1,0\n0.02,0.1,0\n"))
+    assert cloud.kind == "points"
+    np.testing.assert_array_equal(cloud.data, [[0.0, 0.1, 0.0], [0.02, 0.1, 0.0]])

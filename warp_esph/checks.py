@@ -6,6 +6,7 @@ and what is allowed, so a user can fix the input without reading code.
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import json
 import math
@@ -680,6 +681,20 @@ def read_reason(exc: BaseException) -> str:
     return text if len(text) <= 300 else text[:297] + "..."
 
 
+def text_encoding(path) -> str:
+    """The codec a text input (a scene file, a JSON file, a force log, a point cloud) is read
+    with: ``utf-16`` where it starts with a UTF-16 byte-order mark (Excel's 'Unicode Text',
+    PowerShell 5's ``>``, which were read as UTF-8 and refused as garbage or 'not text'), else
+    ``utf-8-sig`` (UTF-8, past a byte-order mark). A file that cannot be opened is left to its
+    reader's ``open``, which says why."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(2)
+    except (OSError, ValueError, TypeError):
+        return "utf-8-sig"
+    return "utf-16" if head in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+
+
 def json_file(what: str, path):
     """The parsed JSON document of the file ``path``; a ``ValueError`` naming ``what`` and the
     file where it cannot be read or is not JSON."""
@@ -698,7 +713,7 @@ def json_file(what: str, path):
     try:
         # utf-8-sig: Notepad's UTF-8 starts with a byte-order mark, which json refused with
         # advice for Python code ('decode using utf-8-sig'); JSON is UTF-8 whatever the locale.
-        with open(p, encoding="utf-8-sig") as f:
+        with open(p, encoding=text_encoding(p)) as f:
             return json.load(f, object_pairs_hook=unique)
     except OSError as e:
         # (strerror: the error's own text repeats the path)

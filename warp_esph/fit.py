@@ -3945,7 +3945,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         except ValueError as e:  # a header's refusal too: a force log's first row is no header
             hint = ""
             if ext == ".csv":
-                with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
+                with open(p, newline="", encoding=checks.text_encoding(p), errors="replace") as fh:
                     first = fh.readline().split(",")
                 if len(first) >= 6 and not _is_number(first[2]) and all(_is_number(c) for c in first[:2] + first[3:6]):
                     # frame, time, tool, fx, fy, fz: a force log whose header row was lost.
@@ -4045,7 +4045,7 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     import re  # noqa: PLC0415
     import warnings  # noqa: PLC0415
 
-    with open(path, encoding="utf-8-sig", errors="replace") as fh:
+    with open(path, encoding=checks.text_encoding(path), errors="replace") as fh:
         text = fh.read()
     lines = [(k + 1, line.strip()) for k, line in enumerate(text.splitlines())]
     lines = [(k, line) for k, line in lines if line and not line.startswith("#")]
@@ -4213,7 +4213,7 @@ def _refuse_other_force_logs(p: str) -> None:
 
     from .losses import TOOLS_CSV_COLUMNS, tools_csv_header, tools_log_head  # noqa: PLC0415
 
-    with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
+    with open(p, newline="", encoding=checks.text_encoding(p), errors="replace") as fh:
         line = tools_log_head(fh)[0].rstrip("\r\n")  # the header below a preamble's '#' lines, as the log reads it
     if line.startswith("//"):  # CloudCompare's header row ('//X,Y,Z,Time'): a cloud's, as _read_cloud_text reads it
         line = line[2:]

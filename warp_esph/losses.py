@@ -1785,7 +1785,7 @@ def tools_csv_header(path) -> list[str] | None:
     try:
         # utf-8-sig: a spreadsheet's 'CSV UTF-8' starts with a byte-order mark, which made its
         # 'frame' column '\ufeffframe' and the log 'lacks frame', as printed beside it.
-        with open(path, newline="", encoding="utf-8-sig", errors="replace") as fh:
+        with open(path, newline="", encoding=checks.text_encoding(path), errors="replace") as fh:
             head, _ = tools_log_head(fh)
     except OSError:
         return None
@@ -1823,7 +1823,7 @@ def read_tools_csv(path) -> list[dict]:
     out = []
     seen: dict[tuple[str, int], int] = {}
     try:
-        with open(p, newline="", encoding="utf-8-sig") as fh:
+        with open(p, newline="", encoding=checks.text_encoding(p)) as fh:
             head, skipped = tools_log_head(fh)
             # 'frame, time, tool, ...' (spaces after the commas) read as the columns ' time',
             # ' tool', ... and the log was refused as lacking them, printed beside it.
