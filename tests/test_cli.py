@@ -71,6 +71,22 @@ def test_run_default_scene_in_process(tmp_path, capsys, monkeypatch):
     assert log_frames(tmp_path / "dough_drop.usdc") == {"plane0": [0, 1, 2]}
 
 
+def test_a_count_of_one_is_said_in_the_singular(tmp_path, capsys):
+    """The commands said '1 frames at 30 fps', 'wrote 1 .vtu files', '1 PNG files', '(1 frames)'
+    and '(1 bodies as surfaces)' (checks.plural is the rule: '1 evaluations' read wrong)."""
+    usd = tmp_path / "one.usdc"
+    assert main(["run", "--scale", "0.3", "--frames", "1", "--no-progress", "--surface", "-o", str(usd)]) == 0
+    assert ", 1 body, 1 frame at 30 fps, " in capsys.readouterr().out
+    assert main(["export", str(usd), "-o", str(tmp_path / "vtu"), "--frames", "1"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote 1 .vtu file and frames.pvd (open it in ParaView) to {tmp_path / 'vtu'}")
+    small = ["--width", "40", "--height", "30", "--frames", "1"]
+    assert main(["render", str(usd), "-o", str(tmp_path / "pictures"), *small]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote 1 PNG file in {tmp_path / 'pictures'}: 40x30, 64 particles (1 body as "
+                                              "surfaces), ")
+    assert main(["render", str(usd), "-o", str(tmp_path / "one.gif"), *small]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {tmp_path / 'one.gif'} (1 frame): ")
+
+
 def test_run_options_and_dt_warning(tmp_path, capsys):
     out_path = tmp_path / "star.usda"
     # 40 steps per frame at fps 10: above the stable step of this scene (2.3 x). Scale 0.5: at

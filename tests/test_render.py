@@ -573,7 +573,7 @@ def test_run_with_surface_renders_a_closed_silhouette(tmp_path, capsys):
     view = ["--frames", "0", "--azimuth", "0", "--elevation", "0", "--supersample", "1", "--width", "240", "--height", "180",
             "--no-label"]
     assert main(["render", str(usd), "-o", str(tmp_path / "surface.png"), *view]) == 0
-    assert "1 bodies as surfaces" in capsys.readouterr().out
+    assert "(1 body as surfaces)" in capsys.readouterr().out
     assert main(["render", str(usd), "-o", str(tmp_path / "particles.png"), "--particles", *view]) == 0
     surface, particles = (_orange(Image.open(tmp_path / f"{n}.png")) for n in ("surface", "particles"))
     holes_surface, holes_particles = _holes(surface).sum(), _holes(particles).sum()

@@ -853,7 +853,7 @@ def _cmd_run(args) -> int:
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} "
               f"{'body' if len(model.bodies) == 1 else 'bodies'}, "
-              f"{frames} frames at {fps:g} fps, "
+              f"{checks.plural(frames, 'frame')} at {fps:g} fps, "
               + ("adaptive dt (CFL), at most " if adaptive else "")
               + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame}, the run {frames_total} frames)" if start_frame else ""), flush=True)
@@ -1048,7 +1048,7 @@ def _export_run(args, writer, start_frame: int, whole: bool) -> int:
         return EXIT_INTERRUPTED  # (main makes it 143 after a SIGTERM)
     # A resumed run's file may end before frames an earlier export of it wrote.
     checks.remove_frame_files(folder, args.export, keep=files)
-    print(f"exported {len(files)} files to {folder}")
+    print(f"exported {checks.plural(len(files), 'file')} to {folder}")
     return 0
 
 
@@ -1301,9 +1301,12 @@ def _cmd_render(args) -> int:
             raise
         _err(said)
         return EXIT_UNEXPECTED
-    what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
-            "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
-    drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
+    # (checks.plural: '1 PNG files', '(1 frames)', '(1 bodies as surfaces)' read wrong)
+    what = {"dir": f"{checks.plural(len(result.files), 'PNG file')} in {result.output}", "png": result.output,
+            "gif": f"{result.output} ({checks.plural(len(result.frames), 'frame')})",
+            "mp4": f"{result.output} ({checks.plural(len(result.frames), 'frame')})"}
+    bodies = "1 body" if result.surface_bodies == 1 else f"{result.surface_bodies} bodies"
+    drawn = f"{result.particles} particles" + (f" ({bodies} as surfaces)" if result.surface_bodies else "")
     size = f"{args.width}x{args.height}"
     if result.kind == "png" and len(result.frames) > 1:  # it said 64x48 of a 256 x 96 sheet
         size = f"a sheet of {len(result.frames)} frames of {size}"
@@ -1330,7 +1333,7 @@ def _cmd_export(args) -> int:
         return EXIT_UNEXPECTED
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
-    print(f"wrote {frames} .{args.format} files{extra} to {folder}")
+    print(f"wrote {checks.plural(frames, '.' + args.format + ' file')}{extra} to {folder}")
     return 0
 
 

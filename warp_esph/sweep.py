@@ -2004,7 +2004,7 @@ def sweep_cli(args, out=None) -> int:
     # Connected (or refused) before the plan's line, which says the sweep runs on Ray: an
     # address or 'auto' where no cluster runs is then the one line on stderr.
     with _ray_session(args.ray, "--ray") if args.ray is not None else contextlib.nullcontext():
-        where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), max(to_run, 1))} worker(s)"
+        where = f"Ray at {args.ray}" if args.ray else checks.plural(min(args.workers or _cores(), max(to_run, 1)), "worker")
         resumed = f", {len(kept)} kept from its table, {to_run} to run" if args.resume else ""
         print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
               f"on {where} -> {folder}{resumed}", file=sys.stderr, flush=True)
