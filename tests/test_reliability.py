@@ -2641,6 +2641,26 @@ def test_a_solver_refuses_a_guard_threshold_or_skin_set_after_it_was_made():
     assert held.min_neighbors == 30 and held.guard_counts()["few_neighbors"] == model.particle_count
 
 
+def test_a_solver_refuses_a_fit_set_after_it_was_made():
+    """``solver.fit = ...`` on a made Solver was taken without a word: an automatic solver's
+    next step wrote its own choice over it, and one made with ``fit='linear'`` kept running the
+    linear fit (its kernel path is chosen when made) while ``solver.fit`` read the corrected one.
+    ``fit`` says what the steps run; set, it is refused as the guard thresholds are, naming the
+    fit asked for when made and the way in."""
+    b = we.SceneBuilder(spacing=0.03)
+    b.add_box((0.0, 0.1, 0.0), (0.12, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize()
+    for asked, runs in ((None, "linear"), ("linear", "linear"), ("curvature_corrected", "curvature_corrected")):
+        solver = we.Solver(model, fit=asked)
+        other = "linear" if runs == "curvature_corrected" else "curvature_corrected"
+        with pytest.raises(ValueError, match=rf"^Solver\.fit = {other!r} is not allowed: the solver was made with "
+                                             rf"fit = {asked or 'auto'!r}, and its steps are set up for that; "
+                                             rf"make a Solver\(model, fit={other!r}\)$"):
+            solver.fit = other
+        solver.step(model.state(), model.state(), 1e-4)
+        assert solver.fit == runs
+
+
 def test_a_solvers_fused_set_by_hand_is_true_or_false():
     """``Solver.fused`` is set by hand (a rollout sets it False for its taped steps), but
     ``solver.fused = "no"`` was taken as the truthy text it is: the fused kernels ran. Refused

@@ -201,10 +201,12 @@ def _distinct(a: float, b: float) -> tuple[str, str]:
     return short if short[0] != short[1] else (repr(a), repr(b))
 
 
-def _fixed_when_made(name: str, doc: str) -> property:
-    """A ``Solver`` setting read from what it was made with (``_made_with``) and refused when
-    set on a made solver (``Solver._refuse_remade``)."""
-    return property(lambda self: self._made_with[name], lambda self, value: self._refuse_remade(name, value), doc=doc)
+def _fixed_when_made(name: str, doc: str, read: str | None = None) -> property:
+    """A ``Solver`` setting read from what it was made with (``_made_with``), or from the
+    attribute ``read`` where the steps resolve it (``fit``), and refused when set on a made
+    solver (``Solver._refuse_remade``)."""
+    get = (lambda self: self._made_with[name]) if read is None else (lambda self: getattr(self, read))
+    return property(get, lambda self, value: self._refuse_remade(name, value), doc=doc)
 
 
 class Solver:
@@ -372,6 +374,7 @@ class Solver:
         if model.image_plane is not None:
             _check_images(model)
         self._asked = (fit, hourglass)
+        self._made_with["fit"] = asked
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
         differ = model.worlds_auto_differ(asked)
@@ -466,9 +469,7 @@ class Solver:
         rest = self._auto and self.model.auto_runs_rest(self._asked[0])
         if rest:
             self.rest_set()
-        #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
-        #: corrected one runs the non-fused kernels.
-        self.fit = fit
+        self._fit = fit
         self._curved = fit == "curvature_corrected"
         # Checked by solver_choice: the setter's check ran again at every step of an automatic solver.
         self._set_hourglass(c)
@@ -525,6 +526,12 @@ class Solver:
         # "no" was taken as the truthy text it is.
         self._fused = checks.boolean("Solver.fused", value)
 
+    # Set by hand it was taken without a word: an automatic solver's next step chose over it, and
+    # another kept the kernel path chosen when made (fit='linear' set to 'curvature_corrected'
+    # ran the linear fit, reading the corrected one).
+    fit = _fixed_when_made("fit", "The incremental fit the step runs (``'linear'`` or ``'curvature_corrected'``, "
+                                  "chosen from ``Solver(fit=...)``; an automatic solver's at each step); the corrected "
+                                  "one runs the non-fused kernels.", read="_fit")
     yield_with_pressure = _fixed_when_made(
         "yield_with_pressure", "Whether the yield test adds each particle's SPH pressure stress to the elastic one "
         "(``pressure.launch_pressure_stress``, ``plasticity.flow_under``); it runs the non-fused kernels "
