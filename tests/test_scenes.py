@@ -531,6 +531,16 @@ def test_lab_tools_start_touching_the_outer_particle_layers(scale):
     assert model.spacing == pytest.approx(0.005 / scale, rel=0.06)
 
 
+def test_a_scene_files_collider_that_repeats_a_plane_is_refused_naming_its_table(tmp_path):
+    """A ground on the file's plane is refused as add_ground twice is, naming the table it
+    repeats, not a call the file never wrote."""
+    path = tmp_path / "twice.toml"
+    path.write_text(BASE + '\n[[colliders]]\ntype = "ground"\n')
+    with pytest.raises(ValueError, match=r"^.*twice\.toml: \[\[colliders\]\] #2 \(type 'ground'\): it is \[\[colliders\]\] #1 "
+                                         r"\(type 'plane'\), the plane y = 0 \(friction 0\.5\), again: .*; add each plane once$"):
+        load_scene_file(str(path))
+
+
 def test_ground_images_key_builds_the_ground_as_a_rough_floor(tmp_path):
     """``images = true`` on a ``ground`` collider is ``SceneBuilder.add_ground(images=True)``;
     a non-boolean is refused by name."""

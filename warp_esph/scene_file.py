@@ -470,7 +470,12 @@ def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
         else:
             builder.add_box_collider(**args)
     except ValueError as e:
-        raise ValueError(f"{file}: {where}: {e}") from None
+        msg = str(e)
+        again = re.match(r"add_(?:ground|plane)\(.*\) is not allowed: it is plane(\d+), ", msg)
+        if again:
+            # The file's reader wrote no call: the table it repeats.
+            msg = f"it is {builder.origins.get(('plane', int(again[1])), 'plane' + again[1])}, {msg[again.end():]}"
+        raise ValueError(f"{file}: {where}: {msg}") from None
     kind = {"ground": "plane"}.get(kind, kind)
     builder.origins[(kind, len({"plane": builder.planes, "sphere": builder.spheres, "box": builder.boxes}[kind]) - 1)] = where
 
