@@ -652,7 +652,7 @@ NAMED_WHOLE = {
     "shadows": lambda v: RenderOptions(shadows=v),
     "surfaces": lambda v: RenderOptions(surfaces=v),
     "retry_failed": lambda v: sweep("dough_drop", ["yield_stress=100:200:lin:2"], retry_failed=v),
-    "--seed (sample_points)": lambda v: sample_points(["yield_stress=100:200:lin"], "random", 2, seed=v),
+    "seed (sample_points)": lambda v: sample_points(["yield_stress=100:200:lin"], "random", 2, seed=v),
     "fn": lambda v: tools.Scripted(v),
     "components": lambda v: losses.ReactionForceLoss([1.0], tool="t", steps=[1], components=v),
     "scene (load_scene)": lambda v: load_scene(v),
@@ -1328,6 +1328,6 @@ def test_a_fits_materials_as_bytes_or_a_dict_are_refused_by_name(value):
 def test_a_huge_sweep_param_spec_is_named_in_one_short_line(spec):
     """A ``--param`` spec (``sample_points``' and ``sweep``'s ``params``) of 10 kB was written
     whole into its refusal, as text or in its parts."""
-    with pytest.raises(ValueError, match=r"^--param .* is not allowed") as info:
+    with pytest.raises(ValueError, match=r"^params entry .* is not allowed") as info:
         sample_points([spec])
     assert len(str(info.value)) < 400 and "\n" not in str(info.value), str(info.value)[:500]

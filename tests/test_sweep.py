@@ -82,8 +82,8 @@ def test_grid_is_every_combination_last_parameter_fastest():
     pts = sample_points(["mu=1e3,2e3", "paste.flow_rate=7"])
     assert pts == [{"mu": 1e3, "paste.flow_rate": 7.0}, {"mu": 2e3, "paste.flow_rate": 7.0}]
     # A grid draws nothing: a seed was taken and ignored (the same points whatever it was).
-    with pytest.raises(ValueError, match=r"^--seed = 3 is not allowed with --sample grid: it seeds the draws of --sample "
-                                         r"random and lhs, and a grid draws nothing$"):
+    with pytest.raises(ValueError, match=r"^seed = 3 is not allowed with sample = 'grid': it seeds the draws of sample = "
+                                         r"'random' and 'lhs', and a grid draws nothing$"):
         sample_points(["mu=1e3,2e3"], "grid", seed=3)
 
 
@@ -411,19 +411,56 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
     substeps it lacks and a dt that would blow its samples up. The --fps and --frames refusals
     give the sample's reason without its own 'the stable step ... is not allowed' or 'frames =
     ... is not allowed', which said the refusal twice."""
-    with pytest.raises(ValueError, match=r"^--fps = 0\.01 is not allowed for this sweep: no sample can run at its own stable "
-                                         r"step \(sample 0, mu = 1e\+09: a frame \(1/fps = 100 s\) would take 2\.2\d*e\+07 "
-                                         r"steps of the stable step 4\.5e-06 s, more than 1e\+06; the stiffest "
-                                         r"material \(p-wave speed \S+ m/s\) or the most viscous one needs it\); give a higher "
-                                         r"--fps, a smaller --scale \(a larger spacing, whose stable step is longer\), or softer "
-                                         r"or less viscous materials or swept values$"):
+    from warp_esph.cli import option_flag
+
+    fps = (r"^{} = 0\.01 is not allowed for this sweep: no sample can run at its own stable "
+           r"step \(sample 0, mu = 1e\+09: a frame \(1/fps = 100 s\) would take 2\.2\d*e\+07 "
+           r"steps of the stable step 4\.5e-06 s, more than 1e\+06; the stiffest "
+           r"material \(p-wave speed \S+ m/s\) or the most viscous one needs it\); give a higher "
+           r"{}, a smaller {} \(a larger spacing, whose stable step is longer\), or softer "
+           r"or less viscous materials or swept values$")
+    frames = (r"^{} = 1000000000 is not allowed for this sweep: no sample can run at its own "
+              r"stable step \(sample 0, mu = 1000: at 16 steps "
+              r"per frame the run would take 1\.6e\+10 steps, more than 1e\+10\); give fewer "
+              r"{} or a shorter {}, or a smaller {} \(.*\)$")
+    # A Python caller is told sweep()'s parameters; the command (which plans with option_flag) its options.
+    with pytest.raises(ValueError, match=fps.format("fps", "fps", "scale")):
         sweep(_box(), ["mu=1e9,1e8"], fps=0.01, frames=1, workers=1)
-    with pytest.raises(ValueError, match=r"^--frames = 1000000000 is not allowed for this sweep: no sample can run at its own "
-                                         r"stable step \(sample 0, mu = 1000: at 16 steps "
-                                         r"per frame the run would take 1\.6e\+10 steps, more than 1e\+10\); give fewer "
-                                         r"--frames or a shorter --duration, or a smaller --scale \(.*\)$"):
+    with pytest.raises(ValueError, match=frames.format("frames", "frames", "duration", "scale")):
         sweep(_box(), ["mu=1e3"], frames=10**9, workers=1)
+    with pytest.raises(ValueError, match=fps.format("--fps", "--fps", "--scale")):
+        _plan(_box(), ["mu=1e9,1e8"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None, flag=option_flag)
+    with pytest.raises(ValueError, match=frames.format("--frames", "--frames", "--duration", "--scale")):
+        _plan(_box(), ["mu=1e3"], "grid", None, 0, 10**9, None, None, None, 1.0, "float32", "cpu", 1, 100, None, flag=option_flag)
     assert len(_plan(_box(), ["mu=1e9,1e3"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None).tasks) == 2
+
+
+def test_a_python_caller_is_told_the_parameters_and_the_command_its_options(scene_file, capsys, tmp_path):
+    """``sweep()`` and ``sample_points()`` refused by the command's options (``--frames = 0``,
+    ``--workers``, ``--samples``, ``--param mu: ... with --sample random``), options a Python
+    caller has not; the ray and seed refusals named the parameters. Each caller is told its own
+    words: the command plans with ``cli.option_flag``, as ``export_frames`` is given it."""
+    cases = [
+        (lambda: sweep(scene_file, ["mu=1e3,2e3"], frames=0), ["--frames", "0"], "frames = 0 is not allowed: must be an integer >= 1",
+         "--frames = 0 is not allowed: must be an integer >= 1"),
+        (lambda: sweep(scene_file, ["mu=1e3,2e3"], workers=0), ["--workers", "0"], "workers = 0 is not allowed: must be an integer >= 1",
+         "--workers = 0 is not allowed: must be an integer >= 1"),
+        (lambda: sample_points(["mu=1e3,2e3"], "lhs", 0), ["--sample", "lhs", "--samples", "0"],
+         "samples = 0 is not allowed: must be an integer >= 1", "--samples = 0 is not allowed: must be an integer >= 1"),
+        (lambda: sample_points(["mu=1:2:lin:3"], "random", 4), ["--sample", "random", "--samples", "4"],
+         "params entry mu: N = 3 levels is not allowed with sample = 'random': the count is samples; write mu=1:2:lin",
+         "--param mu: N = 3 levels is not allowed with --sample random: the count is --samples; write mu=1:2:lin"),
+        (lambda: sample_points(["mu=1e3,2e3"], "random"), ["--sample", "random"],
+         "samples is required with sample = 'random': the number of samples to draw",
+         "--samples is required with --sample random: the number of samples to draw"),
+    ]
+    for call, args, said, cli_said in cases:
+        with pytest.raises(ValueError) as e:
+            call()
+        assert str(e.value) == said, str(e.value)
+        spec = ["--param", "mu=1:2:lin:3" if "levels" in said else "mu=1e3,2e3"]
+        assert cli.main(["sweep", scene_file, *spec, *args, "-o", str(tmp_path / "never"), "--no-progress"]) == 2
+        assert capsys.readouterr().err.strip() == f"warp-esph: error: {cli_said}"
 
 
 def test_a_sample_that_cannot_step_at_its_fps_is_a_row_without_a_run_s_advice():
@@ -521,10 +558,10 @@ def test_a_range_of_numpy_numbers_is_taken_and_one_wider_than_a_float_is_refused
 
     p = parse_param(Param("yield_stress", np.int64(1), np.float32(10.0), "lin", 2))
     assert (p.lo, p.hi) == (1.0, 10.0) and p.levels().tolist() == [1.0, 10.0]
-    with pytest.raises(ValueError, match=r"^--param yield_stress: LO = True, HI = 10\.0 is not allowed: LO and HI must be numbers$"):
+    with pytest.raises(ValueError, match=r"^params entry yield_stress: LO = True, HI = 10\.0 is not allowed: LO and HI must be numbers$"):
         parse_param(Param("yield_stress", True, 10.0, "lin", 2))
     for spec, sample, samples in (("lam=-1.7e308:1.7e308", "random", 3), ("lam=-1.7e308:1.7e308:lin:3", "grid", None)):
-        with pytest.raises(ValueError, match=r"^--param lam: LO = -1\.7e\+308, HI = 1\.7e\+308 is not allowed: on a lin "
+        with pytest.raises(ValueError, match=r"^params entry lam: LO = -1\.7e\+308, HI = 1\.7e\+308 is not allowed: on a lin "
                                              r"scale HI - LO must be a finite number \(at most 1\.8e\+308\)$"):
             sample_points([spec], sample, samples)
     assert [p["lam"] for p in sample_points(["lam=-8e307:8e307:lin:3"])] == [-8e307, 0.0, 8e307]
@@ -1662,10 +1699,10 @@ def _no_sample_runs(monkeypatch):
 
 
 @pytest.mark.parametrize("specs, words", [
-    (["yield_stress=10,100"], ["--param yield_stress is not allowed", "material 0 (body 'paste')", "flow_rate = 0"]),
-    (["hardening=0,1000"], ["--param hardening is not allowed", "flow_rate = 0"]),
-    (["paste.yield_stress=10:100:log:2", "hardening=0,10"], ["--param paste.yield_stress is not allowed"]),
-    (["flow_rate=10,100"], ["--param flow_rate is not allowed", "yield_stress = inf"]),
+    (["yield_stress=10,100"], ["params entry yield_stress is not allowed", "material 0 (body 'paste')", "flow_rate = 0"]),
+    (["hardening=0,1000"], ["params entry hardening is not allowed", "flow_rate = 0"]),
+    (["paste.yield_stress=10:100:log:2", "hardening=0,10"], ["params entry paste.yield_stress is not allowed"]),
+    (["flow_rate=10,100"], ["params entry flow_rate is not allowed", "yield_stress = inf"]),
 ])
 def test_a_plastic_parameter_of_a_material_no_sample_lets_flow_is_refused_before_any_sample(monkeypatch, specs, words):
     """On an elastic material a yield stress, a flow rate alone or a hardening does nothing
@@ -1691,7 +1728,7 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
     (exit 2), naming the parameter, the value and what the material allows; a sweep one of
     whose samples the material takes still runs (the others are failed rows)."""
     _no_sample_runs(monkeypatch)
-    with pytest.raises(ValueError, match=r"^--param lam is not allowed: the material refuses every sample's values "
+    with pytest.raises(ValueError, match=r"^params entry lam is not allowed: the material refuses every sample's values "
                                          r"\(sample 0, lam = -1e\+09: material 0 \(body 'paste'\): Material\.lam = -1000000000\.0 is not "
                                          r"allowed: "
                                          r"must be > -2 mu / 3 = "):
@@ -1706,9 +1743,9 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
 
 
 @pytest.mark.parametrize("specs, named, shown", [
-    (["lam=-1e9,-2e9", "yield_stress=10,100"], "lam is", "lam = -1e+09: material 0 (body 'paste'): Material.lam = "),
-    (["yield_stress=10,100", "hardening=-1e9"], "hardening is", "hardening = -1e+09: material 0 (body 'paste'): Material.hardening = "),
-    (["yield_stress=10", "mu=1e308", "lam=1e308"], "mu, lam are", "mu = 1e+308, lam = 1e+308: material 0 (body 'paste'): Material.mu = "),
+    (["lam=-1e9,-2e9", "yield_stress=10,100"], "entry lam is", "lam = -1e+09: material 0 (body 'paste'): Material.lam = "),
+    (["yield_stress=10,100", "hardening=-1e9"], "entry hardening is", "hardening = -1e+09: material 0 (body 'paste'): Material.hardening = "),
+    (["yield_stress=10", "mu=1e308", "lam=1e308"], "entries mu, lam are", "mu = 1e+308, lam = 1e+308: material 0 (body 'paste'): Material.mu = "),
 ])
 def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_about(monkeypatch, specs, named, shown):
     """Every swept parameter was named ('--param lam, yield_stress are not allowed') where the
@@ -1718,7 +1755,7 @@ def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_a
     _no_sample_runs(monkeypatch)
     with pytest.raises(ValueError) as e:
         sweep(_box(), specs, frames=1, workers=1)
-    assert str(e.value).startswith(f"--param {named} not allowed: the material refuses every sample's values (sample 0, "
+    assert str(e.value).startswith(f"params {named} not allowed: the material refuses every sample's values (sample 0, "
                                    f"{shown}"), str(e.value)
 
 
@@ -1970,7 +2007,7 @@ def test_a_refusal_of_one_material_names_that_material_s_parameter_alone(monkeyp
     with pytest.raises(ValueError) as e:
         sweep(_two_materials(), ["paste.lam=1000,2000", "blob.lam=-1e9,-2e9"], frames=1, workers=1)
     said = str(e.value)
-    assert said.startswith("--param blob.lam is not allowed: the material refuses every sample's values (sample 0, "
+    assert said.startswith("params entry blob.lam is not allowed: the material refuses every sample's values (sample 0, "
                            "blob.lam = -1e+09: material 1 (body 'blob'): Material.lam = -1000000000.0 is not allowed"), said
     assert "paste.lam" not in said, said
 
@@ -2249,6 +2286,7 @@ def test_a_swept_parameter_selects_a_scene_files_material_by_its_name(tmp_path, 
     the preset a body names), as a body name or an index selects one; it was refused, 'give a
     material index or a body name'."""
     from warp_esph.scenes import load_scene_file
+    from warp_esph.cli import option_flag
     from warp_esph.sweep import _assignments, parse_param
 
     (tmp_path / "two.toml").write_text(two_materials_scene)
@@ -2258,4 +2296,4 @@ def test_a_swept_parameter_selects_a_scene_files_material_by_its_name(tmp_path, 
     with pytest.raises(ValueError, match=r"--param hard.mu is not allowed: material 'hard' is not allowed: give a "
                                          r"material index, a body name \(a, b\) or a material name of the scene file "
                                          r"\(soft, clay\)"):
-        _assignments(scene, [parse_param("hard.mu=1e4")])
+        _assignments(scene, [parse_param("hard.mu=1e4")], option_flag)

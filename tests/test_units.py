@@ -132,7 +132,7 @@ def test_a_lab_quantity_fitted_or_swept_is_refused_saying_which_parameter_it_set
                                          r"shear_yield_stress \(fit yield_stress: the fitted material's "
                                          r"shear_yield_stress is yield_stress / sqrt\(2\)\)"):
         check_options(params="shear_yield_stress", iterations=1)
-    with pytest.raises(ValueError, match=r"--param 'dough.plastic_viscosity' is not allowed: unknown parameter; .*; "
+    with pytest.raises(ValueError, match=r"params entry 'dough.plastic_viscosity' is not allowed: unknown parameter; .*; "
                                          r"plastic_viscosity is a lab's value, not a parameter: flow_rate = mu / "
                                          r"plastic_viscosity \(sweep flow_rate\)"):
         parse_param("dough.plastic_viscosity=5:50:log:3")

@@ -78,6 +78,28 @@ _MINIMUM = {"mu": (0.0, False), "yield_stress": (0.0, True), "flow_rate": (0.0, 
             "pressure_stiffness": (0.0, True), "viscosity": (0.0, True)}
 
 
+def _own_words(name: str) -> str:
+    """How a refusal names ``sweep``'s parameter ``name`` to a Python caller: itself, and a
+    spec of ``params`` as its entry (``warp-esph sweep`` passes ``cli.option_flag``: ``--param``)."""
+    return "params entry" if name == "param" else name
+
+
+def _cli(flag) -> bool:
+    """Whether ``flag`` names the command's options."""
+    return flag("sample").startswith("--")
+
+
+def _set(flag, name: str, value: str) -> str:
+    """``name`` set to ``value`` in the caller's words: ``--sample lhs``, ``sample = 'lhs'``."""
+    return f"{flag(name)} {value}" if _cli(flag) else f"{name} = {value!r}"
+
+
+def _either(flag, conj: str) -> str:
+    """The two samplings that draw, in the caller's words: ``--sample random or lhs``,
+    ``sample = 'random' or 'lhs'``."""
+    return f"{flag('sample')} random{conj}lhs" if _cli(flag) else f"sample = 'random'{conj}'lhs'"
+
+
 def _fields() -> tuple[str, ...]:
     from .model import Model  # noqa: PLC0415
 
@@ -106,14 +128,15 @@ class Param:
         """The body name or material index before the dot; ``None``: every material."""
         return self.name.rsplit(".", 1)[0] if "." in self.name else None
 
-    def levels(self) -> np.ndarray:
-        """The grid levels."""
+    def levels(self, flag=None) -> np.ndarray:
+        """The grid levels. ``flag``: as ``sample_points``'."""
+        flag = flag or _own_words
         if self.values is not None:
             return np.asarray(self.values, dtype=np.float64)
         if self.n is None:
-            raise ValueError(f"--param {self.name}: no level count is not allowed with grid sampling: "
+            raise ValueError(f"{flag('param')} {self.name}: no level count is not allowed with grid sampling: "
                              f"give NAME=LO:HI:SCALE:N (e.g. {self.name}={self.lo:g}:{self.hi:g}:{self.scale}:4), "
-                             f"or use --sample random|lhs with --samples N")
+                             f"or use {_either(flag, '|' if _cli(flag) else ' or ')} with {flag('samples')} N")
         if self.n == 1:
             if self.scale == "lin":
                 return np.array([self.lo])
@@ -136,26 +159,27 @@ class Param:
         return self.lo + u * (self.hi - self.lo)
 
 
-def _number(name: str, spec: str, text: str, what: str) -> float:
+def _number(name: str, spec: str, text: str, what: str, flag) -> float:
     try:
         v = checks.read_number(text)
     except ValueError:
-        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be a number") from None
+        raise ValueError(f"{flag('param')} {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be a number") from None
     why = checks.unheld_refusal(v)
     if why:  # 1e-400 was swept as 0
-        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(v)} is not allowed: {why}")
+        raise ValueError(f"{flag('param')} {checks.shorten(spec)!r}: {what} = {checks.shorten(v)} is not allowed: {why}")
     if not math.isfinite(v):
-        raise ValueError(f"--param {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be finite")
+        raise ValueError(f"{flag('param')} {checks.shorten(spec)!r}: {what} = {checks.shorten(text)!r} is not allowed: must be finite")
     return v
 
 
-def parse_param(spec) -> Param:
+def parse_param(spec, *, flag=None) -> Param:
     """A ``Param`` from ``NAME=LO:HI:SCALE:N``, ``NAME=LO:HI[:SCALE]``, ``NAME=A,B,C`` or ``NAME=V``.
 
     Checks the syntax, the field name and the range (``lo < hi``, ``lo > 0`` on a log
     scale, ``N >= 1``, values the material allows); the body or material index is checked
-    against the scene by ``sweep``.
+    against the scene by ``sweep``. ``flag``: as ``sample_points``'.
     """
+    flag = flag or _own_words
     if isinstance(spec, Param):
         p = spec
     else:
@@ -163,28 +187,28 @@ def parse_param(spec) -> Param:
         name, sep, rng = text.partition("=")
         name = name.strip()
         if not sep or not name or not rng.strip():
-            raise ValueError(f"--param {checks.shorten(text)!r} is not allowed: use NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8), "
+            raise ValueError(f"{flag('param')} {checks.shorten(text)!r} is not allowed: use NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8), "
                              f"NAME=LO:HI:SCALE for random/lhs sampling, NAME=A,B,C or NAME=V")
         rng = rng.strip()
         if ":" in rng:
             parts = [s.strip() for s in rng.split(":")]
             if len(parts) not in (2, 3, 4):
-                raise ValueError(f"--param {checks.shorten(text)!r} is not allowed: a range is LO:HI, LO:HI:SCALE or LO:HI:SCALE:N "
+                raise ValueError(f"{flag('param')} {checks.shorten(text)!r} is not allowed: a range is LO:HI, LO:HI:SCALE or LO:HI:SCALE:N "
                                  f"(SCALE lin or log), not {len(parts)} fields")
-            lo = _number(name, text, parts[0], "LO")
-            hi = _number(name, text, parts[1], "HI")
+            lo = _number(name, text, parts[0], "LO", flag)
+            hi = _number(name, text, parts[1], "HI", flag)
             scale = parts[2] if len(parts) > 2 else "lin"
             if scale not in SCALES:
-                raise ValueError(f"--param {checks.shorten(text)!r}: SCALE = {checks.shorten(scale)!r} is not allowed: must be lin or log")
+                raise ValueError(f"{flag('param')} {checks.shorten(text)!r}: SCALE = {checks.shorten(scale)!r} is not allowed: must be lin or log")
             n = None
             if len(parts) == 4:
                 try:
                     n = int(parts[3])
                 except ValueError:
-                    raise ValueError(f"--param {checks.shorten(text)!r}: N = {checks.shorten(parts[3])!r} is not allowed: must be an integer >= 1") from None
+                    raise ValueError(f"{flag('param')} {checks.shorten(text)!r}: N = {checks.shorten(parts[3])!r} is not allowed: must be an integer >= 1") from None
             p = Param(name, lo, hi, scale, n)
         else:
-            values = tuple(_number(name, text, s.strip(), "value") for s in rng.split(","))
+            values = tuple(_number(name, text, s.strip(), "value", flag) for s in rng.split(","))
             p = Param(name, values=values)
     fields = _fields()
     if not isinstance(p.name, str) or p.field not in fields or (p.target is not None and not p.target):
@@ -192,54 +216,54 @@ def parse_param(spec) -> Param:
 
         lab = (f"{lab_value_note(p.field, 'parameter')} (sweep {LAB_QUANTITIES[p.field][0]})"
                if isinstance(p.name, str) and p.field in LAB_QUANTITIES else "")
-        raise ValueError(f"--param {checks.shorten(p.name)!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
+        raise ValueError(f"{flag('param')} {checks.shorten(p.name)!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
                          f"optionally prefixed by a body name, a material index or a scene file's material name (e.g. dough.yield_stress, "
                          f"0.yield_stress)"
                          f"{lab}")
     if p.values is not None:
         if not p.values:
-            raise ValueError(f"--param {p.name}: values = () is not allowed: give at least one value")
+            raise ValueError(f"{flag('param')} {p.name}: values = () is not allowed: give at least one value")
         for v in p.values:  # None, 'x' and NaN failed in numpy or ran as failed samples
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-                raise ValueError(f"--param {p.name}: value {checks.shorten(v)!r} is not allowed: must be a finite number")
+                raise ValueError(f"{flag('param')} {p.name}: value {checks.shorten(v)!r} is not allowed: must be a finite number")
         twice = next((v for k, v in enumerate(p.values) if v in p.values[:k]), None)
         if twice is not None:
             # Each value is a sample (a grid's level): 1,1 ran the same sample twice.
-            raise ValueError(f"--param {p.name}: value {checks.shorten(twice)!r} is not allowed twice: each value is a sample; give it once")
+            raise ValueError(f"{flag('param')} {p.name}: value {checks.shorten(twice)!r} is not allowed twice: each value is a sample; give it once")
         lows = list(p.values)
     else:
         if p.scale not in SCALES:
-            raise ValueError(f"--param {p.name}: scale = {checks.shorten(p.scale)!r} is not allowed: must be lin or log")
+            raise ValueError(f"{flag('param')} {p.name}: scale = {checks.shorten(p.scale)!r} is not allowed: must be lin or log")
         real = (int, float, np.integer, np.floating)
         if isinstance(p.lo, bool) or isinstance(p.hi, bool) or not (isinstance(p.lo, real) and isinstance(p.hi, real)):
             # np.int64(1) and np.float32(10) were refused as 'need LO < HI'.
-            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: LO and HI must be numbers")
+            raise ValueError(f"{flag('param')} {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: LO and HI must be numbers")
         p = dataclasses.replace(p, lo=float(p.lo), hi=float(p.hi))
         if not p.lo < p.hi:
-            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need LO < HI")
+            raise ValueError(f"{flag('param')} {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need LO < HI")
         if p.scale == "log" and p.lo <= 0.0:
-            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r} is not allowed on a log scale: need LO > 0 (or use lin)")
+            raise ValueError(f"{flag('param')} {p.name}: LO = {checks.shorten(p.lo)!r} is not allowed on a log scale: need LO > 0 (or use lin)")
         if not (math.isfinite(p.lo) and math.isfinite(p.hi)) or (p.scale == "log" and p.lo < sys.float_info.min):
             # 1e-320 ran every sample, then its log axis failed to draw (and no table was kept).
-            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need finite bounds, and on a "
+            raise ValueError(f"{flag('param')} {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: need finite bounds, and on a "
                              f"log scale LO >= {sys.float_info.min:.3g}")
         if p.scale == "lin" and not math.isfinite(p.hi - p.lo):
             # Every value drawn from -1.7e308:1.7e308 was inf (lo + u (hi - lo)), the grid's nan and inf.
-            raise ValueError(f"--param {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: on a lin scale HI - LO must "
+            raise ValueError(f"{flag('param')} {p.name}: LO = {checks.shorten(p.lo)!r}, HI = {checks.shorten(p.hi)!r} is not allowed: on a lin scale HI - LO must "
                              f"be a finite number (at most {sys.float_info.max:.3g})")
         if p.n is not None and (isinstance(p.n, bool) or not isinstance(p.n, (int, np.integer)) or p.n < 1):
-            raise ValueError(f"--param {p.name}: N = {checks.shorten(p.n)!r} is not allowed: must be an integer >= 1")
+            raise ValueError(f"{flag('param')} {p.name}: N = {checks.shorten(p.n)!r} is not allowed: must be an integer >= 1")
         lows = [p.lo]
     if p.field in _MINIMUM:
         bound, inclusive = _MINIMUM[p.field]
         bad = [v for v in lows if v < bound or (v == bound and not inclusive)]
         if bad:
             op = ">=" if inclusive else ">"
-            raise ValueError(f"--param {p.name}: value {checks.shorten(bad[0])!r} is not allowed: {p.field} must be {op} {bound:g}")
+            raise ValueError(f"{flag('param')} {p.name}: value {checks.shorten(bad[0])!r} is not allowed: {p.field} must be {op} {bound:g}")
     return p
 
 
-def _as_params(params) -> list[Param]:
+def _as_params(params, flag) -> list[Param]:
     if isinstance(params, (str, Param)):
         params = [params]
     if params is None or not hasattr(params, "__iter__"):  # None, 123: a TypeError before
@@ -248,18 +272,19 @@ def _as_params(params) -> list[Param]:
     if isinstance(params, Mapping):
         params = [Param(k, values=tuple(np.atleast_1d(np.asarray(v, dtype=object)).tolist())) if not isinstance(v, str)
                   else f"{k}={v}" for k, v in params.items()]
-    out = [parse_param(p) for p in params]
+    out = [parse_param(p, flag=flag) for p in params]
     if not out:
-        raise ValueError("params = [] is not allowed: give at least one --param NAME=LO:HI:SCALE:N")
+        raise ValueError(f"{'--param' if _cli(flag) else 'params = []'} is not allowed: give at least one "
+                         f"{flag('param')} NAME=LO:HI:SCALE:N")
     names = [p.name for p in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ValueError(f"--param {dup[0]} is not allowed twice: give each parameter once")
+        raise ValueError(f"{flag('param')} {dup[0]} is not allowed twice: give each parameter once")
     return out
 
 
 def sample_points(params, sample: str = "grid", samples: int | None = None, seed: int | None = None,
-                  max_samples: int = MAX_SAMPLES) -> list[dict[str, float]]:
+                  max_samples: int = MAX_SAMPLES, *, flag=None) -> list[dict[str, float]]:
     """The sample values, ``[{name: value}]`` in sample order.
 
     ``grid``: every combination of the levels, the last parameter varying fastest.
@@ -268,43 +293,46 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
     ``samples`` equal strata (equal in log for ``log``) and each stratum holds exactly one
     sample. Draws come from ``numpy.random.default_rng(seed)`` (default 0): the same seed, the
     same points; a ``seed`` with ``grid``, which draws nothing, is refused. Parameters with
-    explicit values (``NAME=A,B,C``) pick among them.
+    explicit values (``NAME=A,B,C``) pick among them. ``flag(name)``: how a refusal names the
+    parameter ``name`` (default: as this function and ``sweep`` do, ``samples``, ``params entry``;
+    ``warp-esph sweep`` passes ``cli.option_flag``, ``--samples``, ``--param``).
     """
-    params = _as_params(params)
-    sample = checks.choice("--sample", sample, SAMPLINGS)
-    max_samples = checks.positive_int("--max-samples", max_samples)  # named as the other sweep options are
+    flag = flag or _own_words
+    params = _as_params(params, flag)
+    sample = checks.choice(flag('sample'), sample, SAMPLINGS)
+    max_samples = checks.positive_int(flag('max_samples'), max_samples)  # named as the other sweep options are
     names = [p.name for p in params]
     if sample == "grid":
         if samples is not None:
-            raise ValueError(f"--samples = {checks.shorten(samples)!r} is not allowed with --sample grid: the grid has the product of "
-                             f"the levels of each --param; use --sample random or lhs to choose the count")
+            raise ValueError(f"{flag('samples')} = {checks.shorten(samples)!r} is not allowed with {_set(flag, 'sample', 'grid')}: the grid has the product of "
+                             f"the levels of each {flag('param')}; use {_either(flag, ' or ')} to choose the count")
         if seed is not None:
             # Refused, not ignored, as --seed with --sample grid is: the points were the grid's whatever it was.
-            raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed with --sample grid: it seeds the draws of "
-                             "--sample random and lhs, and a grid draws nothing")
+            raise ValueError(f"{flag('seed')} = {checks.shorten(seed)!r} is not allowed with {_set(flag, 'sample', 'grid')}: it seeds the draws of "
+                             f"{_either(flag, ' and ')}, and a grid draws nothing")
         # The count before the levels: N = 1e9 allocated 7.5 GiB before it was compared.
-        counts = [len(p.values) if p.values is not None else p.n if p.n is not None else len(p.levels())
+        counts = [len(p.values) if p.values is not None else p.n if p.n is not None else len(p.levels(flag))
                   for p in params]
         total = math.prod(counts)
         if total > max_samples:
             sizes = " x ".join(f"{n} ({p.name})" for p, n in zip(params, counts))
-            raise ValueError(f"the grid has {sizes} = {total} samples, more than --max-samples = {max_samples} allows: "
-                             f"use fewer levels, --sample lhs --samples N, or raise --max-samples")
-        levels = [p.levels() for p in params]
+            raise ValueError(f"the grid has {sizes} = {total} samples, more than {flag('max_samples')} = {max_samples} allows: "
+                             f"use fewer levels, {_set(flag, 'sample', 'lhs')}{' ' if _cli(flag) else ' with '}{flag('samples')} N, or raise {flag('max_samples')}")
+        levels = [p.levels(flag) for p in params]
         return [dict(zip(names, (float(x) for x in combo))) for combo in itertools.product(*levels)]
     if samples is None:
-        raise ValueError(f"--samples is required with --sample {sample}: the number of samples to draw")
+        raise ValueError(f"{flag('samples')} is required with {_set(flag, 'sample', sample)}: the number of samples to draw")
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
-        raise ValueError(f"--samples = {checks.shorten(samples)!r} is not allowed: must be an integer >= 1")
+        raise ValueError(f"{flag('samples')} = {checks.shorten(samples)!r} is not allowed: must be an integer >= 1")
     if samples > max_samples:
-        raise ValueError(f"--samples = {samples} is not allowed: more than --max-samples = {max_samples}")
+        raise ValueError(f"{flag('samples')} = {samples} is not allowed: more than {flag('max_samples')} = {max_samples}")
     for p in params:
         if p.values is None and p.n is not None:
-            raise ValueError(f"--param {p.name}: N = {p.n} levels is not allowed with --sample {sample}: the count is "
-                             f"--samples; write {p.name}={p.lo:g}:{p.hi:g}:{p.scale}")
+            raise ValueError(f"{flag('param')} {p.name}: N = {p.n} levels is not allowed with {_set(flag, 'sample', sample)}: the count is "
+                             f"{flag('samples')}; write {p.name}={p.lo:g}:{p.hi:g}:{p.scale}")
     seed = 0 if seed is None else seed
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
+        raise ValueError(f"{flag('seed')} = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     rng = np.random.default_rng(int(seed))
     n = int(samples)
     cols = []
@@ -601,8 +629,10 @@ def _is_int_column(column: str) -> bool:
 
 
 # ------------------------------------------------------------------ one sample
-def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]:
-    """``(param name, field, material indices)`` per parameter, checked against the scene."""
+def _assignments(scene, params: list[Param], flag=None) -> list[tuple[str, str, list[int]]]:
+    """``(param name, field, material indices)`` per parameter, checked against the scene;
+    ``flag``: as ``sample_points``'."""
+    flag = flag or _own_words
     from .fit import _material_indices  # noqa: PLC0415 (the names fit uses for bodies and materials)
 
     b = scene.builder
@@ -620,7 +650,7 @@ def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]
         else:
             if target.isdigit() and target in [body.name for body in view.bodies]:
                 # It set material 1 while body '1' is of material 0, without a word.
-                raise ValueError(f"--param {p.name} is not allowed: {target!r} names both material {target} and body "
+                raise ValueError(f"{flag('param')} {p.name} is not allowed: {target!r} names both material {target} and body "
                                  f"{target!r}; rename the body")
             key = int(target) if target.isdigit() else target
             if isinstance(key, str) and scene.material_index(key) is not None:
@@ -628,11 +658,11 @@ def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]
             try:
                 idx = _material_indices(view, [key], material_names=getattr(scene, "material_names", ()))
             except ValueError as e:
-                raise ValueError(f"--param {p.name} is not allowed: {e}") from None
+                raise ValueError(f"{flag('param')} {p.name} is not allowed: {e}") from None
         for k in idx:
             if (k, p.field) in seen:
-                raise ValueError(f"--param {p.name} is not allowed: it sets {p.field} of material {k}, "
-                                 f"which --param {seen[(k, p.field)]} sets already")
+                raise ValueError(f"{flag('param')} {p.name} is not allowed: it sets {p.field} of material {k}, "
+                                 f"which {flag('param')} {seen[(k, p.field)]} sets already")
             seen[(k, p.field)] = p.name
         out.append((p.name, p.field, idx))
     return out
@@ -1258,7 +1288,8 @@ def _ray_tasks(ray, fn, items, on_result, on_error, resources):
 
 
 # ------------------------------------------------------------------ the sweep
-def _load(scene, scale):
+def _load(scene, scale, flag=None):
+    flag = flag or _own_words
     from .builder import SceneBuilder  # noqa: PLC0415
     from .scenes import Scene, load_scaled_scene  # noqa: PLC0415
 
@@ -1267,7 +1298,7 @@ def _load(scene, scale):
     if isinstance(scene, SceneBuilder):
         return Scene("scene", "a SceneBuilder", scene)
     if isinstance(scene, (str, os.PathLike)) or scene is None:
-        return load_scaled_scene(scene, checks.positive("--scale", scale))
+        return load_scaled_scene(scene, checks.positive(flag('scale'), scale))
     raise ValueError(f"scene = {checks.shorten(scene)!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
 
 
@@ -1383,48 +1414,50 @@ class _Plan:
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
-          extra, ray=None, options=None) -> _Plan:
+          extra, ray=None, options=None, flag=None) -> _Plan:
     """Every check of ``sweep``'s input, and one task per sample. ``options``: solver options
-    (the CLI's ``--hourglass``, ...) set on the scene's builder before anything is built."""
-    plist = _as_params(params)
+    (the CLI's ``--hourglass``, ...) set on the scene's builder before anything is built.
+    ``flag``: as ``sample_points``'."""
+    flag = flag or _own_words
+    plist = _as_params(params, flag)
     # A grid's seed is read only by extra's sample seeds (below), never by the points.
-    points = sample_points(plist, sample, samples, None if sample == "grid" else seed, max_samples)
+    points = sample_points(plist, sample, samples, None if sample == "grid" else seed, max_samples, flag=flag)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"--seed = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
+        raise ValueError(f"{flag('seed')} = {checks.shorten(seed)!r} is not allowed: must be an integer >= 0")
     if frames is not None and duration is not None:
-        raise ValueError(f"--frames = {frames!r} and --duration = {duration!r} are not allowed together: give one")
+        raise ValueError(f"{flag('frames')} = {frames!r} and {flag('duration')} = {duration!r} are not allowed together: give one")
     if frames is not None:
-        frames = checks.positive_int("--frames", frames)
+        frames = checks.positive_int(flag('frames'), frames)
     if duration is not None:
-        duration = checks.positive("--duration", duration)
+        duration = checks.positive(flag('duration'), duration)
     if fps is not None:
         from .simulate import check_fps  # noqa: PLC0415
 
         # Before --duration is read in frames of it, and before any sample is built.
-        fps = check_fps("--fps", fps)
+        fps = check_fps(flag('fps'), fps)
     if dt is not None:
-        dt = checks.positive("--dt", dt)
+        dt = checks.positive(flag('dt'), dt)
     # The normaliser SceneBuilder.finalize and fit use, so the sweep takes the same spellings ('f8',
     # np.float64, np.dtype('f8'), wp.float64) and refuses the same ones ('float', None) in the same
     # words; the task keeps the name, which pickles to the workers.
     from ._types import scalar_type  # noqa: PLC0415 (Warp is loaded only once a sweep is planned)
 
     dtype = scalar_type(dtype).__name__
-    device = checks.choice("--device", device, ("cpu", "cuda"))
+    device = checks.choice(flag('device'), device, ("cpu", "cuda"))
     if workers is not None:
-        workers = checks.positive_int("--workers", workers)
+        workers = checks.positive_int(flag('workers'), workers)
     if extra is not None and not callable(extra):
         raise ValueError(f"extra = {checks.shorten(extra)!r} is not allowed: must be callable as extra(model, state, seed)")
-    sc = _load(scene, scale)
+    sc = _load(scene, scale, flag)
     if options:
         from .cli import _apply_solver_options  # noqa: PLC0415
 
         # Before the check of the steps below: the hourglass control shortens the stable step.
         _apply_solver_options(sc.builder, options)
     # What the refusals below name: an option given, else the scene's value.
-    rate = f"--fps = {fps:g}" if fps is not None else f"the scene's fps = {sc.fps:g} (--fps)"
-    length = f"--frames = {frames}" if frames is not None else f"--duration = {duration:g}" if duration is not None \
-        else f"the scene's frames = {sc.frames} (--frames)"
+    rate = f"{flag('fps')} = {fps:g}" if fps is not None else f"the scene's fps = {sc.fps:g} ({flag('fps')})"
+    length = f"{flag('frames')} = {frames}" if frames is not None else f"{flag('duration')} = {duration:g}" if duration is not None \
+        else f"the scene's frames = {sc.frames} ({flag('frames')})"
     given = {"fps": fps is not None, "dt": dt is not None}
     fps = fps if fps is not None else sc.fps
     if duration is not None:
@@ -1433,7 +1466,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         # Checked here, before any sample runs: 1e300 s failed every sample and then the table.
         if not duration * fps <= MAX_STEPS:
             # A frame is at least one step: more frames than a run may take steps is too long.
-            raise ValueError(f"--duration = {checks.shorten(duration)!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames "
+            raise ValueError(f"{flag('duration')} = {checks.shorten(duration)!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames "
                              f"of at least one step each, more than the {MAX_STEPS:.0e} steps a run may take")
         frames = max(1, round(duration * fps))
     frames = frames if frames is not None else sc.frames
@@ -1443,8 +1476,8 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
 
         # With dt given only its ratio to 1/fps is checked; named as the option where it is one.
         resolve_timestep(None, fps, dt=dt, flag=lambda name: f"--{name}" if given.get(name) else f"the scene's {name}")
-    assignments = _assignments(sc, plist)
-    _check_flow_parameters_act(sc, assignments, points)
+    assignments = _assignments(sc, plist, flag)
+    _check_flow_parameters_act(sc, assignments, points, flag)
     # Built once here, so that what the scene itself refuses (a body inside a collider, a device
     # this machine lacks) is bad input before any sample, not the same failure in every row;
     # on the CPU where the samples run on a Ray cluster, whose nodes have the device.
@@ -1455,9 +1488,9 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     model = sc.builder.finalize(device=here, dtype=dtype)
     # Before the check of the steps below, which sets sample values in the model's materials.
     identity = _identity(scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
-    _check_some_sample_material(model, assignments, points)
+    _check_some_sample_material(model, assignments, points, flag)
     if dt is None:
-        _check_some_sample_steps(model, assignments, points, frames, fps, rate, length)
+        _check_some_sample_steps(model, assignments, points, frames, fps, rate, length, flag)
     if extra is not None and ray is None and min(workers or _cores(), len(points)) > 1:
         _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
@@ -1538,7 +1571,7 @@ def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dty
 _FLOW_FIELDS = ("yield_stress", "flow_rate", "hardening")
 
 
-def _check_flow_parameters_act(sc, assignments, points) -> None:
+def _check_flow_parameters_act(sc, assignments, points, flag) -> None:
     """Refuse a parameter of the flow rule (``_FLOW_FIELDS``) none of whose materials can flow
     in any sample: it changes nothing (an elastic material's rows of two yield stresses were
     the same to the bit), and the sweep ran every sample to a table of one result."""
@@ -1564,13 +1597,13 @@ def _check_flow_parameters_act(sc, assignments, points) -> None:
             why.append("yield_stress = inf")
         if not any(flow_of(k, v, "flow_rate") > 0.0 for v in points):
             why.append("flow_rate = 0")
-        raise ValueError(f"--param {name} is not allowed: it changes nothing in this scene: {field} acts only on a "
+        raise ValueError(f"{flag('param')} {name} is not allowed: it changes nothing in this scene: {field} acts only on a "
                          f"material that can flow (a finite yield_stress and a flow_rate above 0), and in no sample can "
                          f"{shown} flow ({' or '.join(why) or 'no sample gives it both'}); sweep yield_stress and "
                          f"flow_rate too, or give the scene's material them")
 
 
-def _check_some_sample_material(model, assignments, points) -> None:
+def _check_some_sample_material(model, assignments, points, flag) -> None:
     """Refuse a sweep every sample of which makes a material the model refuses (``_apply``:
     ``Material``'s checks and the precision's): each sample failed alone with the same
     refusal, and the sweep exited 3 with a table of failures. A sample the material takes is
@@ -1598,11 +1631,12 @@ def _check_some_sample_material(model, assignments, points) -> None:
     concerned = [(name, field) for name, field, idx in assignments if index is None or index in idx]
     names = [name for name, field in concerned if field in refused] or [name for name, _ in concerned] or list(values)
     shown = ", ".join(f"{name} = {values[name]:g}" for name in names)
-    raise ValueError(f"--param {', '.join(names)} {'is' if len(names) == 1 else 'are'} not allowed: the material refuses every sample's values "
+    said = flag("param") if len(names) == 1 or _cli(flag) else "params entries"
+    raise ValueError(f"{said} {', '.join(names)} {'is' if len(names) == 1 else 'are'} not allowed: the material refuses every sample's values "
                      f"(sample {k}, {shown}: {_one_line(e)}); give values it allows")
 
 
-def _check_some_sample_steps(model, assignments, points, frames, fps, rate, length) -> None:
+def _check_some_sample_steps(model, assignments, points, frames, fps, rate, length, flag) -> None:
     """Refuse a sweep none of whose samples can take its own stable step at ``fps`` (a frame
     of more than ``MAX_STEPS_PER_FRAME`` steps, or a run of more than ``MAX_STEPS``): each
     failed alone, one after the other, with the same refusal, and the sweep exited 3. A
@@ -1612,7 +1646,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
 
     # The reasons without a run's advice ('give dt= or substeps=', 'a larger dt'): a sweep has no
     # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
-    coarser = "a smaller --scale (a larger spacing, whose stable step is longer)"
+    coarser = f"a smaller {flag('scale')} (a larger spacing, whose stable step is longer)"
     first = None
     for k, values in enumerate(points):
         try:
@@ -1626,17 +1660,19 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
             # sweep's own '--fps = ... is not allowed for this sweep' said the refusal twice.
             # Where the hourglass control's limit sets the step, its strength lengthens it, not a
             # softer material.
-            cure = ("a smaller --hourglass (or the scene's [solver] hourglass)" if e.advice == STABLE_HOURGLASS_ADVICE
+            weaker = ("a smaller --hourglass (or the scene's [solver] hourglass)" if _cli(flag) else
+                      "a smaller hourglass control strength (the scene's SceneBuilder(hourglass=...) or [solver] hourglass)")
+            cure = (weaker if e.advice == STABLE_HOURGLASS_ADVICE
                     else "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE
                     else "softer or less viscous materials or swept values")
-            first = first or (k, values, e.detail, rate, f"give a higher --fps, {coarser}, or {cure}")
+            first = first or (k, values, e.detail, rate, f"give a higher {flag('fps')}, {coarser}, or {cure}")
             continue
         try:
             check_step_count(frames, substeps)
         except StepRefusal as e:
             # Its detail alone: the reason named 'frames = N is not allowed' inside the sweep's own
             # '--frames = N is not allowed for this sweep', the refusal said twice.
-            first = first or (k, values, e.detail, length, f"give fewer --frames or a shorter --duration, or {coarser}")
+            first = first or (k, values, e.detail, length, f"give fewer {flag('frames')} or a shorter {flag('duration')}, or {coarser}")
             continue
         return
     if first is None:
@@ -1969,7 +2005,7 @@ def sweep_cli(args, out=None) -> int:
     written; ``--resume`` goes on from them). Raises ``ValueError`` on bad input (the CLI
     exits 2)."""
     from . import __version__  # noqa: PLC0415
-    from .cli import EXIT_INTERRUPTED, EXIT_WRITE_FAILED, PROG  # noqa: PLC0415
+    from .cli import EXIT_INTERRUPTED, EXIT_WRITE_FAILED, PROG, option_flag  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
     from .cli import _solver_options  # noqa: PLC0415
@@ -1986,7 +2022,7 @@ def sweep_cli(args, out=None) -> int:
     _refuse_workers_with_ray(args.workers, args.ray, "--workers", "--ray")
     # Every task holds the plan's scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
-                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray, options)
+                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray, options, option_flag)
     sc, plist, points = plan.scene, plan.params, plan.tasks
     folder = args.output if args.output is not None else f"sweep_{sc.name}"  # '' fell back to the default
     checks.output_place("--output", folder, folder=True)  # before the first sample, not after
