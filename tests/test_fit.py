@@ -1738,6 +1738,22 @@ def test_ctrl_c_before_the_first_evaluation_carries_no_result(dough_target, monk
     assert type(info.value) is KeyboardInterrupt and info.value.result is None
 
 
+def test_a_fit_of_no_iterations_evaluates_its_starts_and_returns_the_best_as_fitting_md_says():
+    """``iterations=0`` is an evaluation only (``diagnostics.diagnose`` runs one): docs/fitting.md
+    says it takes no step, holds the start's values and loss (of several starts, the lowest
+    loss's), counts one evaluation a start and ends ``iterations``, not converged."""
+    loss = PositionLoss({4: _block().particle_x0 + 0.002})
+    kw = dict(steps=4, dt=2e-4, iterations=0, progress=False, diagnostics=False)
+    one = fit(_block(), loss, ["mu"], **kw)
+    assert one.params["mu"].tolist() == [BASE["mu"]] and one.loss == one.initial_loss
+    assert (one.evaluations, one.to_dict()["iterations"], one.stopped, one.converged) == (1, 0, "iterations", False)
+    two = fit(_block(), loss, ["mu"], starts=2, sample_range=4.0, seed=1, **kw)
+    losses = {h["params"]["mu"][0]: h["loss"] for h in two.history}
+    assert len(losses) == 2 and two.evaluations == 2 and two.stopped == "iterations" and not two.converged
+    best = min(losses, key=losses.get)
+    assert two.params["mu"].tolist() == [best] and two.loss == losses[best]
+
+
 def test_a_seed_the_fit_draws_nothing_from_is_refused_and_one_evaluation_is_said_as_one():
     """``fit(seed=10**400)`` (and ``fit(sample_range=8)``) was taken without a word where nothing
     draws from the seed (no samples, one start), as ``--seed`` is refused; and the start-up line said 'up to 1
