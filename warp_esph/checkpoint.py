@@ -161,8 +161,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         writer = state.written_by()
         solver = writer if writer is not None and writer.model is model else None
     checks.output_place("checkpoint path", path)
+    if isinstance(state, State) and getattr(state, "_model", None) is not None:
+        # First: its refusal says what a checkpoint of another scene's state would do.
+        _check_state_model(model, state)
     checks.same_state(model, "state", state)
-    _check_state_model(model, state)
     time_ = state.time
     if isinstance(time_, bool) or not isinstance(time_, (int, float, np.integer, np.floating)) \
             or not (math.isfinite(float(time_)) and float(time_) >= 0.0):
