@@ -1,6 +1,7 @@
 """Built-in scenes and the TOML scene-file loader."""
 
 import math
+import os
 import pathlib
 import re
 import textwrap
@@ -818,3 +819,31 @@ def test_text_inputs_saved_as_utf16_are_read(tmp_path, bom):
     cloud = load_target(utf16("c.xyz", "x,y,z\n0,0.1,0\n0.02,0.1,0\n"))
     assert cloud.kind == "points"
     np.testing.assert_array_equal(cloud.data, [[0.0, 0.1, 0.0], [0.02, 0.1, 0.0]])
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/fd"), reason="reads a pipe as /dev/fd/N")
+def test_text_inputs_read_from_a_pipe_keep_their_first_bytes(tmp_path):
+    """A shell's ``<(...)`` hands a pipe (``/dev/fd/63``): the look for a UTF-16 byte-order mark
+    opened it and read its first two bytes, which its reader then lacked, so an --experiments
+    or camera file read from one was 'not valid JSON: Expecting value: line 1 column 1' and a
+    force log lost the 'fr' of its header. A pipe is read once, as UTF-8."""
+    from warp_esph.checks import json_file
+    from warp_esph.losses import read_tools_csv
+
+    def piped(text):
+        r, w = os.pipe()
+        os.write(w, text.encode())  # (small: the pipe's buffer holds it)
+        os.close(w)
+        return r, f"/dev/fd/{r}"
+
+    r, path = piped('[{"scene": "s.toml", "target": "t.npz"}]')
+    try:
+        assert json_file("--experiments", path) == [{"scene": "s.toml", "target": "t.npz"}]
+    finally:
+        os.close(r)
+    r, path = piped("frame,time,tool,fx,fy,fz\n0,0,plate,0,0,0\n1,0.0333333,plate,0,-2.5,0\n")
+    try:
+        assert [(row["frame"], row["force"][1]) for row in read_tools_csv(path)] == [(0, 0.0), (1, -2.5)]
+    finally:
+        os.close(r)
+

@@ -715,8 +715,11 @@ def text_encoding(path) -> str:
     with: ``utf-16`` where it starts with a UTF-16 byte-order mark (Excel's 'Unicode Text',
     PowerShell 5's ``>``, which were read as UTF-8 and refused as garbage or 'not text'), else
     ``utf-8-sig`` (UTF-8, past a byte-order mark). A file that cannot be opened is left to its
-    reader's ``open``, which says why."""
+    reader's ``open``, which says why; so is one that is no regular file: a pipe (a shell's
+    ``<(...)``) is not looked into, since the bytes read would be gone for its reader."""
     try:
+        if not os.path.isfile(path):
+            return "utf-8-sig"
         with open(path, "rb") as f:
             head = f.read(2)
     except (OSError, ValueError, TypeError):
