@@ -847,3 +847,11 @@ def test_text_inputs_read_from_a_pipe_keep_their_first_bytes(tmp_path):
     finally:
         os.close(r)
 
+
+def test_a_utf16_scene_file_that_does_not_decode_is_named_as_utf16(tmp_path):
+    """A scene file with a UTF-16 byte-order mark is decoded as UTF-16; one cut short (an odd
+    byte at its end) was refused as 'not UTF-8 text', the codec it was not read with."""
+    cut = tmp_path / "cut.toml"
+    cut.write_bytes('[scene]\nname = "cut"\n'.encode("utf-16") + b"x")
+    with pytest.raises(ValueError, match=r"cut\.toml: invalid TOML: not UTF-16 text \(byte 44\)$"):
+        load_scene_file(cut)

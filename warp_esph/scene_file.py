@@ -577,7 +577,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     file = str(checks.shown_path(path, quote=False))
     if tomllib is None:
         raise ValueError(f"cannot read scene file {checks.shown_path(path)}: reading TOML needs Python >= 3.11 or the tomli package")
-    mark = 0
+    mark, utf16 = 0, False
     try:
         with open(path, "rb") as fh:
             raw = fh.read()
@@ -591,7 +591,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{file}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {mark + e.start})") from None
+        raise ValueError(f"{file}: invalid TOML: not {'UTF-16' if utf16 else 'UTF-8'} text (byte {mark + e.start})") from None
     except RecursionError:
         raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
