@@ -872,6 +872,61 @@ def test_the_worker_processes_end_with_the_process_that_runs_the_pool(tmp_path):
                 os.kill(int((notes / f"{i}.pid").read_text()), signal.SIGKILL)
 
 
+#: The script of test_a_worker_whose_parent_died_while_it_started_up_ends_too: a pool of two
+#: workers, each held in its start (spawn imports this file as ``__mp_main__`` in it) until
+#: the test, having killed the pool's process, writes ``go``.
+_PARENT_DIES_AT_START = """
+import os, sys, time
+notes = os.environ["WARP_ESPH_TEST_NOTES"]
+if __name__ == "__mp_main__":
+    open(os.path.join(notes, f"held_{os.getpid()}"), "w").close()
+    while not os.path.exists(os.path.join(notes, "go")):
+        time.sleep(0.05)
+elif __name__ == "__main__":
+    sys.path.insert(0, sys.argv[1])
+    from pool_items import _waits_in
+    from warp_esph.sweep import parallel_map
+    parallel_map(_waits_in, [(0, notes), (1, notes)], workers=2)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_worker_whose_parent_died_while_it_started_up_ends_too(tmp_path):
+    """A worker took the process to watch from ``os.getppid()`` in its own start, after
+    importing Warp (seconds): a sweep killed in that time left it watching its new parent, init,
+    so it lived on as before the watch, its sample finished for no one. It watches the pid of
+    the process that made the pool."""
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    script = tmp_path / "parent.py"
+    script.write_text(_PARENT_DIES_AT_START)
+    parent = subprocess.Popen([sys.executable, str(script), os.path.dirname(__file__)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, env=dict(os.environ, WARP_ESPH_TEST_NOTES=str(notes)))
+    workers = []
+    try:
+        for _ in range(1200):  # both workers held in their start (at most 60 s)
+            workers = [int(p.name[5:]) for p in notes.glob("held_*")]
+            if len(workers) == 2 or parent.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert len(workers) == 2
+        parent.kill()
+        parent.wait()
+        (notes / "go").touch()
+        for _ in range(600):  # (at most 30 s; an item would wait 120 s)
+            if not any(_alive(pid) for pid in workers):
+                break
+            time.sleep(0.05)
+        assert not [pid for pid in workers if _alive(pid)]
+    finally:
+        (notes / "go").touch()
+        (notes / "release").touch()
+        parent.kill()
+        for pid in workers:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def _extra_taking_a_column(model, state, seed):
     return {"status": "hacked", "top": 1.0}
 

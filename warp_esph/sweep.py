@@ -891,8 +891,9 @@ def _words(e: BaseException) -> str:
     return str(e) if isinstance(e, ItemError) else _one_line(f"{type(e).__name__}: {e}")
 
 
-def _start_worker():
-    """A pool worker's start: SIGINT ignored, and ended once the process that started it is gone."""
+def _start_worker(parent: int):
+    """A pool worker's start: SIGINT ignored, and ended once ``parent``, the pid of the process
+    that made the pool, is gone."""
     # Ctrl-C reaches every process of the terminal's group: the parent cancels the sweep
     # and stops the workers, so they need not print a traceback each.
     import signal  # noqa: PLC0415
@@ -900,14 +901,15 @@ def _start_worker():
     import time  # noqa: PLC0415
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent = os.getppid()
 
     def watch():
         # A parent killed outright (SIGKILL, out of memory) or ended at once by a second
         # signal before it stopped its workers left them running: their samples finished for
         # no one, then each waited forever for another (its own end of the task queue keeps
         # the queue open), holding its memory and the terminal's pipes. (Warp's CPU launches
-        # release the GIL, so this runs during a sample too.)
+        # release the GIL, so this runs during a sample too.) The pid is the pool's, not this
+        # start's os.getppid(): a parent killed while the worker imported Warp (seconds) had
+        # left it watching its new parent, init, for good.
         while os.getppid() == parent:
             time.sleep(0.25)
         os._exit(1)
@@ -1066,7 +1068,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     # threads), which Warp does not support; a spawned one initialises its own.
     def new_pool():
         return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_start_worker)
+                                   initializer=_start_worker, initargs=(os.getpid(),))
 
     def finish(i, result):
         results[i] = result
