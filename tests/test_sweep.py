@@ -837,6 +837,16 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _assert_ended(pids):
+    """Waits for the processes ``pids`` to end, at most 30 s (the items of ``_waits_in`` wait
+    120 s), and asserts that they did."""
+    for _ in range(600):
+        if not any(_alive(pid) for pid in pids):
+            break
+        time.sleep(0.05)
+    assert not [pid for pid in pids if _alive(pid)]
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_the_worker_processes_end_with_the_process_that_runs_the_pool(tmp_path):
     """A sweep killed outright (SIGKILL, out of memory), or ended at once by a second Ctrl-C
@@ -859,11 +869,7 @@ def test_the_worker_processes_end_with_the_process_that_runs_the_pool(tmp_path):
         workers = [int((notes / f"{i}.pid").read_text()) for i in (0, 1)]
         parent.kill()
         parent.wait()
-        for _ in range(600):  # (at most 30 s; the items would wait 120 s)
-            if not any(_alive(pid) for pid in workers):
-                break
-            time.sleep(0.05)
-        assert not [pid for pid in workers if _alive(pid)]
+        _assert_ended(workers)
     finally:
         (notes / "release").touch()
         parent.kill()
@@ -913,11 +919,7 @@ def test_a_worker_whose_parent_died_while_it_started_up_ends_too(tmp_path):
         parent.kill()
         parent.wait()
         (notes / "go").touch()
-        for _ in range(600):  # (at most 30 s; an item would wait 120 s)
-            if not any(_alive(pid) for pid in workers):
-                break
-            time.sleep(0.05)
-        assert not [pid for pid in workers if _alive(pid)]
+        _assert_ended(workers)
     finally:
         (notes / "go").touch()
         (notes / "release").touch()
