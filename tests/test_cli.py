@@ -2043,6 +2043,19 @@ def test_init_warp_refuses_a_device_a_log_level_or_echo_it_cannot_take():
         assert init_warp(device, log_level=level, echo=False) == []  # Warp has started: nothing held back
 
 
+def test_init_warp_takes_a_warp_device():
+    """A Warp ``Device`` (``model.device``, ``wp.get_device()``, what ``finalize(device=...)``
+    takes) is a device Warp has, yet ``init_warp(wp.get_device("cpu"))`` was refused as
+    "device = 'cpu' is not allowed: must be None, 'cpu', 'cuda' or 'cuda:N'", naming a value it
+    allows."""
+    import warp as wp
+
+    from warp_esph.startup import init_warp
+
+    level = wp.config.log_level
+    assert init_warp(wp.get_device("cpu"), log_level=level, echo=False) == []  # Warp has started: nothing held back
+
+
 def test_a_process_started_with_its_standard_error_closed_runs(tmp_path, monkeypatch):
     """Started with descriptor 2 closed (2>&-), Python leaves sys.stderr None: Warp's start
     (``sys.stderr.flush()``) and then the progress bar raised AttributeError, exit 1, and the

@@ -77,7 +77,8 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
     ``log_level`` (default ``wp.LOG_WARNING``) is set on ``wp.config`` before ``wp.init()``.
     Native notes about a missing CUDA driver are held back when the run does not ask for a
     GPU (``device`` None or ``"cpu"``); every other note (and those, for ``device="cuda"`` or
-    ``"cuda:N"``) is echoed to ``sys.stderr`` when ``echo`` is true. Another ``device``, a
+    ``"cuda:N"``) is echoed to ``sys.stderr`` when ``echo`` is true. A Warp ``Device``
+    (``model.device``) is taken as its name; another ``device``, a
     ``log_level`` that is no integer or an ``echo`` other than True or False is a ``ValueError``. Calling it again, or after Warp has
     started, only sets the log level and returns ``[]``.
     """
@@ -93,6 +94,8 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
     if log_level is not None and (isinstance(log_level, bool) or not isinstance(log_level, numbers.Integral)):
         raise ValueError(f"log_level = {checks.shorten(log_level)!r} is not allowed: must be an integer, e.g. wp.LOG_WARNING "
                          f"({wp.LOG_WARNING}) or wp.LOG_DEBUG ({wp.LOG_DEBUG})")
+    if isinstance(device, wp.Device):  # (model.device: refused, it read "device = 'cpu' is not allowed")
+        device = str(device)
     if device is not None and not (isinstance(device, str) and re.fullmatch(r"cpu|cuda(:\d+)?", device)):
         raise ValueError(f"device = {checks.shorten(device)!r} is not allowed: must be None, 'cpu', 'cuda' or 'cuda:N'")
     checks.boolean("echo", echo)
