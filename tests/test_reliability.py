@@ -2715,6 +2715,16 @@ def test_a_solvers_fused_set_by_hand_is_true_or_false():
     assert solver.fused is False
 
 
+def test_a_solver_is_made_with_numpy_booleans_as_it_is_set_with_them():
+    """``solver.fused = np.False_`` is taken (checks.boolean), but ``Solver(model, fused=np.False_)``
+    and ``yield_with_pressure=np.True_`` were refused as "fused = np.False_ is not allowed: must
+    be True or False", a value it is. Each is taken as the bool it holds."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    solver = we.Solver(b.finalize(), fused=np.False_, yield_with_pressure=np.True_)
+    assert solver.fused is False and solver.yield_with_pressure is True
+
+
 def test_numpy_text_or_booleans_given_for_a_bodys_numbers_are_refused_by_name():
     """A Python string is refused where a number goes, but numpy's text scalars have
     ``__float__``: ``add_box(size=np.array(['0.1', ...]))``, a keyframe position of numpy text

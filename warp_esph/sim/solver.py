@@ -350,10 +350,9 @@ class Solver:
                              f"{neighbors.MIN_NEIGHBORS})")
         self._made_with["max_condition"] = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
-        if not isinstance(fused, bool):
-            raise ValueError(f"fused = {checks.shorten(fused)!r} is not allowed: must be True or False")
-        if not isinstance(yield_with_pressure, bool):
-            raise ValueError(f"yield_with_pressure = {checks.shorten(yield_with_pressure)!r} is not allowed: must be True or False")
+        # (numpy's bools too, as Solver.fused takes them set)
+        fused = checks.boolean("fused", fused)
+        yield_with_pressure = checks.boolean("yield_with_pressure", yield_with_pressure)
         if yield_with_pressure and model.uses_comparison_models:
             raise ValueError("yield_with_pressure = True is not allowed with a comparison deformation model "
                              "(Material.deformation 'rest' or 'additive'): its constitutive update has no such test; "
