@@ -93,7 +93,7 @@ def test_checkpoint_keeps_edited_material_parameters(tmp_path):
 
 def test_bad_checkpoints_are_refused_by_name(tmp_path):
     model = _model()
-    with pytest.raises(ValueError, match=r"checkpoint = '.*nope\.npz' is not allowed: no such file"):
+    with pytest.raises(ValueError, match=r"path = '.*nope\.npz' is not allowed: no such file"):
         load_state(tmp_path / "nope.npz", model)
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not a zip")
@@ -101,7 +101,7 @@ def test_bad_checkpoints_are_refused_by_name(tmp_path):
         read_checkpoint(junk)
     # A .npy (np.load reads it as one array) ended in a TypeError traceback, --resume too.
     np.save(tmp_path / "x.npy", np.zeros((3, 4, 3)))
-    with pytest.raises(ValueError, match=r"^checkpoint = '.*x\.npy' is not allowed: it holds one numpy array of shape "
+    with pytest.raises(ValueError, match=r"^path = '.*x\.npy' is not allowed: it holds one numpy array of shape "
                                          r"\(3, 4, 3\) \(a \.npy\), not a warp_esph checkpoint"):
         load_state(tmp_path / "x.npy", model)
     with pytest.raises(ValueError, match=r"must end in \.npz"):
@@ -126,7 +126,7 @@ def test_bad_checkpoints_are_refused_by_name(tmp_path):
             save_state(tmp_path / "t.npz", model, state, step=0, frame=0)
     assert not (tmp_path / "t.npz").exists()
     for bad in (None, 123):
-        with pytest.raises(ValueError, match=rf"checkpoint = {bad!r} is not allowed: must be a path"):
+        with pytest.raises(ValueError, match=rf"path = {bad!r} is not allowed: must be a path"):
             load_state(bad, model)
 
 
@@ -217,7 +217,7 @@ def test_a_checkpoint_with_values_no_material_or_deformation_takes_is_refused_by
     else:
         arrays[f"material_{edit}"][0 if edit == "mu" else 1] = -100.0
     np.savez(path, **arrays)
-    with pytest.raises(ValueError, match=r"checkpoint = '.*c\.npz' is not allowed: " + needle):
+    with pytest.raises(ValueError, match=r"path = '.*c\.npz' is not allowed: " + needle):
         load_state(path, _model())
 
 
@@ -298,7 +298,7 @@ def test_a_checkpoint_whose_state_no_step_leaves_is_refused_by_name(tmp_path, na
         arrays = {k: data[k] for k in data.files}
     edit(arrays[name])
     np.savez(path, **arrays)
-    with pytest.raises(ValueError, match=rf"checkpoint = '.*c\.npz' is not allowed: its {name} at particle 3 {needle}"):
+    with pytest.raises(ValueError, match=rf"path = '.*c\.npz' is not allowed: its {name} at particle 3 {needle}"):
         load_state(path, _model(images=True))
     getattr(state, name).assign(arrays[name])
     if name in ("x_lo", "F_lo"):
@@ -344,7 +344,7 @@ def test_a_checkpoint_without_a_material_array_is_refused_by_name(tmp_path):
     np.savez(path, **arrays)
     fresh = _model()
     fresh.set_material(0, we.Material.preset("dough", mu=fresh.materials[0].mu * 2.0))
-    with pytest.raises(ValueError, match=r"checkpoint = '.*c\.npz' is not allowed: it lacks material_mu"):
+    with pytest.raises(ValueError, match=r"path = '.*c\.npz' is not allowed: it lacks material_mu"):
         load_state(path, fresh)
 
 
@@ -456,7 +456,7 @@ def test_load_state_with_a_solver_refuses_other_settings_than_the_run_had(tmp_pa
         a, b = b, a
     path = save_state(tmp_path / "c.npz", model, a, step=20, frame=2, solver=solver)
     other = _model()
-    with pytest.raises(ValueError, match=rf"checkpoint = '.*c\.npz' is not allowed with this solver: the run it continues "
+    with pytest.raises(ValueError, match=rf"path = '.*c\.npz' is not allowed with this solver: the run it continues "
                                          rf"{needle}; make the Solver \(and set the model\) as that run's"):
         load_state(path, other, solver=change(other))
     load_state(path, other)  # without a solver nothing is compared
@@ -569,7 +569,7 @@ def test_a_checkpoint_of_the_other_precision_is_refused_naming_the_precision_to_
     before = target.mu.numpy().copy()
     with pytest.raises(ValueError) as e:
         load_state(path, target)
-    assert str(e.value) == (f"checkpoint = {str(path)!r} is not allowed: it is {written}, the model {resumed}; a checkpoint "
+    assert str(e.value) == (f"path = {str(path)!r} is not allowed: it is {written}, the model {resumed}; a checkpoint "
                             f"resumes in the precision it was written in: finalize the model with dtype=wp.{written}")
     np.testing.assert_array_equal(target.mu.numpy(), before)
     state, meta = load_state(path, scene(written))  # the precision it names resumes it

@@ -1122,6 +1122,16 @@ def test_an_empty_input_path_is_named_as_typed(argv, said, tmp_path, monkeypatch
 
         with pytest.raises(ValueError, match=r"^path = '' is not allowed: must be the path of a target file$"):
             load_target("")
+    if argv[0] == "run":  # the checkpoint readers name their own parameter, as --resume names the option
+        import warp_esph as we
+        from warp_esph.checkpoint import load_state, read_checkpoint
+
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+        model = b.finalize()
+        for read in (read_checkpoint, lambda p: load_state(p, model)):
+            with pytest.raises(ValueError, match=r"^path = '' is not allowed: must be a path \(not empty, no NUL character\)$"):
+                read("")
 
 
 def _fail_after(monkeypatch, steps: int, action):

@@ -275,9 +275,10 @@ def _check_state_model(model: Model, state: State) -> None:
                          "load_state(path, model))")
 
 
-def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.ndarray]]:
+def read_checkpoint(path, what: str = "path") -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one, naming the
-    file as ``what`` (the CLI's ``--resume``)."""
+    file as ``what``: the caller's own name for it, this parameter or the CLI's ``--resume``
+    ('checkpoint' named neither)."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from pathlib
         raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: must be a path")
     if not os.fspath(path) or "\0" in os.fspath(path):
@@ -325,7 +326,7 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
     return meta, arrays
 
 
-def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tuple[State, dict]:
+def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[State, dict]:
     """A new ``State`` of ``model`` from a checkpoint, and the checkpoint's metadata.
 
     The model's material parameters are set to the checkpoint's. The checkpoint must
@@ -344,7 +345,7 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     is refused (``ValueError`` naming it and both values): the continuation would not be the
     run it continues. A checkpoint that records none (a state no step wrote, saved without
     ``solver=``; a file written before) is not compared. ``what``: how a refusal names the
-    file (the CLI's ``--resume``).
+    file (``path``, or the CLI's ``--resume``).
     """
     if not isinstance(model, Model):
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be the warp_esph.Model the checkpoint "
