@@ -792,24 +792,27 @@ def test_a_scene_file_saved_with_a_byte_order_mark_is_read(tmp_path):
         load_scene_file(bad)
 
 
-@pytest.mark.parametrize("bom", ["utf-16", "utf-16-be"])
-def test_text_inputs_saved_as_utf16_are_read(tmp_path, bom):
+@pytest.mark.parametrize("codec, mark", [("utf-16", b""), ("utf-16-be", b"\xfe\xff"), ("utf-16-le", b""), ("utf-16-be", b"")])
+def test_text_inputs_saved_as_utf16_are_read(tmp_path, codec, mark):
     """Windows writes UTF-16 with a byte-order mark where a user saves 'Unicode Text' in Excel
     or redirects with PowerShell 5's '>': a scene file was 'not UTF-8 text (byte 0)', an
     --experiments file 'it is not text (a damaged or foreign file?)', and a force log or a point
     cloud was refused by a header shown as '\\ufffd\\ufffdf\\x00r\\x00...'. They are read as
-    UTF-16, as the same text saved as UTF-8 is."""
+    UTF-16, as the same text saved as UTF-8 is. Without the mark ('iconv -t UTF-16LE', Python's
+    'utf-16-le') a scene file was 'Invalid initial character for a key part', a force log 'lacks
+    the columns', an --experiments file 'not valid JSON: Expecting value', none a word of
+    UTF-16: UTF-8 text holds no NUL byte, so such a file (its NULs on one side of its byte
+    pairs, a non-Latin-1 '–' on the other) is read as UTF-16 of that byte order."""
     from warp_esph.checks import json_file
     from warp_esph.fit import load_target
     from warp_esph.losses import read_tools_csv
 
     def utf16(name, text):
         path = tmp_path / name
-        data = text.encode(bom)
-        path.write_bytes(data if bom == "utf-16" else b"\xfe\xff" + data)  # (utf-16 writes its own mark)
+        path.write_bytes(mark + text.encode(codec))  # (utf-16 writes its own mark)
         return path
 
-    scene = load_scene_file(utf16("s.toml", '[scene]\nname = "wide"\nspacing = 0.05\n[[bodies]]\nshape = "box"\n'
+    scene = load_scene_file(utf16("s.toml", '# dough – 20 C\n[scene]\nname = "wide"\nspacing = 0.05\n[[bodies]]\nshape = "box"\n'
                                              'center = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\nmaterial = "dough"\n'))
     assert scene.name == "wide" and scene.builder.finalize().particle_x0.shape == (64, 3)
     assert json_file("--experiments", utf16("e.json", '[{"scene": "s.toml", "target": "t.npz"}]')) == [

@@ -710,21 +710,44 @@ def read_reason(exc: BaseException) -> str:
     return text if len(text) <= 300 else text[:297] + "..."
 
 
+#: How many bytes of a text input ``text_codec`` looks at for the NULs of UTF-16 without a mark.
+TEXT_HEAD = 512
+
+
+def text_codec(head: bytes) -> str:
+    """The codec of text whose first bytes are ``head`` (``TEXT_HEAD`` of them, or all):
+    ``utf-16`` past a UTF-16 byte-order mark; ``utf-16-le`` (``utf-16-be``) where ``head``
+    holds NUL bytes only at odd (even) places, at least two and at least half of those places;
+    else ``utf-8-sig`` (UTF-8, past a mark). UTF-8 text holds no NUL byte, so such a file is
+    no UTF-8 whatever it is: it is UTF-16 saved without its mark ('iconv -t UTF-16LE'), which
+    was refused by what its misread text lacked ('Invalid initial character for a key part',
+    'lacks the columns'), not a word of UTF-16. A binary file so guessed is still garbage
+    text to its parser."""
+    if head[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        return "utf-16"
+    head = head[:TEXT_HEAD]
+    for nuls, others, codec in ((head[1::2], head[0::2], "utf-16-le"), (head[0::2], head[1::2], "utf-16-be")):
+        # (two NULs or more: three bytes of garbage are no text to guess a codec from)
+        if nuls.count(0) >= 2 and b"\0" not in others and 2 * nuls.count(0) >= len(nuls):
+            return codec
+    return "utf-8-sig"
+
+
 def text_encoding(path) -> str:
     """The codec a text input (a scene file, a JSON file, a force log, a point cloud) is read
-    with: ``utf-16`` where it starts with a UTF-16 byte-order mark (Excel's 'Unicode Text',
-    PowerShell 5's ``>``, which were read as UTF-8 and refused as garbage or 'not text'), else
-    ``utf-8-sig`` (UTF-8, past a byte-order mark). A file that cannot be opened is left to its
-    reader's ``open``, which says why; so is one that is no regular file: a pipe (a shell's
-    ``<(...)``) is not looked into, since the bytes read would be gone for its reader."""
+    with, ``text_codec`` of its first bytes: UTF-16 with a byte-order mark (Excel's 'Unicode
+    Text', PowerShell 5's ``>``, which were read as UTF-8 and refused as garbage or 'not
+    text') or without, else UTF-8. A file that cannot be opened is left to its reader's
+    ``open``, which says why; so is one that is no regular file: a pipe (a shell's ``<(...)``)
+    is not looked into, since the bytes read would be gone for its reader."""
     try:
         if not os.path.isfile(path):
             return "utf-8-sig"
         with open(path, "rb") as f:
-            head = f.read(2)
+            head = f.read(TEXT_HEAD)
     except (OSError, ValueError, TypeError):
         return "utf-8-sig"
-    return "utf-16" if head in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+    return text_codec(head)
 
 
 def json_file(what: str, path):

@@ -584,10 +584,12 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         # Notepad's UTF-8 starts with a byte-order mark, which TOML does not take: it was
         # 'invalid TOML: Invalid statement (at line 1, column 1)', of a first line that reads right.
         mark = len(codecs.BOM_UTF8) if raw.startswith(codecs.BOM_UTF8) else 0
-        # UTF-16 (Excel's 'Unicode Text', PowerShell 5's '>') was 'not UTF-8 text (byte 0)'.
-        utf16 = raw[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)
+        # UTF-16 (Excel's 'Unicode Text', PowerShell 5's '>') was 'not UTF-8 text (byte 0)',
+        # and without its mark 'Invalid initial character for a key part'.
+        codec = checks.text_codec(raw)
+        utf16 = codec != "utf-8-sig"
         # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
-        data = tomllib.loads(raw.decode("utf-16") if utf16 else raw[mark:].decode("utf-8"), parse_float=checks.read_number)
+        data = tomllib.loads(raw.decode(codec) if utf16 else raw[mark:].decode("utf-8"), parse_float=checks.read_number)
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{file}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:
