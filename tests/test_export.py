@@ -797,3 +797,29 @@ def test_an_unexpected_error_mid_render_is_one_line_saying_what_is_written(tmp_p
     assert sorted(os.listdir(tmp_path)) == ["anim.usdc"] + (["pictures"] if output == "pictures" else [])
     if output == "pictures":
         assert os.listdir(out) == ["frame_00000.png"]
+
+
+@pytest.mark.parametrize("name", ["out.vtu", "out.PLY", "out.pvd"])
+def test_an_output_named_as_a_frame_file_is_refused_naming_the_folder_it_would_be(tmp_path, capsys, name):
+    """``export a.usdc -o out.vtu`` made a folder named ``out.vtu``: a user who named a file got
+    a folder of ``frame_NNNNN.vtu`` files. A name ending as a frame file does (.vtu, .ply, .pvd)
+    is refused before any work, saying what -o is; a folder of that name already there is a
+    folder, and is written into as before."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+    out = tmp_path / name
+    capsys.readouterr()
+    assert main(["export", str(path), "--frames", "last", "-o", str(out)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"warp-esph: error: --output = '{out}' is not allowed: it names a file, and --output is the folder the frames' "
+        "files are written into (frame_00000.vtu, frame_00001.vtu, ... and frames.pvd): give a folder's name"]
+    assert not out.exists()
+    with pytest.raises(ValueError, match=r"^output = .* is not allowed: it names a file, and output is the folder the "
+                                          r"frames' files are written into \(frame_00000\.ply, frame_00001\.ply, \.\.\.\): "):
+        export_frames(str(path), "ply", str(out))
+    assert not out.exists()
+    out.mkdir()  # a folder of that name is a folder
+    assert main(["export", str(path), "--frames", "last", "-o", str(out)]) == 0
+    assert sorted(os.listdir(out)) == ["frame_00001.vtu", "frames.pvd"]

@@ -105,6 +105,13 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     if progress is not None and not callable(progress):  # 5 failed after the first frame was written
         raise ValueError(f"progress = {checks.shorten(progress)!r} is not allowed: must be callable as progress(k, n)")
     out = checks.output_place(flag("output"), output_dir, folder=True)
+    if os.path.splitext(out)[1].lower() in (".vtu", ".ply", ".pvd") and not os.path.isdir(out):
+        # 'export -o out.vtu' made a folder named out.vtu: the user named a file and got a folder.
+        # A folder of that name already there is written into: it is what the name means there.
+        pvd = " and frames.pvd" if fmt == "vtu" else ""
+        raise ValueError(f"{flag('output')} = {checks.shown_path(out)} is not allowed: it names a file, and {flag('output')} is "
+                         f"the folder the frames' files are written into (frame_00000.{fmt}, frame_00001.{fmt}, ...{pvd}): "
+                         "give a folder's name")
     data = UsdFrames(usd_path)
     # One file per frame: a frame named twice is refused (it was written once and counted twice).
     chosen = parse_frames(frames, data.frames, flag("frames"))
