@@ -634,3 +634,32 @@ def test_the_tools_work_a_state_carries_is_kept_and_a_bad_one_is_refused_by_name
     loaded.tool_work = float("inf")
     with pytest.raises(ValueError, match=r"state\.tool_work = inf is not allowed: must be a finite number of joules"):
         we.simulate(fresh, 1, progress=False, state=loaded, start_frame=1, monitor_origin=fresh.state(requires_grad=False))
+
+
+def test_a_file_that_is_no_checkpoint_is_refused_saying_what_it_is_not_naming_an_exception_class(tmp_path):
+    """``run --resume out.usdc`` said 'not a readable warp_esph checkpoint (ValueError)': the name
+    of the class numpy raised was all it told. Each way a file is no checkpoint is said in words."""
+    with open(tmp_path / "no_meta.npz", "wb") as f:
+        np.savez(f, x=np.zeros(3))
+    with open(tmp_path / "bad_meta.npz", "wb") as f:
+        np.savez(f, meta=np.frombuffer(b'{"format": 1', dtype=np.uint8))
+    whole = (tmp_path / "no_meta.npz").read_bytes()
+    damaged = bytearray(whole)
+    damaged[60] ^= 0xFF  # inside the stored array: the zip's CRC check fails
+    files = {"run.usdc": b"PXR-USDC" + bytes(88), "run.usda": b"#usda 1.0\n", "empty.npz": b"", "notes.npz": b"some text\n",
+             "cut.npz": whole[: len(whole) // 2], "crc.npz": bytes(damaged)}
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    said = {}
+    for name in ["run.usdc", "run.usda", "empty.npz", "notes.npz", "cut.npz", "crc.npz", "no_meta.npz", "bad_meta.npz"]:
+        with pytest.raises(ValueError) as e:
+            read_checkpoint(tmp_path / name, "--resume")
+        prefix = f"--resume = '{tmp_path / name}' is not allowed: not a readable warp_esph checkpoint ("
+        assert str(e.value).startswith(prefix), str(e.value)
+        said[name] = str(e.value)[len(prefix):]
+    usd = "it is a USD file, a run's frames; a checkpoint is the .npz that save_state and run --checkpoint-every write)"
+    damaged = "its .npz archive is damaged or cut short)"
+    assert said == {"run.usdc": usd, "run.usda": usd, "empty.npz": "it is empty)",
+                    "notes.npz": "it is not a .npz archive, which a checkpoint is)", "cut.npz": damaged, "crc.npz": damaged,
+                    "no_meta.npz": "it holds no checkpoint record, 'meta': a .npz written by something else?)",
+                    "bad_meta.npz": "its checkpoint record, 'meta', is damaged)"}

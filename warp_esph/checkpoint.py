@@ -275,6 +275,28 @@ def _check_state_model(model: Model, state: State) -> None:
                          "load_state(path, model))")
 
 
+def _not_a_checkpoint(path, exc: BaseException) -> str:
+    """Why the file ``path``, whose reading raised ``exc``, is no checkpoint, in words: the
+    name of the class raised was all a refusal said ('(ValueError)' of a USD file given to
+    ``--resume``)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        head = b"PK"  # read once already: said as a damaged archive
+    if not head:
+        return "it is empty"
+    if head.startswith((b"PXR-USDC", b"#usda")):
+        return "it is a USD file, a run's frames; a checkpoint is the .npz that save_state and run --checkpoint-every write"
+    if not head.startswith(b"PK"):  # np.load read it as pickled data, which it refuses
+        return "it is not a .npz archive, which a checkpoint is"
+    if isinstance(exc, KeyError):
+        return "it holds no checkpoint record, 'meta': a .npz written by something else?"
+    if isinstance(exc, (json.JSONDecodeError, UnicodeDecodeError)):
+        return "its checkpoint record, 'meta', is damaged"
+    return "its .npz archive is damaged or cut short"
+
+
 def read_checkpoint(path, what: str = "path") -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one, naming the
     file as ``what``: the caller's own name for it, this parameter or the CLI's ``--resume``
@@ -303,7 +325,7 @@ def read_checkpoint(path, what: str = "path") -> tuple[dict, dict[str, np.ndarra
     except OSError as e:
         if e.errno is None:  # raised by a reader of the bytes, not by the system: a damaged file
             raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: not a readable warp_esph checkpoint "
-                             f"({type(e).__name__})") from None
+                             f"({_not_a_checkpoint(path, e)})") from None
         # The system's reason: 'not a readable warp_esph checkpoint (IsADirectoryError)' or
         # '(OSError)', for a folder or a name too long, named no cause or the wrong one.
         raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it cannot be read ({e.strerror or e})") from None
@@ -311,7 +333,8 @@ def read_checkpoint(path, what: str = "path") -> tuple[dict, dict[str, np.ndarra
     # (a damaged compression method): in this block, only reading the file can raise them.
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
             RuntimeError, NotImplementedError) as e:
-        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
+        raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: not a readable warp_esph checkpoint "
+                         f"({_not_a_checkpoint(path, e)})") from None
     if single is not None:
         raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it holds one numpy array of shape {single} (a .npy), not a "
                          "warp_esph checkpoint (the .npz save_state writes)")
