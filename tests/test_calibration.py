@@ -2900,3 +2900,17 @@ def test_fit_material_selects_a_scene_files_material_by_its_name(tmp_path, capsy
         assert main(argv) == 2
         assert "stopped by the test" in capsys.readouterr().err
         assert seen[-1] == indices
+
+
+def test_a_damaged_mask_file_is_said_in_words_not_by_the_class_numpy_raised(tmp_path):
+    """A damaged .npz or .npy mask file said 'cannot be read: BadZipFile: File is not a zip file'
+    or 'UnpicklingError: ...', the class raised first; it is said as a damaged target file is,
+    and bytes that are no array file get no advice to load them unsafely."""
+    cams = _cameras()
+    np.savez(tmp_path / "whole.npz", front_3=np.zeros((24, 32)), side_3=np.zeros((24, 24)))
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "whole.npz").read_bytes()[:100])
+    (tmp_path / "text.npy").write_bytes(b"a mask, said in words\n")
+    for name, cameras, why in (("cut.npz", cams, "File is not a zip file"), ("text.npy", cams[:1], "not a numpy .npz/.npy file")):
+        with pytest.raises(ValueError) as e:
+            load_masks(tmp_path / name, cameras, 3)
+        assert str(e.value) == f"mask file {tmp_path / name} cannot be read: {why} (a damaged or foreign file?)"

@@ -3862,10 +3862,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         try:
             data = read_arrays(p)
         except Exception as e:  # noqa: BLE001
-            # numpy reads bytes that are no array file as pickled data and advises loading
-            # them unsafely: not the advice to give about a damaged or foreign file.
-            why = "not a numpy .npz/.npy file" if "pickle" in str(e) else str(e)
-            raise ValueError(f"target {checks.shown_path(p, False)} cannot be read: {why} (a damaged or foreign file?)") from None
+            raise unreadable_arrays("target", p, e) from None
         frames, fps = None, None
         if ext == ".npz":
             if "positions" not in data:
@@ -4304,6 +4301,15 @@ def _real_array(path: str, name: str, a) -> np.ndarray:
     if a.dtype.kind not in "iuf":
         raise ValueError(f"target {checks.shown_path(path, False)} is not allowed: its {name} must be real numbers, not {a.dtype} values")
     return a.astype(np.float64)
+
+
+def unreadable_arrays(what: str, path: str, exc: BaseException) -> ValueError:
+    """'<what> <path> cannot be read: <why> (a damaged or foreign file?)' for an .npz or .npy
+    file whose reading (``read_arrays``) raised ``exc``, said in words, not by its class."""
+    # numpy reads bytes that are no array file as pickled data and advises loading them
+    # unsafely: not the advice to give about a damaged or foreign file.
+    why = "not a numpy .npz/.npy file" if "pickle" in str(exc) else checks.read_reason(exc)
+    return ValueError(f"{what} {checks.shown_path(path, False)} cannot be read: {why} (a damaged or foreign file?)")
 
 
 def read_arrays(path: str):

@@ -215,13 +215,13 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     if not os.path.isfile(p):
         raise FileNotFoundError(f"mask file {checks.shown_path(p, False)} does not exist")
     ext = os.path.splitext(p)[1].lower()
-    from .fit import read_arrays  # noqa: PLC0415
+    from .fit import read_arrays, unreadable_arrays  # noqa: PLC0415
 
     if ext == ".npz":
         try:
             data = read_arrays(p)
         except Exception as e:  # noqa: BLE001 (zipfile, zlib and numpy raise many kinds)
-            raise ValueError(f"mask file {checks.shown_path(p, False)} cannot be read: {type(e).__name__}: {e}") from None
+            raise unreadable_arrays("mask file", p, e) from None
         if not isinstance(data, dict):
             raise ValueError(f"mask file {checks.shown_path(p, False)} is not allowed: it holds one array, not <camera>_<frame> arrays")
         out: dict[int, dict[str, np.ndarray]] = {}
@@ -247,7 +247,7 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
         try:
             a = read_arrays(p)
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"mask file {checks.shown_path(p, False)} cannot be read: {type(e).__name__}: {e}") from None
+            raise unreadable_arrays("mask file", p, e) from None
         if isinstance(a, dict):
             raise ValueError(f"mask file {checks.shown_path(p, False)} is not allowed: it is a zip of arrays, not one .npy image")
     else:
