@@ -736,3 +736,22 @@ def test_reader_errors_never_escape(ext, data):
             assert "fuzz" + ext in str(e)
         else:  # whatever was read must be a valid closed mesh
             assert p.shape[1] == 3 and t.shape[1] == 3 and open_edges(t) == 0
+
+
+def test_a_mesh_the_reader_refuses_is_said_by_the_readers_words_not_its_exception_class(tmp_path):
+    """'meshio cannot read it (ValueError: could not convert string to float: ...)': the class
+    meshio raised led its reason, in the file read here and in the one read in a child process;
+    an exception without words was said by its class alone ('KeyError: no details'). The
+    readers' words are kept; a key that is missing, or a reason not given, is said as such."""
+    from warp_esph.checks import read_reason
+
+    (tmp_path / "junk.stl").write_text("hello world\n")
+    (tmp_path / "junk.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\nx\n")
+    for name, why in (("junk.stl", "could not convert string to float: 'hello'"),
+                      ("junk.msh", "string or file could not be read to its end due to unmatched data")):
+        with pytest.raises(ValueError) as e:
+            meshes.load_mesh(tmp_path / name)
+        assert str(e.value) == f"mesh '{tmp_path / name}' is not allowed: meshio cannot read it ({why})"
+    assert read_reason(KeyError("points")) == "no 'points'"
+    assert read_reason(EOFError()) == "it ends early"
+    assert read_reason(ValueError("  ")) == "its reader gave no reason"

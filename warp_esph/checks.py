@@ -702,11 +702,17 @@ def is_read_error(exc: BaseException) -> bool:
 
 
 def read_reason(exc: BaseException) -> str:
-    """One line from a reader's exception; pxr's C++ location is dropped, its message kept."""
+    """One line from a reader's exception, in its words, not its class's name; pxr's C++
+    location is dropped, its message kept."""
     text = re.sub(r"\s+", " ", str(exc)).strip()
     # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
     messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
-    text = "; ".join(messages) or text or type(exc).__name__
+    text = "; ".join(messages) or text
+    if isinstance(exc, KeyError) and text:
+        text = f"no {text}"  # a KeyError's words are the key alone: "'points'"
+    elif not text:
+        # Its class's name was said, the only words there were ('EOFError', 'KeyError: no details').
+        text = "it ends early" if isinstance(exc, EOFError) else "its reader gave no reason"
     return text if len(text) <= 300 else text[:297] + "..."
 
 

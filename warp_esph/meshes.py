@@ -33,17 +33,6 @@ def _reject(label: str, reason: str):
     raise ValueError(f"mesh {label} is not allowed: {reason}")
 
 
-def _short(exc: BaseException) -> str:
-    """One line from an exception raised by meshio or pxr."""
-    text = re.sub(r"\s+", " ", str(exc)).strip()
-    # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
-    messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
-    text = "; ".join(messages) or text or "no details"
-    if len(text) > 300:
-        text = text[:297] + "..."
-    return f"{type(exc).__name__}: {text}"
-
-
 # ---------------------------------------------------------------------------- loading
 def _is_path(source) -> bool:
     return isinstance(source, (str, bytes)) or hasattr(source, "__fspath__")
@@ -175,7 +164,7 @@ def _read_usd(label: str, path: str, prim_path: str | None):
     try:
         stage = Usd.Stage.Open(path)
     except Exception as e:  # noqa: BLE001 (pxr raises Tf.ErrorException and others)
-        _reject(label, f"pxr cannot open it ({_short(e)})")
+        _reject(label, f"pxr cannot open it ({checks.read_reason(e)})")
     if stage is None:
         _reject(label, "pxr cannot open it")
     # EarliestTime reads the default value, or the first sample of animated points.
@@ -202,7 +191,7 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         meters = float(UsdGeom.GetStageMetersPerUnit(stage))
         meters_authored = UsdGeom.StageHasAuthoredMetersPerUnit(stage)
     except Exception as e:  # noqa: BLE001
-        _reject(where, f"pxr cannot read it ({_short(e)})")
+        _reject(where, f"pxr cannot read it ({checks.read_reason(e)})")
     if len(pts) == 0 or len(counts) == 0:
         _reject(where, f"it is empty ({len(pts)} points, {len(counts)} faces)")
     if np.any(counts < 3):
@@ -334,7 +323,11 @@ try:
         m = meshio.read(sys.argv[1])
 except BaseException as e:
     said = " ".join(printed.getvalue().split())
-    text = said if isinstance(e, SystemExit) and said else type(e).__name__ + ": " + (" ".join(str(e).split()) or "no details")
+    # Its words, not its class's name, as checks.read_reason says a reader's exception (this
+    # child imports no warp_esph).
+    text = " ".join(str(e).split())
+    text = said if isinstance(e, SystemExit) and said else (f"no {text}" if isinstance(e, KeyError) and text
+                                                            else text or "its reader gave no reason")
     sys.stderr.write(text[:300])
     sys.exit(3)
 arrays = {"points": np.asarray(m.points)}
@@ -387,7 +380,7 @@ def read_meshio(label: str, path: str):
             m = meshio.read(path)
     except (Exception, SystemExit) as e:  # noqa: BLE001 (meshio raises ReadError, KeyError, ValueError, ...)
         said = re.sub(r"\s+", " ", printed.getvalue()).strip()
-        reason = said if isinstance(e, SystemExit) and said else _short(e)
+        reason = said if isinstance(e, SystemExit) and said else checks.read_reason(e)
         _reject(label, f"meshio cannot read it ({reason})")
     said = printed.getvalue().strip()
     if said:

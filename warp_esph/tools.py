@@ -2002,7 +2002,7 @@ class ReactionLog:
             return  # no earlier log: the resumed frames only
         except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
             # Rewriting it with the resumed frames only would lose the finished run's rows.
-            why = f"no {e}" if isinstance(e, KeyError) else str(e) or type(e).__name__
+            why = checks.read_reason(e)
             raise ValueError(f"the force log {checks.shown_path(path, False)} of the run to resume cannot be read ({why}): resuming would replace "
                              "its rows of the finished frames; move it away to resume without them") from None
         theirs = doc.get("run_id") if isinstance(doc, dict) else None

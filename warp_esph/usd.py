@@ -1132,7 +1132,7 @@ class UsdFrames:
             # missing or of the wrong type; say which file, not the parser's traceback. Nothing
             # they call raises a message naming the file, so every error is wrapped: a re-raise of
             # those whose text held the path let float()'s bare words out for a value that held it.
-            detail = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            detail = (str(e).strip().splitlines() or [checks.read_reason(e)])[0]
             raise ValueError(f"cannot read {checks.shown_path(self.path, False)}: a collider or tool is damaged ({detail})") from None
         # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
         self.surface_prims = []
