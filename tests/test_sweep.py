@@ -829,6 +829,19 @@ def test_the_command_s_missing_param_and_frames_beside_duration_are_said_as_its_
     assert not out.exists()
 
 
+def test_a_param_of_a_material_the_scene_has_not_is_refused_saying_not_allowed_once(tmp_path, capsys):
+    """'--param 5.yield_stress is not allowed: material 5 is not allowed: indices are 0..0': the
+    refusal of the material was wrapped in one of the parameter, and said it twice."""
+    out = tmp_path / "sw"
+    for name, line in (("5", "material 5 is not allowed: indices are 0..0"),
+                       ("nobody", "material 'nobody' is not allowed: give a material index or a body name (dough)")):
+        rc = cli.main(["sweep", "dough_drop", "--scale", "0.3", "--workers", "1", "-o", str(out), "--no-progress",
+                       "--param", f"{name}.yield_stress=10,100"])
+        assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [
+            f"warp-esph: error: --param {name}.yield_stress: {line}"]
+    assert not out.exists()
+
+
 def _alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -2350,7 +2363,7 @@ def test_a_swept_parameter_selects_a_scene_files_material_by_its_name(tmp_path, 
     scene = load_scene_file(tmp_path / "two.toml")
     chosen = _assignments(scene, [parse_param("soft.yield_stress=50:100:log:2"), parse_param("clay.flow_rate=5")])
     assert [(field, idx) for _, field, idx in chosen] == [("yield_stress", [0]), ("flow_rate", [1])]
-    with pytest.raises(ValueError, match=r"--param hard.mu is not allowed: material 'hard' is not allowed: give a "
+    with pytest.raises(ValueError, match=r"^--param hard.mu: material 'hard' is not allowed: give a "
                                          r"material index, a body name \(a, b\) or a material name of the scene file "
-                                         r"\(soft, clay\)"):
+                                         r"\(soft, clay\)$"):
         _assignments(scene, [parse_param("hard.mu=1e4")], option_flag)

@@ -655,10 +655,10 @@ def _assignments(scene, params: list[Param], flag=None) -> list[tuple[str, str, 
             key = int(target) if target.isdigit() else target
             if isinstance(key, str) and scene.material_index(key) is not None:
                 key = scene.material_index(key)  # a scene file's material, as the file names it
-            try:
-                idx = _material_indices(view, [key], material_names=getattr(scene, "material_names", ()))
-            except ValueError as e:
-                raise ValueError(f"{flag('param')} {p.name} is not allowed: {e}") from None
+            # Named in the refusal of the material, which says 'is not allowed' itself: wrapped in
+            # one of the parameter, it was said twice.
+            idx = _material_indices(view, [key], what=f"{flag('param')} {p.name}: material",
+                                    material_names=getattr(scene, "material_names", ()))
         for k in idx:
             if (k, p.field) in seen:
                 raise ValueError(f"{flag('param')} {p.name} is not allowed: it sets {p.field} of material {k}, "
