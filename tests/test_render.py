@@ -163,10 +163,12 @@ def test_gif_folder_and_single_png_outputs(tmp_path):
     result = render_usd(path, folder, frames="1:3", width=W, height=H, supersample=1)
     assert sorted(os.listdir(folder)) == ["frame_00001.png", "frame_00002.png", "frame_00003.png"]
     for f in result.files:
-        assert os.path.getsize(f) > 0 and Image.open(f).size == (W, H)
+        with Image.open(f) as im:  # closed: opened for its size alone, the file stayed open
+            assert os.path.getsize(f) > 0 and im.size == (W, H)
     single = tmp_path / "last.png"
     result = render_usd(path, single, width=W, height=H, supersample=2)
-    assert result.frames == [3] and Image.open(single).size == (W, H)
+    with Image.open(single) as im:
+        assert result.frames == [3] and im.size == (W, H)
 
 
 def test_color_by_primvar_draws_a_colour_bar(tmp_path):
@@ -314,7 +316,8 @@ def test_bad_outputs(tmp_path, monkeypatch):
         render_usd(many, tmp_path / "s.png", frames="all", width=8192, height=8192)
     assert not (tmp_path / "z.png").exists() and not (tmp_path / "s.png").exists()
     render_usd(many, tmp_path / "s.png", frames="0,1", width=64, height=48, columns=10**6)
-    assert Image.open(tmp_path / "s.png").size == (128, 48)  # two columns: no more than there are frames
+    with Image.open(tmp_path / "s.png") as im:
+        assert im.size == (128, 48)  # two columns: no more than there are frames
     # A playback rate for pictures, columns for a movie or a folder: each was ignored.
     with pytest.raises(ValueError, match=r"fps = 10\.0 is not allowed with output = .*p\.png': it is the playback rate"):
         render_usd(path, tmp_path / "p.png", fps=10.0)
@@ -346,7 +349,8 @@ def test_a_picture_or_gif_larger_than_the_memory_is_refused_before_anything_is_w
         render_usd(path, tmp_path / "long.gif", frames=",".join(["0"] * 100), width=1024, height=1024, supersample=1)
     assert not (tmp_path / "big.png").exists() and not (tmp_path / "long.gif").exists()
     render_usd(path, tmp_path / "short.gif", frames="0,0", width=1024, height=1024, supersample=1)
-    assert Image.open(tmp_path / "short.gif").size == (1024, 1024)
+    with Image.open(tmp_path / "short.gif") as im:
+        assert im.size == (1024, 1024)
 
 
 def test_a_picture_is_weighed_against_the_containers_memory_limit(tmp_path, monkeypatch):
@@ -411,7 +415,8 @@ def test_render_command(tmp_path, capsys):
     assert main(["render", str(path), "-o", str(tmp_path / "out.gif"), "--width", "96", "--height", "72"]) == 0
     out = capsys.readouterr().out
     assert "out.gif" in out and "2 frames" in out and "s/frame" in out
-    assert Image.open(tmp_path / "out.gif").n_frames == 2
+    with Image.open(tmp_path / "out.gif") as im:
+        assert im.n_frames == 2
     assert main(["render", str(path), "--width", "96", "--height", "72"]) == 0  # default: <file>.png, last frame
     assert (tmp_path / "cli.usdc.png").exists()
     assert main(["render", str(path), "-o", str(tmp_path / "o.png"), "--frames", "7"]) == 2

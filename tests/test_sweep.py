@@ -599,7 +599,8 @@ def test_a_plot_names_what_it_cannot_draw_and_is_written_where_it_says(serial, t
     assert not (tmp_path / "p.png").exists()
     out = plot(serial, tmp_path / "picture", quantities="max_height", log_params="yield_stress")
     assert out == str(tmp_path / "picture") and sorted(os.listdir(tmp_path)) == ["picture"]
-    assert Image.open(out).format == "PNG"
+    with Image.open(out) as im:
+        assert im.format == "PNG"
 
 
 def test_a_function_the_workers_cannot_be_sent_is_refused_before_any_item(tmp_path):
