@@ -1071,10 +1071,7 @@ class SceneBuilder:
         except Exception:  # noqa: BLE001 (a bad device: finalize_worlds names it)
             dev = None
         if dev is not None and worlds > 1:  # (one world: finalize_worlds checks it)
-            try:
-                _check_memory(self.particle_count * int(worlds), self.max_neighbors, dev)
-            except ValueError as e:
-                raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: {e}") from None
+            _check_memory(self.particle_count * int(worlds), self.max_neighbors, dev, worlds=int(worlds))
         return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
 
 
@@ -1165,15 +1162,20 @@ def _device_memory(dev) -> int | None:
         return None
 
 
-def _check_memory(count: int, max_neighbors: int, dev) -> None:
+def _check_memory(count: int, max_neighbors: int, dev, worlds: int | None = None) -> None:
     """Refuse a model that could not fit in the device's memory before allocating it: a body
-    under the lattice cap (2e7 particles of 3 kB) exhausted the machine and was killed."""
+    under the lattice cap (2e7 particles of 3 kB) exhausted the machine and was killed.
+    ``worlds``: the copies asked for, which the refusal names (their particles are ``count``)."""
     have = _device_memory(dev)
     need = count * (BYTES_PER_PARTICLE + BYTES_PER_NEIGHBOR * max_neighbors)
     if have is not None and need > have:
-        raise ValueError(f"particles = {count} is not allowed on {dev}: a model and two states of them need about "
+        # The worlds' own refusal: wrapped in one, this said 'is not allowed' twice ('worlds = 2
+        # is not allowed: particles = 128 is not allowed on cpu: ...').
+        what, them, fewer = ((f"particles = {count}", "them", "") if worlds is None else
+                             (f"worlds = {worlds}", f"their {count} particles", "fewer worlds, "))
+        raise ValueError(f"{what} is not allowed on {dev}: a model and two states of {them} need about "
                          f"{need / 2**30:.3g} GiB ({need // count} B a particle at max_neighbors = {max_neighbors}), more "
-                         f"than its {have / 2**30:.3g} GiB; use a larger spacing or smaller bodies")
+                         f"than its {have / 2**30:.3g} GiB; use {fewer}a larger spacing or smaller bodies")
 
 
 def _check_outside_colliders(builder) -> None:
@@ -1810,10 +1812,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
         raise ValueError("model is not allowed: it has moving tools or pinned sets, which act on one world; "
                          "build one model per scene with tools")
     W, n, M, B = int(worlds), model.particle_count, len(model.materials), len(model.bodies)
-    try:
-        _check_memory(n * W, model.max_neighbors, model.device)
-    except ValueError as e:
-        raise ValueError(f"worlds = {W} is not allowed: {e}") from None
+    _check_memory(n * W, model.max_neighbors, model.device, worlds=W)
     several = W > 1
     bodies = []
     for w in range(W):
