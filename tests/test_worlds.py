@@ -292,9 +292,16 @@ def test_a_loss_sized_for_the_whole_model_or_another_model_is_refused_before_any
     monkeypatch.setattr(Rollout, "_forward_checked", no_rollout)  # Rollout.forward's, and fit's
     with pytest.raises(ValueError, match=rf"^targets at step 2 has {half} points, the positions {n} particles$"):
         Rollout(model, 2, DT).value_and_grad(wrong)
-    with pytest.raises(ValueError, match=rf"^positions with {half} particles are not allowed: the worlds have {n}$"):
-        one = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True)
-        Rollout(one, 2, DT).value_and_grad(losses.WorldLoss(model, losses.PositionLoss(np.zeros((half, 3)), frames=[2])))
+    # Said as the plain loss's size is, not as a refusal of its own: fit wraps it in one, and it
+    # said 'is not allowed' twice ('target is not allowed for this model: positions with 16
+    # particles are not allowed: ...').
+    one = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True)
+    of_two = losses.WorldLoss(model, losses.PositionLoss(np.zeros((half, 3)), frames=[2]))
+    with pytest.raises(ValueError, match=rf"^the worlds of this loss have {n} particles, the positions {half}$"):
+        Rollout(one, 2, DT).value_and_grad(of_two)
+    with pytest.raises(ValueError, match=rf"^the experiment: target is not allowed for this model: the worlds of this loss "
+                                         rf"have {n} particles, the positions {half}$"):
+        fit(one, of_two, ["yield_stress"], steps=2, dt=DT, iterations=1, progress=False, diagnostics=False)
     with pytest.raises(ValueError, match=rf"^the experiment: target is not allowed for this model: targets at step 2 has "
                                          rf"{half} points, the positions {n} particles$"):
         fit(model, wrong, ["yield_stress"], steps=2, dt=DT, iterations=1, progress=False, diagnostics=False)

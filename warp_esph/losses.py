@@ -834,7 +834,9 @@ class WorldLoss(Loss):
 
     def check_positions(self, n: int) -> None:
         if n != self.world_start[-1]:
-            raise ValueError(f"positions with {n} particles are not allowed: the worlds have {int(self.world_start[-1])}")
+            # Said as a plain loss's size is (PositionLoss): fit wraps it in a refusal of the
+            # target, where 'positions ... are not allowed' said 'is not allowed' twice.
+            raise ValueError(f"the worlds of this loss have {int(self.world_start[-1])} particles, the positions {n}")
 
     def launch(self, frame, x, out, scale: float = 1.0):
         self.check_positions(x.shape[0])
