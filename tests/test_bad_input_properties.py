@@ -1049,7 +1049,7 @@ def test_a_material_whose_wave_speed_overflows_is_refused_also_in_a_rollout():
     b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
     rollout = Rollout(b.finalize(dtype="float64", requires_grad=True), 3, 1e-4)
     before = rollout.get_parameters()
-    with pytest.raises(ValueError, match=r"values are not allowed: material 0: Material\.mu = 1e\+308, .*" + together):
+    with pytest.raises(ValueError, match=r"values: material 0: Material\.mu = 1e\+308, .*" + together):
         rollout.set_parameters({"mu": [1e308]})
     _assert_parameters_unchanged(rollout, before, DOUGH)
 
@@ -1084,7 +1084,7 @@ def test_a_float32_model_refuses_a_p_wave_modulus_float32_cannot_hold():
     with pytest.raises(ValueError, match=r"^Material\.mu = 3e\+38 " + why):
         model.set_material(0, big)
     _assert_parameters_unchanged(rollout, before, big.replace(mu=1e3))
-    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.mu = 3e\+38 " + why):
+    with pytest.raises(ValueError, match=r"^values: material 0: Material\.mu = 3e\+38 " + why):
         rollout.set_parameters({"mu": [3e38]})
     assert before["mu"].tolist() == [1e3]
     _assert_parameters_unchanged(rollout, before, big.replace(mu=1e3))
@@ -1104,7 +1104,7 @@ def test_a_float32_modulus_refusal_names_the_value_that_made_it_too_big():
     small = we.SceneBuilder(spacing=0.05)
     small.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e3, lam=1e3, density=1000.0, pressure_stiffness=0.0))
     rollout = Rollout(small.finalize(dtype="float32", requires_grad=True), 3, 1e-4)
-    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.pressure_stiffness = 4e\+35"
+    with pytest.raises(ValueError, match=r"^values: material 0: Material\.pressure_stiffness = 4e\+35"
                        + why + r"4e\+38 Pa"):
         rollout.set_parameters({"pressure_stiffness": [4e35]})
 
@@ -1136,7 +1136,7 @@ def test_a_plastic_material_whose_squared_flow_stress_the_precision_cannot_hold_
     small = we.SceneBuilder(spacing=0.05)
     small.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e3, lam=1e3, yield_stress=100.0, flow_rate=50.0))
     rollout = Rollout(small.finalize(dtype="float32", requires_grad=True), 3, 1e-4)
-    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.mu = 1e\+19 is not allowed in "
+    with pytest.raises(ValueError, match=r"^values: material 0: Material\.mu = 1e\+19 is not allowed in "
                                          r"float32: " + why):
         rollout.set_parameters({"mu": [1e19]})
 

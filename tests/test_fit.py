@@ -1655,7 +1655,7 @@ def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path)
     cases = [
         (lambda: r.backward(None), "grads = None is not allowed: give a warp_esph.losses.Loss"),
         (lambda: r.set_parameters(["mu"]), r"values = \['mu'\] is not allowed: must be a mapping"),
-        (lambda: r.set_parameters({"mu": -1.0}), "values are not allowed: material 0: Material.mu = -1.0"),
+        (lambda: r.set_parameters({"mu": -1.0}), "values: material 0: Material.mu = -1.0"),
         (lambda: r.set_parameters({"mu": "soft"}), "mu = 'soft' is not allowed: must be numbers"),
         (lambda: fit(model, PositionLoss({3: x[1]}), ["yield_stress"], steps=3, dt=1e-3, bounds=[(1, 2)]),
          "bounds = .* is not allowed: must be a mapping"),

@@ -1239,14 +1239,14 @@ class Model:
                                  f"index in 0..{bodies - 1} or -1 (every particle)")
         self._checked_fields = list(fields)
 
-    def _check_parameter_values(self, rows: np.ndarray,
-                                what: str = "the model's parameter arrays are not allowed as they are") -> None:
+    def _check_parameter_values(self, rows: np.ndarray, what: str = "the model's parameter arrays") -> None:
         """The parameter arrays (a fit, torch or a user writes them in place) hold values each
         material takes, by ``Material``'s own checks: a NaN or negative shear modulus made the
         stable step NaN and the positions NaN without a word, a negative viscosity flung the
         body, a negative flow rate ran on. Runs where ``stable_dt`` reads new values, so before
         the step that would use them, and where values are given (``Rollout.set_parameters``,
-        ``what``: how the message begins)."""
+        ``what``: what the message names first; the material's refusal after it says 'is not
+        allowed', which 'the model's parameter arrays are not allowed as they are' said twice)."""
         for k, m in enumerate(self.materials):
             values = {name: float(rows[f, k]) for f, name in enumerate(self.MATERIAL_FIELDS)}
             try:

@@ -782,7 +782,7 @@ class Rollout:
         after = {**current, **new}
         # Each material's checks, now that the values are given (a negative mu was refused
         # only at the next step, as "the model's parameter arrays").
-        m._check_parameter_values(np.stack([after[f] for f in m.MATERIAL_FIELDS]), "values are not allowed")
+        m._check_parameter_values(np.stack([after[f] for f in m.MATERIAL_FIELDS]), "values")
         for name, v in new.items():
             if not np.array_equal(v, current[name]):
                 getattr(m, name).assign(v)
