@@ -1228,15 +1228,16 @@ class Model:
                              f"CompressionField (SceneBuilder.add_compression_field makes them)")
         bodies = len(self.bodies)
         for i, f in enumerate(fields):
-            what = f"model.force_fields[{i}] = {checks.shorten(f)!r} is not allowed"
+            what = f"model.force_fields[{i}] = {checks.shorten(f)!r}"
             if not isinstance(f, CompressionField):
-                raise ValueError(f"{what}: must be a warp_esph.sim.fields.CompressionField")
+                raise ValueError(f"{what} is not allowed: must be a warp_esph.sim.fields.CompressionField")
             problem = field_precision_problem(f, self.scalar)
             if problem is not None:
+                # The field's refusal says 'is not allowed' itself: wrapped, it was said twice.
                 raise ValueError(f"{what}: {problem}")
             if not f.body < bodies:
-                raise ValueError(f"{what}: CompressionField.body = {f.body} is not a body of the model: must be a body "
-                                 f"index in 0..{bodies - 1} or -1 (every particle)")
+                raise ValueError(f"{what} is not allowed: CompressionField.body = {f.body} is not a body of the model: must "
+                                 f"be a body index in 0..{bodies - 1} or -1 (every particle)")
         self._checked_fields = list(fields)
 
     def _check_parameter_values(self, rows: np.ndarray, what: str = "the model's parameter arrays") -> None:
