@@ -297,7 +297,8 @@ def main(argv=None) -> int:
         # The builder's lattice check, before the target run (a traceback out of time_step there).
         scene(truth(), scale)
     except ValueError as e:
-        ap.error(f"argument --scale: {scale} is not allowed: {e}")
+        # e is the builder's refusal, which says 'is not allowed' itself: not wrapped in another.
+        ap.error(f"argument --scale: {scale} gives a scene the builder refuses: {e}")
     landed, t_land = landing_frame(scale)
     if a.frames < landed:
         # Frames of free fall only: the loss was round-off at the guess, and the fit's
