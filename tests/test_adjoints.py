@@ -306,17 +306,19 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
 def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
                                model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky",
                                second_pressure_force: str | None = None, ground: float | None = None,
-                               fit: str | None = None):
+                               fit: str | None = None, pair_repulsion: float = 0.0):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones; with
     ``second_pressure_force`` a second block of that force touches the first; with ``ground``
     the block stands over the ground at that height with floor images
-    (``add_ground(images=True)``), squeezed towards it; ``fit``: ``Solver(fit=...)``."""
+    (``add_ground(images=True)``), squeezed towards it; ``fit``: ``Solver(fit=...)``; with
+    ``pair_repulsion`` (``Material``'s) its particle 1 starts 0.3 dx from particle 0, within
+    the repulsion's range (0.5 dx)."""
     import warp_esph as we  # noqa: PLC0415
 
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
                       pressure_stiffness=1.0, viscosity=2.0, elastic_force=elastic_force, model=model_name,
-                      pressure_force=pressure_force)
+                      pressure_force=pressure_force, pair_repulsion=pair_repulsion)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     if second_pressure_force is not None:
@@ -325,6 +327,11 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
         b.add_ground(ground, friction=0.5, images=True)
     model = b.finalize(dtype=scalar, requires_grad=True)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    if pair_repulsion:
+        x0 = model.particle_x0
+        d = x0[1] - x0[0]
+        x0[1] = x0[0] + 0.3 * 0.02 * d / np.linalg.norm(d)
+        model.particle_x0 = x0
     model.particle_v0 = (20.0 if ground is None else -20.0) * model.particle_x0 * np.array([1.0, -0.5, 0.0])
     solver = we.Solver(model, fit=fit)
     solver.hand_adjoints = hand
@@ -400,6 +407,17 @@ def test_hand_written_energy_pressure_adjoint(scalar, tol, pressure_force):
     the spiky-kernel density; the spiky one is in the test above) against Warp's generated
     adjoints."""
     _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force)
+
+
+@pytest.mark.parametrize("pressure_force", ["energy", "spiky", "energy_spiky"])
+@pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
+def test_hand_written_pair_repulsion_adjoint(scalar, tol, pressure_force):
+    """``Material.pair_repulsion``'s adjoint in ``pressure.pressure_pair_adjoint`` (the fused
+    step's adjoint pass; ``pressure_forces_adjoint`` runs the same function) against Warp's
+    generated adjoint of the unfused step, with a pair starting 0.3 dx apart, within the
+    repulsion's 0.5 dx: every initial state field and parameter, ``k_p`` (which scales the
+    repulsion) among them."""
+    _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force, pair_repulsion=2.0)
 
 
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])

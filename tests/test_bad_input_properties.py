@@ -46,7 +46,8 @@ ANY_VALUE = st.one_of(
     st.integers(min_value=-(10**500), max_value=-(10**308)),
 )
 
-MATERIAL_FIELDS = ["mu", "lam", "yield_stress", "flow_rate", "hardening", "density", "pressure_stiffness", "viscosity", "model", "clamp_pressure"]
+MATERIAL_FIELDS = ["mu", "lam", "yield_stress", "flow_rate", "hardening", "density", "pressure_stiffness", "viscosity", "model", "clamp_pressure",
+                   "pair_repulsion"]
 
 
 @settings(max_examples=150, deadline=None)

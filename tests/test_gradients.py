@@ -523,6 +523,35 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_pair_repulsion_gradients_match_central_differences(weights, fused):
+    """``Material.pair_repulsion`` (``pressure.pair_repulsion_force``; its hand-written adjoint
+    in ``pressure.pressure_pair_adjoint``, which both the fused step's adjoint pass and
+    ``pressure_forces_adjoint`` run): the ``merging`` block of the test above with
+    ``pair_repulsion = 2``, its two middle layers 0.2 dx apart, inside the repulsion's range
+    ``r0 = h / 4 = 0.5 dx``, and closing. The tape's gradients in ``k_p`` (which scales the
+    repulsion), the viscosity and a merging particle's initial velocity against float64
+    central differences."""
+    params = {"pair_repulsion": 2.0}
+    model = _energy_spiky_model("merging", params)
+    names = ("pressure_stiffness", "viscosity")
+    loss, grads = _rollout_loss(model, weights, grad_of=(*names, "v0"), fused=fused)
+    assert loss != _rollout_loss(_energy_spiky_model("merging"), weights, fused=fused)[0], "the repulsion acts"
+    i = int(np.flatnonzero(np.abs(np.abs(model.particle_x0[:, 1]) - 0.002) < 0.001)[0])
+    m = _energy_spiky_model("merging", params)
+    for comp in (0, 1):
+        fd = _v0_central_difference(m, weights, i, comp, fused=fused)
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9), comp
+    for name in names:
+        base = getattr(model.materials[0], name)
+        eps = 1e-4 * base
+        at = _reused(_energy_spiky_model("merging", params))
+        fd = (_rollout_loss(at(name, base + eps), weights, fused=fused)[0]
+              - _rollout_loss(at(name, base - eps), weights, fused=fused)[0]) / (2 * eps)
+        assert abs(fd) > 1e-9, "the loss does not reach " + name
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+
+
 #: (parameter at 0, the other SPH parameter's value, pressure force, ``Solver(fused=)``): both at 0,
 #: where the step ran no SPH term at all, and the stiffness alone at 0 beside a viscosity,
 #: where the clamp of each pressure force held every pressure at 0.

@@ -989,6 +989,48 @@ def test_pressure_force_choice_is_validated_and_energy_spiky_by_default():
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")
 
 
+def _head_on_pair(pair_repulsion, fused=True, steps=200, speed=1.0):
+    """Two lone particles of the default pressure force (``energy_spiky``, its default ``k_p``)
+    a spacing apart, closing at ``speed`` each, no gravity, float64; the closest they come
+    (in spacings) over ``steps`` steps of 1e-4 s, and the model."""
+    dx = 0.02
+    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, pair_repulsion=pair_repulsion)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_particles([(-0.5 * dx, 0.0, 0.0)], mat, velocity=(speed, 0.0, 0.0))
+    b.add_particles([(0.5 * dx, 0.0, 0.0)], mat, velocity=(-speed, 0.0, 0.0))
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model, fused=fused)
+    a, o = model.state(), model.state()
+    closest = np.inf
+    for _ in range(steps):
+        solver.step(a, o, 1.0e-4)
+        a, o = o, a
+        x = a.x.numpy()
+        closest = min(closest, np.linalg.norm(x[1] - x[0]) / dx)
+    return closest, model
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_the_pair_repulsion_keeps_a_head_on_pair_apart(fused):
+    """``Material.pair_repulsion`` (``pressure.pair_repulsion_force``): two particles closing
+    head on at 1 m/s each meet without it, the ``energy_spiky`` pressure's push staying finite
+    as they do (measured 0.0034 dx apart at the closest); with ``pair_repulsion = 2`` (work
+    ``2 k_p m`` at contact, twice the pair's kinetic energy) they turn back 0.131 dx apart,
+    as the fused step so the unfused one."""
+    without, _ = _head_on_pair(0.0, fused)
+    with_it, model = _head_on_pair(2.0, fused)
+    assert without < 0.01, without
+    assert 0.1 < with_it < 0.5, with_it  # turned back inside r0 = h / 4 = 0.5 dx
+    assert model.materials[0].pressure_stiffness == pytest.approx(1.0, rel=0.01)
+
+
+@pytest.mark.parametrize("value", [-1.0, math.nan, math.inf])
+def test_a_negative_or_non_finite_pair_repulsion_is_refused(value):
+    with pytest.raises(ValueError, match=rf"Material\.pair_repulsion = {value!r} is not allowed"):
+        we.Material(mu=1.0, lam=1.0, pair_repulsion=value)
+    assert we.Material(mu=1.0, lam=1.0).pair_repulsion == 0.0, "off by default"
+
+
 def test_fit_guard_leaves_disordered_neighbourhoods_alone():
     """The fit guard ``cond(A) > 20`` (``neighbors.MAX_CONDITION``, docs/method.md §2) drops
     the ill-conditioned fits of a spreading plastic layer (``cond(A)`` 200-500, stiffer than

@@ -684,3 +684,50 @@ def test_float64_kernels_take_constants_of_python_arithmetic_in_float64():
     np.testing.assert_allclose(mats[0], np.eye(3) / eps, rtol=1e-14, atol=0)
     # (the SVD leaves round-off off the diagonal)
     np.testing.assert_allclose(mats[1], np.eye(3) / det ** (1.0 / 3.0), rtol=1e-13, atol=1e-15)
+
+
+@functools.cache
+def _pair_repulsion_kernel():
+    from warp_esph.sim import pressure
+
+    fn = pressure.funcs(wp.float64)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def run(r: wp.array(dtype=wp.float64), s: wp.float64, h: wp.float64, out: wp.array(dtype=wp.vec3d)):
+        i = wp.tid()
+        # Along a direction off the axes: the force is along rij whatever it is.
+        d = wp.normalize(wp.vec3d(wp.float64(0.6), wp.float64(-0.48), wp.float64(0.64)))
+        out[i] = fn.pair_repulsion_force(s, r[i] * d, r[i], h)
+
+    return run
+
+
+def test_the_pair_repulsion_is_minus_the_gradient_of_its_potential_and_meets_zero_with_zero_slope():
+    """``pressure``'s ``pair_repulsion_force`` (``Material.pair_repulsion``) is ``-dU/dr`` of
+    ``U = s (1 - r/r0)^3``, ``r0 = PAIR_REPULSION_RANGE h``, along the pair (central differences
+    of ``U``), pushing the pair apart; 0 at and beyond ``r0``, where it meets 0 with zero slope
+    (``3 s d^2 / r0^3`` at ``d`` inside it: no kink of the step where a pair crosses ``r0``)."""
+    from warp_esph.sim import pressure
+
+    h, s = 0.04, 0.016
+    r0 = pressure.PAIR_REPULSION_RANGE * h
+    d = np.array([0.6, -0.48, 0.64]) / np.linalg.norm([0.6, -0.48, 0.64])
+
+    def run(r):
+        out = wp.zeros(len(r), dtype=wp.vec3d)
+        wp.launch(_pair_repulsion_kernel(), len(r), [wp.array(r, dtype=wp.float64), s, h], [out])
+        return out.numpy()
+
+    r = r0 * np.array([1e-3, 0.1, 0.3, 0.5, 0.7, 0.9, 0.99])
+    f = run(r)
+    np.testing.assert_allclose(f, np.outer(np.linalg.norm(f, axis=1), d), rtol=1e-12)
+    eps = 1e-9 * r0
+
+    def U(q):
+        return s * np.clip(1.0 - q / r0, 0.0, None) ** 3
+
+    np.testing.assert_allclose(f @ d, -(U(r + eps) - U(r - eps)) / (2 * eps), rtol=1e-6)
+    assert np.all(f @ d > 0.0), "a push"
+    assert not run(r0 * np.array([1.0, 1.0 + 1e-12, 2.0, 4.0])).any()
+    gap = r0 * np.array([1e-2, 1e-4, 1e-6])
+    np.testing.assert_allclose(run(r0 - gap) @ d, 3.0 * s * gap ** 2 / r0 ** 3, rtol=1e-9)

@@ -75,6 +75,8 @@ def scene_record(model: Model, version: int = FINGERPRINT_VERSION) -> dict:
     }
     if model.fit_weight != "poly6":  # only where set: checkpoints written before the option still match
         record["fit_weight"] = model.fit_weight
+    if any(m.pair_repulsion for m in model.materials):  # likewise; not a fitted parameter, so not in the arrays
+        record["pair_repulsion"] = [m.pair_repulsion for m in model.materials]
     # Likewise only where the model has them: ghost floors and the moving tools and pinned sets.
     ghosts = [(b.name, b.ghost_floor, b.ghost_plane, b.ghost_slip) for b in model.bodies if b.ghost_floor > 0]
     if version < 2:

@@ -182,6 +182,12 @@ class Material:
     virial ``p V I``, which the pair forms' do not (the unfused step runs it; it may not share
     a model with another pressure force, nor floor images) (docs/method.md §6). ``Model.stable_dt()`` bounds each force
     (docs/physics.md, "The step bound of undamped fast plastic flow").
+
+    ``pair_repulsion = c`` (0, the default: off) adds the short-range pair potential
+    ``U = (c_i k_p,i + c_j k_p,j)/2 sqrt(m_i m_j) (1 - r/r0)^3`` below ``r0 = h/4``
+    (``pressure.pair_repulsion_force``; docs/method.md §6): it keeps apart two particles
+    that a landing drives together, which the pressure forces' finite push lets meet
+    (docs/physics.md, "landed as an option"). Not a fitted parameter.
     """
 
     mu: float
@@ -197,6 +203,7 @@ class Material:
     deformation: str = "incremental"
     elastic_force: str | None = None
     pressure_force: str = "energy_spiky"
+    pair_repulsion: float = 0.0
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -229,6 +236,7 @@ class Material:
             set_("pressure_stiffness", derived)
         set_("pressure_stiffness", checks.non_negative("Material.pressure_stiffness", self.pressure_stiffness))
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
+        set_("pair_repulsion", checks.non_negative("Material.pair_repulsion", self.pair_repulsion))
         # The explicit step resolves this speed: past the float range it was inf, the stable step
         # 0, and a rollout of a given dt ran to NaN positions and returned them without a word.
         if not math.isfinite(float(p_wave_speed(self.mu, self.lam, self.density, self.pressure_stiffness))):

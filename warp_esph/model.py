@@ -553,6 +553,8 @@ class Model:
         self.viscosity = self._material_array("viscosity")
         self.material_model = wp.array([MODEL_IDS[m.model] for m in materials], dtype=wp.int32, device=dev)
         self.clamp_pressure = wp.array([int(m.clamp_pressure) for m in materials], dtype=wp.int32, device=dev)
+        # Not differentiated (not in MATERIAL_FIELDS): no gradient array.
+        self.pair_repulsion = wp.array([m.pair_repulsion for m in materials], dtype=scalar, device=dev)
         self.material_deformation = wp.array(
             [DEFORMATION_IDS[m.deformation] for m in materials], dtype=wp.int32, device=dev
         )
@@ -917,6 +919,7 @@ class Model:
         for arr, value in (
             (self.material_model, MODEL_IDS[material.model]),
             (self.clamp_pressure, int(material.clamp_pressure)),
+            (self.pair_repulsion, material.pair_repulsion),
             (self.material_deformation, DEFORMATION_IDS[material.deformation]),
             (self.material_elastic_force, ELASTIC_FORCE_IDS[material.elastic_force]),
             (self.material_pressure_force, PRESSURE_FORCE_IDS[material.pressure_force]),
@@ -1014,6 +1017,7 @@ class Model:
             hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
             model=self.material_model, deformation=deformation, elastic_force=self.material_elastic_force,
             clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
+            pair_repulsion=self.pair_repulsion,
         )
         # A struct copies each array's data and gradient pointers when it is filled, so it is
         # reused only while every array and its gradient are the very same allocations: a

@@ -196,7 +196,7 @@ MATERIAL_KEYS = {
     "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
     "deformation": (STR, False), "elastic_force": (STR, False), "pressure_force": (STR, False),
-    "shear_yield_stress": (NUM, False), "uniaxial_yield_stress": (NUM, False), "plastic_viscosity": (NUM_INF, False),
+    "pair_repulsion": (NUM, False), "shear_yield_stress": (NUM, False), "uniaxial_yield_stress": (NUM, False), "plastic_viscosity": (NUM_INF, False),
 }
 #: A lab's values, which set ``yield_stress`` and ``flow_rate`` as ``Material.from_rheology``
 #: does, from the table's final ``mu`` (a preset's where the table gives no moduli).

@@ -53,6 +53,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     fw = smoothing.fit_weight_funcs(scalar, weight)
     sph_pair_force = pressure.funcs(scalar).sph_pair_force
+    pair_repulsion_of = pressure.funcs(scalar).pair_repulsion_of
     pair_viscosity = pressure.funcs(scalar).pair_viscosity
     image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
@@ -218,7 +219,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 if sph == 2:
                     VVp = Vpi * vol_p[j]
                 half = scalar(0.5) * sph_pair_force(VV, VVp, pi, p[j], rho_i, rho_p[j], form, eta, xi - xj, v[j] - vi, h,
-                                                   c6, c_spiky, c_visc)
+                                                   c6, c_spiky, c_visc, pair_repulsion_of(i, j, mass, material, mat))
                 fj -= half
                 fi += half
             wp.atomic_add(f, j, fj)

@@ -12,6 +12,8 @@ import warp as wp
 
 #: Differentiable per-material scalars (``Model.MATERIAL_FIELDS``, same order).
 SCALAR_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
+#: Per-material scalars the step reads but no gradient reaches (not fitted).
+FIXED_FIELDS = ("pair_repulsion",)
 #: Per-material choices (indices into ``material.MODELS``, ``DEFORMATIONS``, ``ELASTIC_FORCES``; 0/1; ``PRESSURE_FORCES``).
 INT_FIELDS = ("model", "deformation", "elastic_force", "clamp_pressure", "pressure_force")
 
@@ -34,6 +36,7 @@ def struct(scalar):
         elastic_force: wp.array(dtype=wp.int32)
         clamp_pressure: wp.array(dtype=wp.int32)
         pressure_force: wp.array(dtype=wp.int32)
+        pair_repulsion: wp.array(dtype=scalar)
 
     return Materials
 
@@ -41,14 +44,14 @@ def struct(scalar):
 def make(scalar, device=None, **arrays):
     """A ``Materials`` instance holding ``arrays`` (``{field: wp.array}``); a field not
     given gets a one-element array of zeros (for kernels launched on their own in tests)."""
-    unknown = set(arrays) - set(SCALAR_FIELDS) - set(INT_FIELDS)
+    unknown = set(arrays) - set(SCALAR_FIELDS) - set(INT_FIELDS) - set(FIXED_FIELDS)
     if unknown:
-        raise ValueError(f"fields {sorted(unknown)} are not allowed: must be in {SCALAR_FIELDS + INT_FIELDS}")
+        raise ValueError(f"fields {sorted(unknown)} are not allowed: must be in {SCALAR_FIELDS + INT_FIELDS + FIXED_FIELDS}")
     out = struct(scalar)()
     n = max((a.shape[0] for a in arrays.values()), default=1)
-    for name in SCALAR_FIELDS + INT_FIELDS:
+    for name in SCALAR_FIELDS + INT_FIELDS + FIXED_FIELDS:
         arr = arrays.get(name)
         if arr is None:
-            arr = wp.zeros(n, dtype=scalar if name in SCALAR_FIELDS else wp.int32, device=device)
+            arr = wp.zeros(n, dtype=wp.int32 if name in INT_FIELDS else scalar, device=device)
         setattr(out, name, arr)
     return out

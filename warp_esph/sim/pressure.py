@@ -22,7 +22,8 @@ configuration, so a body starts pressure-free even at its surface, where the SPH
 short of neighbours. Rows may reach ``h sigma_max(F_i)`` and may be capped, and so are not symmetric: as for the elastic
 force each directed pair applies half its force to both particles, equal and opposite,
 which keeps linear momentum exact. Pressure acts between bodies too: it is what keeps
-them apart.
+them apart. ``Material.pair_repulsion`` adds a short-range pair potential below ``h / 4``
+(``pair_repulsion_force``), off by default.
 """
 
 import functools
@@ -50,6 +51,10 @@ ISOTROPIC_REGULARISATION = 0.1
 #: particle-steps whose isotropic pressure map was regularised (``q < ISOTROPIC_Q_FULL``), where
 #: the virial of the particle's own forces is short of ``p V I`` (a flat layer, a line, a pair).
 COUNT_PRESSURE_REGULARISED = 5
+#: The range ``r0 / h`` of the pair repulsion (``Material.pair_repulsion``,
+#: ``pair_repulsion_force``): a quarter of the support, half a spacing at ``h = 2 dx``, well
+#: inside a lattice's nearest neighbour (``dx``), so a body at rest does not feel it.
+PAIR_REPULSION_RANGE = 0.25
 
 
 @functools.cache
@@ -57,6 +62,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
+    Materials = materials.struct(scalar)
 
     @wp.func
     def pressure(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
@@ -146,9 +152,47 @@ def funcs(scalar) -> types.SimpleNamespace:
         return (scalar(5.0) * eta_VV * lap_w * wp.dot(vji, rij) / r2) * rij
 
     @wp.func
+    def pair_repulsion_force(s: scalar, rij: vec3, rl: scalar, h: scalar) -> vec3:
+        """``-dU/d x_i = 3 s / r0 (1 - r/r0)^2 e_ij`` on ``i`` of the pair potential ``U = s (1 -
+        r/r0)^3`` below ``r0 = PAIR_REPULSION_RANGE h`` (0 beyond), ``s =
+        pair_repulsion_strength``, ``rij = x_i - x_j``, ``rl = |rij|``: the pressure forces'
+        push between two particles stays finite as they meet (``energy_spiky``'s) or fades
+        (``energy``'s), so a landing's impact can drive a pair together; this one's work
+        ``s`` at contact, with ``s`` a pressure energy, keeps such a pair apart. Zero with
+        zero slope at ``r0``, so it is continuous and differentiable in the positions; zero
+        at ``r = 0``, where its direction is undefined."""
+        r0 = scalar(PAIR_REPULSION_RANGE) * h
+        f = vec3()
+        if rl < r0 and rl > scalar(1.0e-12) * h:
+            e = scalar(1.0) - rl / r0
+            f = (scalar(3.0) * s * e * e / (r0 * rl)) * rij
+        return f
+
+    @wp.func
+    def pair_repulsion_strength(k_i: scalar, c_i: scalar, k_j: scalar, c_j: scalar, m_i: scalar, m_j: scalar) -> scalar:
+        """The pair potential's energy scale ``s = (c_i k_p,i + c_j k_p,j)/2 sqrt(m_i m_j)``
+        (``pair_repulsion_force``; ``c = Material.pair_repulsion``): ``k_p m`` is a pressure
+        energy (``p / rho`` times a mass), so ``c`` is a number, the same at every spacing and
+        stiffness; the mean keeps a pair of materials' forces equal and opposite. 0 (the
+        force off) unless a material of the pair has ``c > 0``."""
+        s = scalar(0.0)
+        if c_i > scalar(0.0) or c_j > scalar(0.0):
+            s = scalar(0.5) * (c_i * k_i + c_j * k_j) * wp.sqrt(m_i * m_j)
+        return s
+
+    @wp.func
+    def pair_repulsion_of(i: int, j: int, mass: wp.array(dtype=scalar), material: wp.array(dtype=wp.int32),
+                          mat: Materials) -> scalar:
+        """``pair_repulsion_strength`` of the particles ``i, j``."""
+        mi = material[i]
+        mj = material[j]
+        return pair_repulsion_strength(mat.pressure_stiffness[mi], mat.pair_repulsion[mi], mat.pressure_stiffness[mj],
+                                       mat.pair_repulsion[mj], mass[i], mass[j])
+
+    @wp.func
     def sph_pair_force(
         VV: scalar, VVp: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, form: int, eta: scalar,
-        rij: vec3, vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
+        rij: vec3, vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar, s_rep: scalar
     ) -> vec3:
         """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``, 2
         ``energy_spiky_pair_force``; 3, ``isotropic``, none: its pressure is
@@ -156,7 +200,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         sharing one ``|rij|``. ``VV = V_i V_j`` with the SPH (poly6) density's volumes ``m /
         rho`` (viscosity, the spiky force); ``rho_i, rho_j`` are the pressure densities and
         ``VVp = m_i m_j / (rho_i rho_j)`` (the energy forces): the same as the SPH density but
-        for an ``energy_spiky`` particle (``State.pressure_density``)."""
+        for an ``energy_spiky`` particle (``State.pressure_density``). ``s_rep > 0`` adds the pair
+        repulsion (``pair_repulsion_force``; 0: the option off, not evaluated)."""
         r2 = wp.dot(rij, rij)
         f = vec3()
         if r2 < h * h:
@@ -169,6 +214,8 @@ def funcs(scalar) -> types.SimpleNamespace:
                 elif form == 2:
                     f = energy_spiky_pair_force(VVp, p_i, p_j, rho_i, rho_j, rij, rl, h, c_spiky)
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
+            if s_rep > scalar(0.0):
+                f += pair_repulsion_force(s_rep, rij, rl, h)
         return f
 
     @wp.func
@@ -185,8 +232,6 @@ def funcs(scalar) -> types.SimpleNamespace:
         particles' viscosities, so that a pair of materials acts on each as one coefficient and
         the pair's forces stay equal and opposite."""
         return scalar(0.5) * (eta_i + eta_j)
-
-    Materials = materials.struct(scalar)
 
     @wp.func
     def particle_terms(i: int, mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
@@ -265,10 +310,12 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = image_row_particle(i, k, n, nbr)
             pj, VV, VVp, eta = partner_terms(j, Vi, Vpi, mat.viscosity[mi], mass, rho, rho_p, rest_density, material,
                                              mat)
+            # No pair repulsion with the images (s_rep 0): they are no particles a landing drives
+            # together, and a particle's own image, 2 y below it, would push it off the floor.
             fi += sph_pair_force(VV, VVp, pi, zero, rho_pi, rho_p[j], form, eta, xi - floor_image(x[j], gn, goff, gmin),
-                                 -vi, h, c6, c_spiky, c_visc)
+                                 -vi, h, c6, c_spiky, c_visc, zero)
             fi += J * sph_pair_force(VV, VVp, zero, pj, rho_pi, rho_p[j], form, zero, gi - x[j], vec3(), h, c6, c_spiky,
-                                     c_visc)
+                                     c_visc, zero)
         return fi
 
     @wp.func
@@ -363,7 +410,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
         density_weight_gradient=density_weight_gradient,
-        sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity, energy_pair_weight=energy_pair_weight,
+        sph_pair_force=sph_pair_force, pair_repulsion_force=pair_repulsion_force,
+        pair_repulsion_strength=pair_repulsion_strength, pair_repulsion_of=pair_repulsion_of,
+        pair_viscosity=pair_viscosity, energy_pair_weight=energy_pair_weight,
         pair_virial_share=pair_virial_share,
         isotropic_weight=isotropic_weight, isotropic_moments=isotropic_moments,
         isotropic_pressure_map=isotropic_pressure_map, isotropic_pair_force=isotropic_pair_force,
@@ -460,7 +509,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             pj, VV, VVp, eta = fn.partner_terms(j, Vi, Vpi, visc_i, mass, rho, rho_p, rest_density, material, mat)
             half = scalar(0.5) * fn.sph_pair_force(VV, VVp, pi, pj, rho_p[i], rho_p[j], form, eta, xi - x[j], v[j] - vi,
-                                                   h, c6, c_spiky, c_visc)
+                                                   h, c6, c_spiky, c_visc, fn.pair_repulsion_of(i, j, mass, material, mat))
             wp.atomic_add(f, j, -half)
             fi += half
         if images != 0:
@@ -501,7 +550,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             pj, VV, VVp, eta = fn.partner_terms(j, Vi, Vpi, zero, mass, rho, rho_p, rest_density, material, mat)
             rij = xi - x[j]
             half = scalar(0.5) * fn.sph_pair_force(VV, VVp, pi, pj, rho_p[i], rho_p[j], form, zero, rij, vec3(), h, c6,
-                                                   c_spiky, c_visc)
+                                                   c_spiky, c_visc, fn.pair_repulsion_of(i, j, mass, material, mat))
             w = fn.pair_virial_share(half, rij)
             wp.atomic_add(sigma, i, w / Vi)
             wp.atomic_add(sigma, j, w * (rho[j] / mass[j]))
@@ -716,6 +765,20 @@ def kernels(scalar) -> types.SimpleNamespace:
             adj_VV += adj_s * base * eta
             adj_rl += sm.lap_w_viscosity_slope_at(rl, h, c_visc) * adj_s * scalar(5.0) * eta * VV / r2
             adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
+        s_rep = fn.pair_repulsion_of(i, j, mass, material, mat)
+        r0 = scalar(PAIR_REPULSION_RANGE) * h
+        if s_rep > scalar(0.0) and rl < r0 and rl > scalar(1.0e-12) * h:
+            # pair_repulsion_force: G = g(|r|) r, g = 3 s e^2 / (r0 |r|), e = 1 - |r| / r0;
+            # s = (c_i k_i + c_j k_j) sqrt(m_i m_j) / 2 (pair_repulsion_strength) to each k_p.
+            e = scalar(1.0) - rl / r0
+            ar = wp.dot(a, r)
+            adj_s = ar * scalar(3.0) * e * e / (r0 * rl)
+            adj_r += (s_rep * scalar(3.0) * e * e / (r0 * rl)) * a
+            adj_rl -= ar * scalar(3.0) * s_rep * e * (scalar(2.0) * rl / r0 + e) / (r0 * rl * rl)
+            half_mm = scalar(0.5) * wp.sqrt(mass[i] * mass[j])
+            mi = material[i]
+            wp.atomic_add(adj_k, mi, adj_s * half_mm * mat.pair_repulsion[mi])
+            wp.atomic_add(adj_k, mj, adj_s * half_mm * mat.pair_repulsion[mj])
         if rl > scalar(0.0):
             adj_r += (adj_rl / rl) * r
         adj_rho_i -= adj_VV * VV / rho_i
@@ -788,7 +851,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         its slope ``lap_w_viscosity_slope_at``), the chain rule to ``r = x_i - x_j``,
         ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)`` (then the SPH density ``rho``), ``A`` and
         ``p`` (then the pressure density ``rho_p`` and ``k_p``) and
-        ``eta``. ``adj_rho`` and ``adj_rho_p`` may be one array (``rho_p`` is ``rho``)."""
+        ``eta``; the pair repulsion (``pair_repulsion_force``, ``3 s (1 - |r|/r0)^2 / (r0 |r|) r``)
+        to ``r`` and, through ``s``, both particles' ``k_p``. ``adj_rho`` and ``adj_rho_p`` may be
+        one array (``rho_p`` is ``rho``)."""
         i = wp.tid()
         xi = x[i]
         mi, vi, rho_i, Vi, rp_i, k_i, pi, visc_i, form = pressure_particle_terms(i, v, mass, rho, rho_p, rest_density,
