@@ -277,6 +277,24 @@ def test_save_state_refuses_a_state_of_another_scene(tmp_path):
 
 
 
+def test_a_checkpoint_is_not_resumed_with_another_pair_repulsion(tmp_path):
+    """``Material.pair_repulsion`` is no fitted parameter, so the checkpoint's arrays do not
+    hold it: the scene's fingerprint does (only where a material has it, so a checkpoint of a
+    model without it still matches), and a run saved without it is not resumed with it."""
+    def model(c):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough", pair_repulsion=c))
+        b.add_ground(0.0)
+        return b.finalize()
+
+    plain = model(0.0)
+    save_state(tmp_path / "c.npz", plain, _advance(plain, plain.state(), 2), step=2, frame=0)
+    load_state(tmp_path / "c.npz", model(0.0))
+    with pytest.raises(ValueError, match=r"materials differ"):
+        load_state(tmp_path / "c.npz", model(2.0))
+
+
+
 def _set(index, value):
     def edit(a):
         a[index] = value

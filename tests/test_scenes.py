@@ -858,3 +858,16 @@ def test_a_utf16_scene_file_that_does_not_decode_is_named_as_utf16(tmp_path):
     cut.write_bytes('[scene]\nname = "cut"\n'.encode("utf-16") + b"x")
     with pytest.raises(ValueError, match=r"cut\.toml: invalid TOML: not UTF-16 text \(byte 44\)$"):
         load_scene_file(cut)
+
+
+def test_a_scene_files_material_takes_the_pair_repulsion(tmp_path):
+    """``pair_repulsion`` in a material table is ``Material.pair_repulsion`` (off without it);
+    a negative one is refused naming the table, as the other fields."""
+    path = tmp_path / "pairs.toml"
+    path.write_text(BASE.replace('preset = "dough"', 'preset = "dough"\npair_repulsion = 2.0', 1))
+    assert load_scene_file(path).builder.finalize().materials[0].pair_repulsion == 2.0
+    path.write_text(BASE)
+    assert load_scene_file(path).builder.finalize().materials[0].pair_repulsion == 0.0
+    path.write_text(BASE.replace('preset = "dough"', 'preset = "dough"\npair_repulsion = -1', 1))
+    with pytest.raises(ValueError, match=r"\[materials\.m\]: pair_repulsion = -1 is not allowed: must be >= 0"):
+        load_scene_file(path)
