@@ -758,6 +758,26 @@ def test_a_plane_that_coincides_with_one_already_added_is_refused_naming_it():
     assert len(b.planes) == 3
 
 
+def test_a_plane_equal_to_one_added_up_to_rounding_is_refused_as_that_plane():
+    """The same plane given by another multiple of its normal, or a height computed in another
+    order, came out a unit in the last place away from the first (normal (0.3, 0.1, 0) for
+    (3, 1, 0): y component 0.31622776601683794 against ...79; add_plane((0, 3, 0), 0.3) on
+    add_ground(0.1): offset 0.09999999999999999) and was taken as a second plane, responding
+    again; heights 1e-12 m apart, which float32 holds as one plane, likewise. They are that
+    plane; one a thousandth of a spacing away is another."""
+    for first, second in ((lambda b: b.add_plane((3.0, 1.0, 0.0), 3.0), lambda b: b.add_plane((0.3, 0.1, 0.0), 0.3)),
+                          (lambda b: b.add_plane((7.0, 1.0, 2.0), 5.0), lambda b: b.add_plane((0.7, 0.1, 0.2), 0.5)),
+                          (lambda b: b.add_ground(0.1), lambda b: b.add_plane((0.0, 3.0, 0.0), 0.3)),
+                          (lambda b: b.add_ground(0.1), lambda b: b.add_ground(0.1 + 1e-12))):
+        b = we.SceneBuilder(spacing=0.02)
+        first(b)
+        with pytest.raises(ValueError, match=r"^add_(plane|ground)\(.*\) is not allowed: it is plane0, the plane .* again: "):
+            second(b)
+        assert len(b.planes) == 1
+    b.add_ground(0.1 + 2e-5)
+    assert len(b.planes) == 2
+
+
 _plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
 
 

@@ -597,8 +597,14 @@ class SceneBuilder:
         # Each plane responds to a particle in turn (sim/colliders.py): a second ground on the
         # first took a share of the touchdown the first had left and a reaction row of its own
         # (a block dropped sliding at 0.5 m/s ended 400 steps at 0.0134 m/s, on one ground 0.0166).
+        # Equal up to rounding, not to the bit: the same plane by another multiple of its normal
+        # ((0.3, 0.1, 0) for (3, 1, 0)) or a height computed in another order came out a unit in
+        # the last place away and was taken as a second plane; a float32 model holds planes
+        # that close as one. Within a few float32 units (offsets on the spacing's scale at least).
+        tol = 1e-6
         for k, p in enumerate(self.planes):
-            if tuple(p.normal) == tuple(plane.normal) and p.offset == plane.offset:
+            if (max(abs(a - b) for a, b in zip(p.normal, plane.normal)) <= tol
+                    and abs(p.offset - plane.offset) <= tol * max(abs(p.offset), abs(plane.offset), self.spacing)):
                 axes = [i for i in range(3) if p.normal[i] != 0.0]
                 lhs = "xyz"[axes[0]] if len(axes) == 1 and p.normal[axes[0]] == 1.0 else f"{tuple(p.normal)} . x"
                 raise ValueError(f"{call} is not allowed: it is plane{k}, the plane {lhs} = {p.offset:g} (friction "
