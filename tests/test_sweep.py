@@ -221,6 +221,9 @@ def test_a_worker_count_with_ray_and_ray_resources_without_it_are_refused(tmp_pa
     with pytest.raises(ValueError, match=r"^ray_resources = \{'num_cpus': 2\} is not allowed without ray: it is what each "
                                          r"Ray task asks the cluster for, and without ray the items run in processes here$"):
         parallel_map(abs, [(1,)], workers=1, ray_resources={"num_cpus": 2})
+    # Its own parameter, not the command's option '--workers'.
+    with pytest.raises(ValueError, match=r"^workers = 0 is not allowed: must be an integer >= 1$"):
+        parallel_map(abs, [(1,)], workers=0)
     monkeypatch.chdir(tmp_path)
     assert cli.main(["sweep", "dough_drop", "--param", "mu=1e3,2e3", "--workers", "2", "--ray", "127.0.0.1:1"]) == 2
     err = capsys.readouterr().err
@@ -453,6 +456,18 @@ def test_a_python_caller_is_told_the_parameters_and_the_command_its_options(scen
         (lambda: sample_points(["mu=1e3,2e3"], "random"), ["--sample", "random"],
          "samples is required with sample = 'random': the number of samples to draw",
          "--samples is required with --sample random: the number of samples to draw"),
+        (lambda: sweep(scene_file, ["mu=1e3,2e3"], fps=30, dt=0.0007), ["--fps", "30", "--dt", "0.0007"],
+         "dt = 0.0007 is not allowed: a frame (1/fps = 0.0333333 s) must be a whole number of steps, but 1/fps / dt = "
+         "47.619; use e.g. dt = 0.000694444 or 0.00070922, or leave dt out (the stable step, rounded to fill a frame)",
+         "--dt = 0.0007 is not allowed: a frame (1/fps = 0.0333333 s) must be a whole number of steps, but 1/fps / dt = "
+         "47.619; use e.g. --dt 0.000694444 or 0.00070922, or leave --dt out (the stable step, rounded to fill a frame)"),
+        (lambda: sweep(scene_file, ["mu=1e3,2e3"], scale=0.2), ["--scale", "0.2"],
+         f"scale = 0.2 is not allowed for {scene_file}: body 'paste' is under-resolved at spacing 0.1: it is 1 particle "
+         "layer thick, and 1 of its 1 particles have too few neighbours, or too flat a neighbourhood, for the deformation "
+         "fit (paper §4), which would skip them silently; the smallest scale above 0.2 that resolves it is 0.4",
+         f"--scale = 0.2 is not allowed for {scene_file}: body 'paste' is under-resolved at spacing 0.1: it is 1 particle "
+         "layer thick, and 1 of its 1 particles have too few neighbours, or too flat a neighbourhood, for the deformation "
+         "fit (paper §4), which would skip them silently; the smallest --scale above 0.2 that resolves it is 0.4"),
     ]
     for call, args, said, cli_said in cases:
         with pytest.raises(ValueError) as e:

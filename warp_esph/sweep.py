@@ -1040,7 +1040,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         return _ray_map(fn, items, ray, on_result, on_error, ray_resources)
     if workers is None:
         workers = _cores()
-    workers = checks.positive_int("--workers", workers)
+    # Named as this function's parameter: sweep() and the command check theirs before it.
+    workers = checks.positive_int("workers", workers)
     workers = min(workers, max(len(items), 1))
     results: list = [None] * len(items)
     if workers == 1:
@@ -1300,7 +1301,7 @@ def _load(scene, scale, flag=None):
     if isinstance(scene, SceneBuilder):
         return Scene("scene", "a SceneBuilder", scene)
     if isinstance(scene, (str, os.PathLike)) or scene is None:
-        return load_scaled_scene(scene, checks.positive(flag('scale'), scale))
+        return load_scaled_scene(scene, checks.positive(flag('scale'), scale), flag('scale'))
     raise ValueError(f"scene = {checks.shorten(scene)!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
 
 
@@ -1476,8 +1477,9 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if dt is not None:
         from .simulate import resolve_timestep  # noqa: PLC0415
 
-        # With dt given only its ratio to 1/fps is checked; named as the option where it is one.
-        resolve_timestep(None, fps, dt=dt, flag=lambda name: f"--{name}" if given.get(name) else f"the scene's {name}")
+        # With dt given only its ratio to 1/fps is checked; named as the caller gave it (a Python
+        # caller was told '--dt', an option it has not).
+        resolve_timestep(None, fps, dt=dt, flag=lambda name: flag(name) if given.get(name) else f"the scene's {name}")
     assignments = _assignments(sc, plist, flag)
     _check_flow_parameters_act(sc, assignments, points, flag)
     # Built once here, so that what the scene itself refuses (a body inside a collider, a device
