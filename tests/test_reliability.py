@@ -1621,6 +1621,20 @@ def test_a_state_of_another_scene_of_as_many_particles_is_refused_and_one_built_
     assert np.array_equal(*runs)
 
 
+def test_a_state_of_rest_positions_moved_below_six_digits_is_refused_showing_them_apart():
+    """Rest positions moved by 1e-8 m (a jitter) read alike at six digits: the refusal of a
+    state of the other model said 'particle 0: (-0.075, 0.026, -0.075), this model's (-0.075,
+    0.026, -0.075)'. It shows the digits that tell them apart (at 1e-7 m six digits do)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"))
+    own, other = b.finalize(), b.finalize()
+    for moved, shown in ((1e-7, r"-0\.0749999"), (1e-8, r"-0\.074999996")):
+        other.particle_x0[0, 0] = own.particle_x0[0, 0] + np.float32(moved)
+        with pytest.raises(ValueError, match=r"whose rest positions differ at 1 particle \(particle 0: \(-0\.075, 0\.026, "
+                                             rf"-0\.075\), this model's \({shown}, 0\.026, -0\.075\)\); make states"):
+            we.Solver(other).step(own.state(), other.state(), 1e-4)
+
+
 def test_a_state_without_the_models_collider_or_tool_rows_is_refused_before_the_step():
     """A state of a model with fewer static colliders (one collider row) passed the state
     check of a model with two, and the step wrote its second row past the array; a state of a

@@ -576,11 +576,13 @@ def _other_scene(owner, model) -> str | None:
     moved = np.flatnonzero(np.any(owner.particle_x0 != model.particle_x0, axis=1))
     if len(moved):
         k = int(moved[0])
-        def at(m):
-            return "(" + ", ".join(f"{v:g}" for v in m.particle_x0[k]) + ")"
-
-        return (f"whose rest positions differ at {plural(len(moved), 'particle')} (particle {k}: {at(owner)}, this "
-                f"model's {at(model)})")
+        shown = [", ".join(f"{v:g}" for v in m.particle_x0[k]) for m in (owner, model)]
+        if shown[0] == shown[1]:
+            # Moved below :g's six digits (a jitter of 1e-7 m) both read alike: the shortest
+            # digits of the precision that tell them apart.
+            shown = [", ".join(str(v) for v in m.particle_x0[k]) for m in (owner, model)]
+        return (f"whose rest positions differ at {plural(len(moved), 'particle')} (particle {k}: ({shown[0]}), this "
+                f"model's ({shown[1]}))")
     return None
 
 
