@@ -691,3 +691,45 @@ def test_a_file_that_is_no_checkpoint_is_refused_saying_what_it_is_not_naming_an
                     "notes.npz": "it is not a .npz archive, which a checkpoint is)", "cut.npz": damaged, "crc.npz": damaged,
                     "no_meta.npz": "it holds no checkpoint record, 'meta': a .npz written by something else?)",
                     "bad_meta.npz": "its checkpoint record, 'meta', is damaged)"}
+
+
+def test_a_checkpoint_given_as_a_named_pipe_is_refused_without_waiting_for_a_second_writer(tmp_path):
+    """``--resume`` of a named pipe: numpy cannot seek in it, and the refusal's reason opened
+    the pipe again, waiting for a writer that had gone: the refusal hung. It is said as what
+    it is, from the one reading."""
+    import threading
+
+    with open(tmp_path / "real.npz", "wb") as f:
+        np.savez(f, x=np.zeros(3))
+    fifo = tmp_path / "pipe.npz"
+    os.mkfifo(fifo)
+    data = (tmp_path / "real.npz").read_bytes()
+
+    def write():
+        with open(fifo, "wb") as fh:
+            try:
+                fh.write(data)
+            except BrokenPipeError:  # the reader stopped at numpy's first seek
+                pass
+
+    said = []
+
+    def read():
+        try:
+            read_checkpoint(fifo, "--resume")
+        except ValueError as e:
+            said.append(str(e))
+
+    writer, reader = threading.Thread(target=write, daemon=True), threading.Thread(target=read, daemon=True)
+    writer.start()
+    reader.start()
+    reader.join(60)
+    hung = reader.is_alive()
+    if hung:  # a second writer releases the reader's open (a hang is a failure, not a stuck suite)
+        with open(fifo, "wb"):
+            pass
+        reader.join(60)
+    writer.join(60)
+    assert not hung, "the refusal opened the pipe again and waited for a writer"
+    assert said == [f"--resume = '{fifo}' is not allowed: not a readable warp_esph checkpoint (it is a named pipe, not a file: "
+                    "a checkpoint is read from its .npz file)"]

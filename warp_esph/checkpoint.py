@@ -281,6 +281,11 @@ def _not_a_checkpoint(path, exc: BaseException) -> str:
     """Why the file ``path``, whose reading raised ``exc``, is no checkpoint, in words: the
     name of the class raised was all a refusal said ('(ValueError)' of a USD file given to
     ``--resume``)."""
+    special = checks.special_file(path)
+    if special is not None:
+        # Not opened again: a named pipe's second open waits for a writer that has gone, and
+        # the refusal hung. numpy reads a .npz by seeking, which a pipe or a device cannot.
+        return f"it is {special}, not a file: a checkpoint is read from its .npz file"
     try:
         with open(path, "rb") as fh:
             head = fh.read(8)
