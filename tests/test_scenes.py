@@ -824,6 +824,24 @@ def test_text_inputs_saved_as_utf16_are_read(tmp_path, codec, mark):
     np.testing.assert_array_equal(cloud.data, [[0.0, 0.1, 0.0], [0.02, 0.1, 0.0]])
 
 
+@pytest.mark.parametrize("codec", ["utf-16-le", "utf-16-be"])
+def test_utf16_without_a_mark_holding_a_character_ending_in_a_nul_byte_is_read_and_binary_is_not(tmp_path, codec):
+    """UTF-16 without its mark was recognised by NULs on one side of its byte pairs alone: a
+    character U+xx00 ('一' U+4E00, 'Ā' U+0100) puts a NUL on the other side, and such a scene
+    file was read as UTF-8, 'Found invalid character '\\x00''. And an int16 .npy (NULs on one
+    side, '\\x01\\x00' in its header) given as an --experiments file was read as UTF-16, 'not
+    valid JSON: Expecting value', where it was 'it is not text'."""
+    from warp_esph.checks import json_file
+
+    path = tmp_path / "s.toml"
+    path.write_bytes('# 一 dough, Ā\n[scene]\nname = "一"\nspacing = 0.05\n[[bodies]]\nshape = "box"\n'
+                     'center = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\nmaterial = "dough"\n'.encode(codec))
+    assert load_scene_file(path).name == "一"
+    np.save(tmp_path / "i16.npy", np.arange(1, 200, dtype=np.int16 if codec == "utf-16-le" else ">i2"))
+    with pytest.raises(ValueError, match=r"^--experiments .*i16\.npy is not valid JSON: it is not text \(a damaged or foreign file\?\)$"):
+        json_file("--experiments", tmp_path / "i16.npy")
+
+
 @pytest.mark.skipif(not os.path.isdir("/dev/fd"), reason="reads a pipe as /dev/fd/N")
 def test_text_inputs_read_from_a_pipe_keep_their_first_bytes(tmp_path):
     """A shell's ``<(...)`` hands a pipe (``/dev/fd/63``): the look for a UTF-16 byte-order mark

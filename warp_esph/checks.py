@@ -724,21 +724,29 @@ TEXT_HEAD = 512
 
 def text_codec(head: bytes) -> str:
     """The codec of text whose first bytes are ``head`` (``TEXT_HEAD`` of them, or all):
-    ``utf-16`` past a UTF-16 byte-order mark; ``utf-16-le`` (``utf-16-be``) where ``head``
-    holds NUL bytes only at odd (even) places, at least two and at least half of those places;
-    else ``utf-8-sig`` (UTF-8, past a mark). UTF-8 text holds no NUL byte, so such a file is
-    no UTF-8 whatever it is: it is UTF-16 saved without its mark ('iconv -t UTF-16LE'), which
-    was refused by what its misread text lacked ('Invalid initial character for a key part',
-    'lacks the columns'), not a word of UTF-16. A binary file so guessed is still garbage
-    text to its parser."""
+    ``utf-16`` past a UTF-16 byte-order mark; ``utf-16-le`` (``utf-16-be``) where ``head``'s
+    byte pairs of that order hold at least two characters below U+0100, at least half of
+    them, and no NUL or control character but tab, line breaks and form feed; else
+    ``utf-8-sig`` (UTF-8, past a mark). UTF-8 text holds no NUL byte, and such a character
+    is a NUL beside a byte of ASCII or Latin-1, so such a file is no UTF-8 whatever it is: it
+    is UTF-16 saved without its mark ('iconv -t UTF-16LE'), which was refused by what its
+    misread text lacked ('Invalid initial character for a key part', 'lacks the columns'),
+    not a word of UTF-16."""
     if head[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
         return "utf-16"
     head = head[:TEXT_HEAD]
-    for nuls, others, codec in ((head[1::2], head[0::2], "utf-16-le"), (head[0::2], head[1::2], "utf-16-be")):
-        # (two NULs or more: three bytes of garbage are no text to guess a codec from)
-        if nuls.count(0) >= 2 and b"\0" not in others and 2 * nuls.count(0) >= len(nuls):
-            return codec
-    return "utf-8-sig"
+    codec, most = "utf-8-sig", 0
+    for order in ("little", "big"):
+        units = [int.from_bytes(head[i:i + 2], order) for i in range(0, len(head) - 1, 2)]
+        latin = sum(u < 0x100 for u in units)
+        # NULs on one side of the pairs alone was the test: a character U+xx00 ('一' U+4E00,
+        # 'Ā') puts one on the other, and such text was read as UTF-8; a NUL or a control
+        # character (an int16 .npy's '\x01\x00') is binary data, which was read as UTF-16
+        # ('not valid JSON: Expecting value', not 'it is not text').
+        # (two or more: three bytes of garbage are no text to guess a codec from)
+        if latin >= max(2, most + 1) and 2 * latin >= len(units) and not any(u < 0x20 and u not in (9, 10, 12, 13) for u in units):
+            codec, most = f"utf-16-{order[0]}e", latin
+    return codec
 
 
 def text_encoding(path) -> str:
