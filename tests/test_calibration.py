@@ -2914,3 +2914,19 @@ def test_a_damaged_mask_file_is_said_in_words_not_by_the_class_numpy_raised(tmp_
         with pytest.raises(ValueError) as e:
             load_masks(tmp_path / name, cameras, 3)
         assert str(e.value) == f"mask file {tmp_path / name} cannot be read: {why} (a damaged or foreign file?)"
+
+
+def test_a_resumed_force_log_that_cannot_be_opened_is_said_by_the_systems_reason(tmp_path):
+    """checks.read_reason said an OSError by its str(): '[Errno 21] Is a directory: '<the path
+    whole>'', in a message that names the path already; the force log of a run to resume that
+    is a folder was refused so. It says the system's reason alone, as the other readers do."""
+    import types
+
+    from warp_esph.tools import ReactionLog
+
+    (tmp_path / "out_tools.json").mkdir()
+    log = types.SimpleNamespace(run_id="mine", rows=[], _kept=None)
+    with pytest.raises(ValueError) as e:
+        ReactionLog.resume(log, str(tmp_path / "out"), 3)
+    assert str(e.value) == (f"the force log {tmp_path / 'out_tools.json'} of the run to resume cannot be read (Is a directory): resuming "
+                            "would replace its rows of the finished frames; move it away to resume without them")

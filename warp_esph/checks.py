@@ -707,6 +707,10 @@ def read_reason(exc: BaseException) -> str:
     """One line from a reader's exception, in its words, not its class's name; pxr's C++
     location is dropped, its message kept."""
     text = re.sub(r"\s+", " ", str(exc)).strip()
+    if isinstance(exc, OSError) and exc.strerror:
+        # The system's reason alone: str() adds '[Errno 21]' and the path whole, which every
+        # message names already, cut to its ends.
+        text = exc.strerror
     # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
     messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
     text = "; ".join(messages) or text
