@@ -2930,3 +2930,25 @@ def test_a_resumed_force_log_that_cannot_be_opened_is_said_by_the_systems_reason
         ReactionLog.resume(log, str(tmp_path / "out"), 3)
     assert str(e.value) == (f"the force log {tmp_path / 'out_tools.json'} of the run to resume cannot be read (Is a directory): resuming "
                             "would replace its rows of the finished frames; move it away to resume without them")
+
+
+def test_a_mask_file_the_system_refuses_in_a_folder_named_pickles_is_said_by_the_systems_reason(tmp_path, monkeypatch):
+    """fit.unreadable_arrays told numpy's refusal of pickled data by 'pickle' anywhere in the
+    exception's words, an OSError's path among them: a mask file in a folder 'pickles' that
+    the system refused to read (permission denied: not shown as root, so raised here as open
+    raises it) was 'not a numpy .npz/.npy file'."""
+    import errno
+
+    import warp_esph.fit as fit_module
+
+    folder = tmp_path / "pickles"
+    folder.mkdir()
+    np.savez(folder / "m.npz", front_3=np.zeros((24, 32)), side_3=np.zeros((24, 24)))
+
+    def refused(path):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(fit_module, "read_arrays", refused)
+    with pytest.raises(ValueError) as e:
+        load_masks(folder / "m.npz", _cameras(), 3)
+    assert str(e.value) == f"mask file {folder / 'm.npz'} cannot be read: Permission denied (a damaged or foreign file?)"

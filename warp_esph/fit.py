@@ -4308,7 +4308,10 @@ def unreadable_arrays(what: str, path: str, exc: BaseException) -> ValueError:
     file whose reading (``read_arrays``) raised ``exc``, said in words, not by its class."""
     # numpy reads bytes that are no array file as pickled data and advises loading them
     # unsafely: not the advice to give about a damaged or foreign file.
-    why = "not a numpy .npz/.npy file" if "pickle" in str(exc) else checks.read_reason(exc)
+    # (numpy's words, not the path an OSError's str() holds: '/data/pickles/t.npz' unreadable
+    # was 'not a numpy .npz/.npy file', not 'Permission denied')
+    pickled = isinstance(exc, ValueError) and "allow_pickle" in str(exc)
+    why = "not a numpy .npz/.npy file" if pickled else checks.read_reason(exc)
     return ValueError(f"{what} {checks.shown_path(path, False)} cannot be read: {why} (a damaged or foreign file?)")
 
 
