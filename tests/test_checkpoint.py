@@ -243,8 +243,13 @@ def test_save_state_refuses_what_load_state_would_refuse_and_places_that_take_no
         with pytest.raises(ValueError, match=needle):
             save_state(tmp_path / "c.npz", model, state, **{"step": 0, "frame": 0, **kwargs})
     (tmp_path / "d.npz").mkdir()
-    with pytest.raises(ValueError, match=r"checkpoint path = .*d\.npz' is not allowed: it is a folder"):
+    # Named by the parameter, as load_state names it: 'checkpoint path' was a name no caller typed.
+    with pytest.raises(ValueError, match=r"^path = .*d\.npz' is not allowed: it is a folder"):
         save_state(tmp_path / "d.npz", model, state, step=0, frame=0)
+    with pytest.raises(ValueError, match=r"^path = .*c\.txt' is not allowed: must end in \.npz"):
+        save_state(tmp_path / "c.txt", model, state, step=0, frame=0)
+    with pytest.raises(ValueError, match=r"^path = 123 is not allowed: must be a file path"):
+        save_state(123, model, state, step=0, frame=0)
     mu = model.mu.numpy()
     mu[0] = -1.0
     model.mu.assign(mu)

@@ -132,13 +132,13 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     state no step of it wrote (a new or loaded one) records none.
     """
     if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"checkpoint path = {checks.shown_path(path)} is not allowed: must be a file path ending in .npz")
+        raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must be a file path ending in .npz")
     path = pathlib.Path(path)
     # Any case, as every other reader of .npz here takes it (fit targets, masks): 'STATE.NPZ'
     # was refused. The file is written through a handle, so numpy appends no second '.npz'
     # (np.savez('STATE.NPZ') would write 'STATE.NPZ.npz').
     if path.suffix.lower() != ".npz":
-        raise ValueError(f"checkpoint path = {checks.shown_path(path)} is not allowed: must end in .npz (any case)")
+        raise ValueError(f"path = {checks.shown_path(path)} is not allowed: must end in .npz (any case)")
     if not isinstance(model, Model):
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph Model")
     # What load_state asks of them, asked here: it refused the files this wrote with a step of
@@ -162,7 +162,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         # whose step wrote the state, while it exists (one of another model: none).
         writer = state.written_by()
         solver = writer if writer is not None and writer.model is model else None
-    checks.output_place("checkpoint path", path)
+    checks.output_place("path", path)
     if isinstance(state, State) and getattr(state, "_model", None) is not None:
         # First: its refusal says what a checkpoint of another scene's state would do.
         _check_state_model(model, state)
