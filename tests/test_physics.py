@@ -989,10 +989,11 @@ def test_pressure_force_choice_is_validated_and_energy_spiky_by_default():
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")
 
 
-def _head_on_pair(pair_repulsion, fused=True, steps=200, speed=1.0):
+def _head_on_pair(pair_repulsion, fused=True, steps=200, speed=1.0, dt=None):
     """Two lone particles of the default pressure force (``energy_spiky``, its default ``k_p``)
     a spacing apart, closing at ``speed`` each, no gravity, float64; the closest they come
-    (in spacings) over ``steps`` steps of 1e-4 s, and the model."""
+    (in spacings) over ``steps`` steps of ``dt`` (None: 1e-4 s; "stable": the model's
+    ``stable_dt()``), the model and the last state."""
     dx = 0.02
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, pair_repulsion=pair_repulsion)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
@@ -1002,12 +1003,13 @@ def _head_on_pair(pair_repulsion, fused=True, steps=200, speed=1.0):
     solver = we.Solver(model, fused=fused)
     a, o = model.state(), model.state()
     closest = np.inf
+    dt = model.stable_dt() if dt == "stable" else 1.0e-4 if dt is None else dt
     for _ in range(steps):
-        solver.step(a, o, 1.0e-4)
+        solver.step(a, o, dt)
         a, o = o, a
         x = a.x.numpy()
         closest = min(closest, np.linalg.norm(x[1] - x[0]) / dx)
-    return closest, model
+    return closest, model, a
 
 
 @pytest.mark.parametrize("fused", [True, False])
@@ -1017,11 +1019,53 @@ def test_the_pair_repulsion_keeps_a_head_on_pair_apart(fused):
     as they do (measured 0.0034 dx apart at the closest); with ``pair_repulsion = 2`` (work
     ``2 k_p m`` at contact, twice the pair's kinetic energy) they turn back 0.131 dx apart,
     as the fused step so the unfused one."""
-    without, _ = _head_on_pair(0.0, fused)
-    with_it, model = _head_on_pair(2.0, fused)
+    without, _, _ = _head_on_pair(0.0, fused)
+    with_it, model, _ = _head_on_pair(2.0, fused)
     assert without < 0.01, without
     assert 0.1 < with_it < 0.5, with_it  # turned back inside r0 = h / 4 = 0.5 dx
     assert model.materials[0].pressure_stiffness == pytest.approx(1.0, rel=0.01)
+
+
+def test_stable_dt_includes_the_pair_repulsion_and_holds():
+    """``Model.stable_dt()`` adds the pair repulsion's limit ``2 / (1.5 omega)``, ``omega^2 =
+    12 c k_p / r0^2`` (its curvature at contact per the pair's reduced mass), as the force
+    fields' adds (``1 / dt^2`` summed), and only where a material has ``c > 0``: with ``c = 0``
+    (and no hourglass control) the step is the wave limit to the bit. Without it the head-on pair at ``c = 8`` stepped at
+    ``stable_dt`` (2.83 ms, the wave limit) left at 1.671 m/s of its 1 m/s; at the step with
+    the limit (1.23 ms) it leaves at 1.0003 m/s (measured). The bound 1.05 is above the
+    ``c = 0`` pair's own 1.032 at its step (the ``energy_spiky`` pressure at contact)."""
+    from warp_esph.sim.pressure import PAIR_REPULSION_RANGE
+
+    _, plain, _ = _head_on_pair(0.0, steps=0)
+    assert plain.stable_dt(hourglass=0.0) == 0.3 * plain.spacing / float(np.max(plain.wave_speeds()))
+    c = 8.0
+    _, model, end = _head_on_pair(c, steps=40, dt="stable")  # 49 ms: past the contact
+    omega2 = 12.0 * c * model.materials[0].pressure_stiffness / (PAIR_REPULSION_RANGE * model.support_radius) ** 2
+    assert math.isclose(model.stable_dt() ** -2, plain.stable_dt() ** -2 + 1.5**2 * omega2 / 4.0, rel_tol=1e-9)
+    speeds = np.linalg.norm(end.v.numpy(), axis=1)
+    assert (end.x.numpy()[0, 0] < end.x.numpy()[1, 0]) and end.v.numpy()[0, 0] < 0.0, "turned back"
+    assert speeds.max() < 1.05, speeds
+
+
+def test_a_pair_repulsion_that_sets_the_step_is_named():
+    """Where the pair repulsion's limit is the shortest, the refusals name it and advise a
+    smaller repulsion (not a softer material, whose wave speed does not set the step), and the
+    solver's warning lists it. ``c = 1e8``: a step of 3.86e-7 s, 2.59e6 steps a 1 fps frame."""
+    from warp_esph.cli import _run_advice
+    from warp_esph.simulate import (ADAPTIVE_REPULSION_ADVICE, STABLE_REPULSION_ADVICE, StepRefusal, adaptive_timestep,
+                                    resolve_timestep)
+
+    _, model, _ = _head_on_pair(1.0e8, steps=0)
+    named = r"the limit of the pair repulsion of material 0 \(pair_repulsion = 1e\+08, k_p = 0.99\d+\) at contact, .* = 3.86e-07 s"
+    with pytest.raises(StepRefusal, match=rf"the stable step 3.86e-07 s is not allowed: .* the pair repulsion sets it \({named}") as info:
+        resolve_timestep(model, 1.0)
+    assert info.value.advice == STABLE_REPULSION_ADVICE
+    with pytest.raises(StepRefusal, match=rf"the adaptive step is not allowed .* its stable step, 3.86e-07 s \({named}") as info:
+        adaptive_timestep(model, model.state(), 1.0)
+    assert info.value.advice == ADAPTIVE_REPULSION_ADVICE
+    assert "pair_repulsion" in _run_advice()[STABLE_REPULSION_ADVICE] and "--fps" in _run_advice()[ADAPTIVE_REPULSION_ADVICE]
+    with pytest.warns(RuntimeWarning, match=r"and that of the pair repulsion of material 0 \(pair_repulsion = 1e\+08"):
+        we.Solver(model).check_dt(1e-3)
 
 
 @pytest.mark.parametrize("value", [-1.0, math.nan, math.inf])

@@ -839,7 +839,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     dt = spec.get("dt")
     given = {"fps": spec.get("fps") is not None, "dt": dt is not None}
     # An experiment's keys are named as written in its file, the command's as its options.
-    from .simulate import STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, StepRefusal  # noqa: PLC0415
+    from .simulate import STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, STABLE_REPULSION_ADVICE, StepRefusal  # noqa: PLC0415
 
     try:
         substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt,
@@ -852,7 +852,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         # Where the hourglass control's limit sets the step, its strength (--hourglass, or the
         # scene's [solver] hourglass) is what lengthens it, not a softer material.
         cure = ("a smaller --hourglass (or the scene's [solver] hourglass)" if e.advice == STABLE_HOURGLASS_ADVICE else
-                "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE else "softer materials")
+                "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE else
+                "a smaller pair_repulsion or pressure_stiffness" if e.advice == STABLE_REPULSION_ADVICE else "softer materials")
         raise ValueError(f"{where}{e.reason}: use {cure}, a larger spacing,{higher} or give "
                          f"{'its dt' if where else '--dt'}") from None
     except ValueError as e:

@@ -486,7 +486,8 @@ def _run_advice() -> dict:
     it replaces (which names ``dt=`` and ``fps=``)."""
     from .simulate import (  # noqa: PLC0415
         ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_FIELD_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE,
-        STABLE_ADVICE, STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, START_ADVICE)
+        ADAPTIVE_REPULSION_ADVICE, STABLE_ADVICE, STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, STABLE_REPULSION_ADVICE,
+        START_ADVICE)
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
 
     return {START_ADVICE: "; give a smaller velocity (or angular_velocity), a smaller --dt, or --dt auto (the adaptive step)",
@@ -495,6 +496,10 @@ def _run_advice() -> dict:
             ADAPTIVE_VISCOUS_ADVICE: "; use a less viscous material, a larger spacing or a higher --fps",
             ADAPTIVE_HOURGLASS_ADVICE: "; use a smaller --hourglass (or [solver] hourglass), a larger spacing or a higher --fps",
             ADAPTIVE_FIELD_ADVICE: "; use a weaker compression field or a higher --fps",
+            ADAPTIVE_REPULSION_ADVICE: "; use a smaller pair_repulsion or pressure_stiffness (the scene's material table), a "
+                                       "larger spacing or a higher --fps",
+            STABLE_REPULSION_ADVICE: ": use a smaller pair_repulsion or pressure_stiffness (the scene's material table), a "
+                                     "larger spacing, a higher --fps, or give --dt",
             STABLE_ADVICE: ": use softer materials, a larger spacing, a higher --fps, or give --dt",
             STABLE_FIELD_ADVICE: ": use a weaker compression field, a higher --fps, or give --dt",
             STABLE_HOURGLASS_ADVICE: ": use a smaller --hourglass (or [solver] hourglass), a larger spacing, a higher --fps, or "

@@ -61,7 +61,7 @@ class StepRefusal(ValueError):
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
     telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
     ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``ADAPTIVE_FIELD_ADVICE``, ``STABLE_ADVICE``,
-    ``STABLE_HOURGLASS_ADVICE``, ``STABLE_FIELD_ADVICE``,
+    ``STABLE_HOURGLASS_ADVICE``, ``STABLE_FIELD_ADVICE``, ``STABLE_REPULSION_ADVICE``, ``ADAPTIVE_REPULSION_ADVICE``,
     ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
@@ -137,6 +137,12 @@ STABLE_FIELD_ADVICE = (": use a weaker compression field (SceneBuilder.add_compr
 ADAPTIVE_FIELD_ADVICE = "; use a weaker compression field (SceneBuilder.add_compression_field's strength) or a higher fps="
 STABLE_HOURGLASS_ADVICE = (": use a smaller hourglass control strength (Solver(hourglass=) or SceneBuilder(hourglass=)), "
                            "a larger spacing, a higher fps, or give dt= or substeps=")
+#: ``resolve_timestep``'s and ``adaptive_timestep``'s where the pair repulsion's limit
+#: (``Material.pair_repulsion``) is what shortens the stable step: its strength sets it.
+STABLE_REPULSION_ADVICE = (": use a smaller pair repulsion (Material.pair_repulsion) or pressure stiffness, a larger spacing, "
+                           "a higher fps, or give dt= or substeps=")
+ADAPTIVE_REPULSION_ADVICE = ("; use a smaller pair repulsion (Material.pair_repulsion) or pressure stiffness, a larger "
+                             "spacing or a higher fps=")
 #: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
 #: the step resolves (a softer material hardly lengthens it).
 ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
@@ -831,8 +837,14 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             control = _hourglass_cause(model, courant, hourglass)
             field = _field_cause(model, courant, hourglass)
             viscous = _viscous_limit(model, courant)
+            repulsion = _repulsion_cause(model, courant, hourglass)
             if not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
-                if field is not None:
+                if repulsion is not None:
+                    # A stiff pair repulsion shortened it: the stiffest material's wave speed was
+                    # blamed, which leaves the repulsion's limit as it is.
+                    needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; the pair repulsion sets it ({repulsion})"
+                    advice = STABLE_REPULSION_ADVICE
+                elif field is not None:
                     # A field's spring shortened it (strength 1e15 1/s^2: 4e-8 s): the stiffest
                     # material was blamed, and softer ones advised, which leave its limit as it is.
                     needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; a compression field sets it ({field})"
@@ -1007,6 +1019,10 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
                 # or a larger spacing advised, which leave its limit as it is.
                 which = f"its stable step, {dt:.3g} s ({field})"
                 advice = ADAPTIVE_FIELD_ADVICE
+            repulsion = _repulsion_cause(model, courant, hourglass)
+            if repulsion is not None:
+                which = f"its stable step, {dt:.3g} s ({repulsion})"
+                advice = ADAPTIVE_REPULSION_ADVICE
             viscous = _viscous_limit(model, courant)
             if viscous is not None and viscous[0] <= stable * (1.0 + 1e-9):
                 # The viscous limit set it: the wave speed was cited, and a softer material
@@ -1056,6 +1072,20 @@ def _field_cause(model: Model, courant: float, hourglass: float | None) -> str |
     return (f"the limit of {model._field_words(which)} at net strength "
             f"k = {k:g} 1/s^2, (C / 0.3) 2 / (1.5 sqrt(k)) = {limit:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, "
             f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
+
+
+def _repulsion_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
+    """Where the pair repulsion's limit (``Model._repulsion_limit``) is at most the wave limit
+    ``C dx / c_P``, the hourglass control's (strength ``hourglass``; None: the model's) and the
+    force fields', so that it is what shortens ``stable_dt``: the refusals' words for it,
+    naming the materials, their strengths and both limits; else None."""
+    limit, which = model._repulsion_limit(courant)
+    c = float(np.max(model.wave_speeds()))
+    wave = courant * model.spacing / c
+    if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0] and limit <= model._field_limit(courant)[0]):
+        return None
+    return (f"the limit of {model._repulsion_words(which)} at contact, (C / 0.3) 2 / (1.5 omega) = {limit:.3g} s, "
+            f"with the wave limit C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
 def _viscous_limit(model: Model, courant: float):

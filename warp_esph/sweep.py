@@ -1646,7 +1646,8 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
     failed alone, one after the other, with the same refusal, and the sweep exited 3. A
     sample that can is enough (the others are rows of the table, as a blown-up sample is).
     ``rate``, ``length``: the options (or the scene's values) the refusal names."""
-    from .simulate import STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
+    from .simulate import (STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, STABLE_REPULSION_ADVICE, StepRefusal,  # noqa: PLC0415
+                           check_step_count, resolve_timestep)
 
     # The reasons without a run's advice ('give dt= or substeps=', 'a larger dt'): a sweep has no
     # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
@@ -1668,6 +1669,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
                       "a smaller hourglass control strength (the scene's SceneBuilder(hourglass=...) or [solver] hourglass)")
             cure = (weaker if e.advice == STABLE_HOURGLASS_ADVICE
                     else "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE
+                    else "a smaller pair_repulsion or pressure_stiffness" if e.advice == STABLE_REPULSION_ADVICE
                     else "softer or less viscous materials or swept values")
             first = first or (k, values, e.detail, rate, f"give a higher {flag('fps')}, {coarser}, or {cure}")
             continue

@@ -958,6 +958,8 @@ class Solver:
                 + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
                 + (f", and that of {self.model._field_words(field[2])} at net strength k = {field[1]:g} 1/s^2, "
                    f"2 / (1.5 sqrt(k))" if (field := self.model._field_limit(0.3))[1] > 0.0 else "")
+                + (f", and that of {self.model._repulsion_words(pair[1])} at contact, 2 / (1.5 omega)"
+                   if (pair := self.model._repulsion_limit(0.3))[1] else "")
                 + "); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
