@@ -1075,6 +1075,20 @@ def test_a_negative_or_non_finite_pair_repulsion_is_refused(value):
     assert we.Material(mu=1.0, lam=1.0).pair_repulsion == 0.0, "off by default"
 
 
+@pytest.mark.parametrize("value, shown, why", [(1.0e39, r"1e\+39", r"must be at most 3.4e\+38"),
+                                               (1.0e-50, "1e-50", "must be 0 or at least")])
+def test_a_pair_repulsion_that_float32_cannot_hold_is_refused(value, shown, why):
+    """``Material.pair_repulsion`` is cast to the model's float type as the fitted fields are:
+    1e39 became inf in float32 (the pair's force inf, then NaN) and 1e-50 became 0 (the option
+    off), both taken without a word before; float64 holds both."""
+    mat = we.Material(mu=1.0e3, lam=1.5e3, pair_repulsion=value)
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_particles([(0.0, 0.0, 0.0)], mat)
+    with pytest.raises(ValueError, match=rf"Material\.pair_repulsion = {shown} \(material 0\) is not allowed in float32: {why}"):
+        b.finalize(dtype=wp.float32)
+    assert b.finalize(dtype=wp.float64).pair_repulsion.numpy()[0] == value
+
+
 def test_fit_guard_leaves_disordered_neighbourhoods_alone():
     """The fit guard ``cond(A) > 20`` (``neighbors.MAX_CONDITION``, docs/method.md §2) drops
     the ill-conditioned fits of a spreading plastic layer (``cond(A)`` 200-500, stiffer than

@@ -144,7 +144,8 @@ def material_precision_problem(material: Material, scalar, cli: bool = False) ->
     make, reported on the field of its largest term (``modulus_precision_problem``). ``name``
     is ``Material.<field>``, or ``E`` (``value`` the E given) for a ``mu`` or ``lam`` derived
     from the E and nu given (``_named_as_given``). ``cli``: the advice names ``--dtype`` too."""
-    for name in (*Model.MATERIAL_FIELDS, "density"):
+    # pair_repulsion is no fitted field but is cast as one: 1e39 was inf in float32, 1e-50 was 0.
+    for name in (*Model.MATERIAL_FIELDS, "density", "pair_repulsion"):
         v = getattr(material, name)
         why = precision_problem(v, scalar, cli)
         if why is not None and name == "pressure_stiffness" and material.has_default_pressure_stiffness:
