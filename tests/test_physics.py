@@ -1068,6 +1068,36 @@ def test_a_pair_repulsion_that_sets_the_step_is_named():
         we.Solver(model).check_dt(1e-3)
 
 
+def test_a_divergence_where_the_pair_repulsion_sets_the_step_names_it_not_a_field():
+    """``divergence_advice`` where the pair repulsion's limit is the shortest: the head-on
+    pair at ``c = 8`` (its limit 1.37 ms, the wave limit 2.83 ms) beside a compression field
+    whose own limit (2 ms) is below the wave limit alone. The advice put the step on the
+    field ('set by compression field 0 ... or a weaker field'), where a weaker one leaves the
+    step as it is; without the field it said 'stiffer-to-softer material settings', which do
+    not set it either. It names the repulsion, as ``resolve_timestep``'s refusal does; and
+    not where a viscosity's limit (0.5 ms) is shorter still (it was named there too)."""
+    from warp_esph.simulate import divergence_advice
+
+    dx = 0.02
+    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, pair_repulsion=8.0)
+    for field in (True, False):
+        b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+        b.add_particles([(-0.5 * dx, 0.0, 0.0), (0.5 * dx, 0.0, 0.0)], mat)
+        if field:
+            b.add_compression_field((0.0, 0.0, 0.0), (2.0 / (1.5 * 2.0e-3)) ** 2)
+        model = b.finalize(dtype=wp.float64)
+        assert model._repulsion_limit(0.3)[0] < (model._field_limit(0.3)[0] if field else math.inf)
+        advice = divergence_advice(model, None)
+        assert "the pair repulsion of material 0 (pair_repulsion = 8" in advice and "pair_repulsion" in advice.split(")")[-1], advice
+        assert "field" not in advice and "softer" not in advice, advice
+    viscous = mat.replace(viscosity=0.3 * 0.0016 / 12.0 * 1000.0 / 5.0e-4)  # (C / 12) rho0 h^2 / eta = 0.5 ms
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_particles([(-0.5 * dx, 0.0, 0.0), (0.5 * dx, 0.0, 0.0)], viscous)
+    model = b.finalize(dtype=wp.float64)
+    assert model.stable_dt() < 5.0e-4 < model._repulsion_limit(0.3)[0]
+    assert "repulsion" not in divergence_advice(model, None), divergence_advice(model, None)
+
+
 @pytest.mark.parametrize("value", [-1.0, math.nan, math.inf])
 def test_a_negative_or_non_finite_pair_repulsion_is_refused(value):
     with pytest.raises(ValueError, match=rf"Material\.pair_repulsion = {value!r} is not allowed"):

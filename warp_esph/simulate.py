@@ -102,6 +102,12 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
                 f"through itself, whose strain may be stiffer than the stable limit ({stable:.3g} s) assumes; try a "
                 f"smaller {dt}, a stiffer material, or {fit}, the incremental composition, which follows the "
                 f"neighbours as a body parts")
+    if _repulsion_cause(model, 0.3, hourglass) is not None:
+        # Checked before the fields: where the repulsion's limit is the shorter, a weaker field
+        # (or a softer material) leaves the step as it is.
+        which = model._repulsion_limit(0.3)[1]
+        return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._repulsion_words(which)} at contact) "
+                f"or a smaller pair_repulsion or pressure_stiffness")
     if _field_cause(model, 0.3, hourglass) is not None:
         _, k, which = model._field_limit(0.3)
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "
@@ -1077,13 +1083,17 @@ def _field_cause(model: Model, courant: float, hourglass: float | None) -> str |
 def _repulsion_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
     """Where the pair repulsion's limit (``Model._repulsion_limit``) is at most the wave limit
     ``C dx / c_P``, the hourglass control's (strength ``hourglass``; None: the model's) and the
-    force fields', so that it is what shortens ``stable_dt``: the refusals' words for it,
-    naming the materials, their strengths and both limits; else None."""
+    force fields', and the viscous limit is not shorter than ``stable_dt``, so that it is what
+    shortens it: the refusals' words for it, naming the materials, their strengths and both
+    limits; else None."""
     limit, which = model._repulsion_limit(courant)
     c = float(np.max(model.wave_speeds()))
     wave = courant * model.spacing / c
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0] and limit <= model._field_limit(courant)[0]):
         return None
+    viscous = _viscous_limit(model, courant)
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass) * (1.0 + 1e-9):
+        return None  # the viscous limit set the step (as _field_cause)
     return (f"the limit of {model._repulsion_words(which)} at contact, (C / 0.3) 2 / (1.5 omega) = {limit:.3g} s, "
             f"with the wave limit C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
