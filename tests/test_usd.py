@@ -885,3 +885,37 @@ def test_a_damaged_collider_whose_bad_value_holds_the_files_path_is_named_as_eve
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"^cannot read .*damaged\.usda: a collider or tool is damaged \(could not convert "):
         UsdFrames(path)
+
+
+def test_each_bodys_material_is_recorded_whole_and_a_file_without_the_later_fields_is_read_and_appended(tmp_path):
+    """Each body's prim records every field of its Material (``warp_esph:material:<field>``),
+    the settings that change the forces among them (``pair_repulsion``, ``clamp_pressure``,
+    ``pressure_force``), so that the file says what ran; a file written when fewer were
+    recorded (those three keys removed) is still read and appended to."""
+    import dataclasses
+
+    mat = Material(density=1000.0, mu=1.0e3, lam=1.5e3, pressure_force="spiky", clamp_pressure=False, pair_repulsion=2.0)
+    b = SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.12, 0.0), (0.16, 0.12, 0.12), mat, name="block")
+    b.add_ground()
+    m = b.finalize()
+    path = tmp_path / "out.usda"
+    simulate(m, 1, fps=30, writer=UsdWriter(path, m, 30), progress=False)
+    stage = open_fresh(path)
+    prim = stage.GetPrimAtPath("/World/block")
+    recorded = dict(prim.GetCustomDataByKey("warp_esph:material"))
+    assert recorded == {f.name: getattr(mat, f.name) for f in dataclasses.fields(mat)}
+    assert recorded["pair_repulsion"] == 2.0 and recorded["clamp_pressure"] is False
+    assert recorded["pressure_force"] == "spiky"
+    # An older file: the three keys absent.
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.Reload(force=True)
+    old = Usd.Stage.Open(layer)
+    for key in ("pair_repulsion", "clamp_pressure", "pressure_force"):
+        old.GetPrimAtPath("/World/block").ClearCustomDataByKey(f"warp_esph:material:{key}")
+    layer.Save()
+    assert "pair_repulsion" not in open_fresh(path).GetPrimAtPath("/World/block").GetCustomDataByKey("warp_esph:material")
+    assert len(UsdFrames(str(path)).particles(1)["points"]) == m.particle_count
+    with UsdWriter(path, m, 30, append=True) as w:
+        w.write_frame(2, m.state())
+    assert len(UsdFrames(str(path)).particles(2)["points"]) == m.particle_count

@@ -10,7 +10,9 @@ Layout of the written stage (Y up, metres, time code = frame index)::
                                 primvars singular_values (float3, vertex: F's signed
                                 singular values, the smallest < 0 where det F < 0), alpha (float,
                                 vertex) per frame, double3 and double in a float64 run;
-                                material_id (int, constant) and displayColor (constant) once
+                                material_id (int, constant) and displayColor (constant) once;
+                                custom data warp_esph:material:<field>, each field of its
+                                Material (a file written before some were recorded lacks them)
     /World/Colliders/plane_<k>  Mesh: a large quad on the plane (solid below it)
     /World/Colliders/sphere_<k> Sphere
     /World/Colliders/box_<k>    Cube scaled to the box's half extents
@@ -525,9 +527,12 @@ class UsdWriter:
             prim.SetCustomDataByKey(f"{_KEY}:kind", body.kind)
             prim.SetCustomDataByKey(f"{_KEY}:first_particle", body.start)
             prim.SetCustomDataByKey(f"{_KEY}:particle_count", body.count)
-            for field in ("mu", "lam", "yield_stress", "flow_rate", "hardening", "density", "pressure_stiffness", "viscosity", "model"):
-                value = getattr(mat, field)
-                prim.SetCustomDataByKey(f"{_KEY}:material:{field}", value if isinstance(value, str) else float(value))
+            # Every field of the Material, so that the file says what ran: a list of names left
+            # out pair_repulsion, clamp_pressure and pressure_force, which change the forces.
+            for field in dataclasses.fields(mat):
+                value = getattr(mat, field.name)
+                prim.SetCustomDataByKey(f"{_KEY}:material:{field.name}",
+                                        value if isinstance(value, (str, bool)) else float(value))
             pts.CreatePointsAttr()
             pts.CreateVelocitiesAttr()
             pts.CreateWidthsAttr()
