@@ -2797,3 +2797,30 @@ def test_a_finite_blow_up_beside_a_scripted_tool_fails_the_fit_as_the_sweep_fail
                      diagnostics=False)
     assert not any("diverged" in h.get("note", "") for h in result.history), [h.get("note") for h in result.history]
     assert all(math.isfinite(h["loss"]) for h in result.history)
+
+
+@pytest.mark.parametrize("name", ["pair_repulsion", "pressure_force", "clamp_pressure", "density"])
+def test_a_material_setting_given_as_a_fitted_parameter_is_said_to_be_a_setting(name, tmp_path, monkeypatch, capsys):
+    """``fit(params=["pair_repulsion"])`` (or any field of ``Material`` that is not fitted) was
+    refused as an unknown name ('must be one of mu, lam, ...'): it is a setting of the material,
+    given where the material is made (``Material(...)``; the command line's scene material
+    table), not a parameter fit can move."""
+    from warp_esph.cli import main
+    from warp_esph.fit import check_options
+
+    with pytest.raises(ValueError, match=rf"^params entry '{name}' is not allowed: must be one of mu, .*; {name} is a "
+                                         rf"material setting, not a fitted parameter: set it in the Material "
+                                         rf"\(Material\(\.\.\., {name}=\.\.\.\)\)$"):
+        check_options(params=name, iterations=1)
+    monkeypatch.chdir(tmp_path)
+    assert main(["fit", "dough_drop", "--target", "t.npz", "--params", f"mu,{name}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith(
+        f"--params entry '{name}' is not allowed: must be one of mu, lam, yield_stress, flow_rate, hardening, "
+        f"pressure_stiffness, viscosity; {name} is a material setting, not a fitted parameter: set it in the scene's "
+        f"material table ({name} = ...)\n"), err
+    assert list(tmp_path.iterdir()) == []
+    # A name that is no field at all keeps the plain refusal.
+    with pytest.raises(ValueError, match=r"must be one of mu, lam, yield_stress, flow_rate, hardening, pressure_stiffness, "
+                                         r"viscosity$"):
+        check_options(params="stiffness", iterations=1)
