@@ -20,6 +20,10 @@ Where the other combinations are checked (float64 central differences of a taped
   ``test_static_colliders.py``, ``test_friction.py``, ``test_smooth_loss.py``;
 - tools (plane, box, sphere, capsule, cylinder, mesh; keyframes, pins, a particle floor):
   ``test_tools.py``; worlds: ``test_worlds.py`` (against separate tapes);
+- the pair repulsion (``Material.pair_repulsion``) on a free block's merging layers, fused and
+  not: ``test_gradients.py`` (``test_pair_repulsion...``); its hand-written adjoint against the
+  generated one under each pair pressure force: ``test_adjoints.py``; the landing scan with it:
+  ``test_smooth_loss.py``; on the ground, at rest and thrown: ``CASES`` here;
 - the initial positions, deformation gradients and plastic strains and the plasticity
   parameters of a block flowing on the ground or a plane tool, a flowing block under moving
   tools, two bodies of different models pressed together, a plane tool and a sphere tool
@@ -59,7 +63,9 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: field beside the floor images and on the default elastic solver (two tests passed through a field);
 #: the yield test with the SPH pressure's stress (``Solver(yield_with_pressure=True)``), whose own
 #: tests are in ``test_yield_with_pressure.py``; the ``isotropic`` pressure force (the default
-#: solver, which runs it on the unfused schedule).
+#: solver, which runs it on the unfused schedule); the pair repulsion (``Material.pair_repulsion``,
+#: a pair started 0.3 dx apart, inside its range: ``_model``), fused and not, whose central
+#: differences in ``test_gradients.py`` take a free block's merging layers alone.
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -90,6 +96,8 @@ CASES = {
     "field_default_elastic": (ELASTIC, {}, {}, "ground_field"),
     "yield_with_pressure": ({}, {"yield_with_pressure": True}, {}, "ground"),
     "isotropic_pressure": ({"pressure_force": "isotropic"}, {}, {}, "ground"),
+    "pair_repulsion": ({"pair_repulsion": 2.0}, {}, {}, "ground"),
+    "pair_repulsion_unfused": ({"pair_repulsion": 2.0}, {"fused": False}, {}, "ground"),
 }
 
 
@@ -123,6 +131,13 @@ def _model(case, scene, params=None, worlds=1, world1=None):
         # World 1's material differs from world 0's (stiffer, yielding later).
         model.set_material(0, we.Material(density=1000.0, **{**p, **world1}), world=1)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * DX, size=model.particle_x0.shape)
+    if p.get("pair_repulsion"):
+        # Particle 1 starts 0.3 dx from particle 0, inside the repulsion's range (h / 4 = 0.5 dx):
+        # a block on its lattice has no pair there, and the option would add nothing.
+        x0 = model.particle_x0
+        d = x0[1] - x0[0]
+        x0[1] = x0[0] + 0.3 * DX * d / np.linalg.norm(d)
+        model.particle_x0 = x0
     if scene == "thrown":
         x0 = model.particle_x0
         model.particle_v0 = (10.0 * (x0 - x0.mean(axis=0)) * np.array([1.0, -0.5, 0.0]) + np.array([0.2, -0.3, 0.0])
@@ -170,6 +185,10 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
         np.testing.assert_allclose(grads[n], generated[n], rtol=1e-8, atol=1e-12 * np.abs(generated[n]).max())
     # The case runs what its name says, and the floor holds the block.
     floor = CASES[case][3]
+    if case.startswith("pair_repulsion"):
+        off = _model(case, scene)
+        off.set_materials([mt.replace(pair_repulsion=0.0) for mt in off.materials])
+        assert _loss(case, off, w) != _loss(case, _model(case, scene), w), "the repulsion acts"
     if case.startswith("default_elastic"):
         assert solver.rest_model and solver.fit == "curvature_corrected" and solver.hourglass > 0.0
     if floor in ("mesh", "cylinder", "capsule"):
