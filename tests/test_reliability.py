@@ -1621,6 +1621,47 @@ def test_a_state_of_another_scene_of_as_many_particles_is_refused_and_one_built_
     assert np.array_equal(*runs)
 
 
+def test_a_state_is_judged_by_its_models_rest_positions_when_it_was_made():
+    """A and B built from one builder, ``s = A.state()``, then A jittered: B refused ``s``
+    ('rest positions differ at 64 particles') though ``s`` holds B's rest positions, since the
+    check read A as it is now. A state records its model's bodies and rest positions when it
+    is made: B takes ``s`` (stepped as B's own state, to the bit), a state of A made after the
+    jitter is refused by B naming the jittered positions, and B jittered alike takes that one
+    and refuses a state made before. A real other scene is still refused."""
+    from warp_esph.calibrate import jitter_model
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"))
+    b.add_ground()
+    a, other = b.finalize(), b.finalize()
+    s, spare = a.state(), a.state()
+    before = a.particle_x0.copy()
+    jitter_model(a, 1e-3, 5)
+    runs = []
+    for first in (s, other.state()):
+        x, y = first, other.state()
+        for _ in range(3):
+            we.Solver(other).step(x, y, 1e-4)
+            x, y = y, x
+        runs.append(x.x.numpy())
+    assert np.array_equal(*runs)
+    k = int(np.flatnonzero(np.any(a.particle_x0 != before, axis=1))[0])
+    jittered = a.state()
+    with pytest.raises(ValueError, match=r"^state_in does not belong to this model: it was made by another model, whose "
+                                         rf"rest positions differ at 64 particles \(particle {k}: \({a.particle_x0[k, 0]:g}, "):
+        we.Solver(other).step(jittered, other.state(), 1e-4)
+    jitter_model(other, 1e-3, 5)
+    we.Solver(other).step(jittered, other.state(), 1e-4)
+    with pytest.raises(ValueError, match=r"whose rest positions differ at 64 particles"):
+        we.Solver(other).step(spare, other.state(), 1e-4)
+    named = we.SceneBuilder(spacing=0.05)
+    named.add_box((0.0, 0.101, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"), name="block")
+    named.add_ground()
+    named = named.finalize()
+    with pytest.raises(ValueError, match=r"whose bodies \(name, first particle, count, world\) are \[\('box0', "):
+        we.Solver(named).step(s, named.state(), 1e-4)
+
+
 def test_a_state_of_rest_positions_moved_below_six_digits_is_refused_showing_them_apart():
     """Rest positions moved by 1e-8 m (a jitter) read alike at six digits: the refusal of a
     state of the other model said 'particle 0: (-0.075, 0.026, -0.075), this model's (-0.075,

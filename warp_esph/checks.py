@@ -551,7 +551,7 @@ def same_state(model, name: str, state) -> None:
             raise ValueError(f"{name} does not belong to this model: {field} is on {arr.device}, the model on {dev}")
     owner = getattr(state, "_model", None)
     if owner is not None and owner is not model:
-        differ = _other_scene(owner, model)
+        differ = _other_scene(state._made_of, model)
         if differ:
             # Of as many particles it passed every check above, and the step ran this model's rest
             # neighbourhoods on another body's positions (a 4 x 4 x 4 rubber block resting on the
@@ -564,23 +564,25 @@ def same_state(model, name: str, state) -> None:
     state.__dict__["_checked_for"] = model
 
 
-def _other_scene(owner, model) -> str | None:
-    """How the model ``owner`` that made a state differs from ``model`` (its bodies, its rest
-    positions), or None: one built again from the same builder is the same. Once per state and
-    model (``same_state``'s memo)."""
+def _other_scene(made_of, model) -> str | None:
+    """How the scene a state was made of (``Model.scene_snapshot`` of the model that made it,
+    when it made it) differs from ``model`` now (its bodies, its rest positions), or None: one
+    built again from the same builder is the same, and the model that made it edited since
+    (``calibrate.jitter_model``) is not. Once per state and model (``same_state``'s memo)."""
     import numpy as np  # noqa: PLC0415
 
-    mine, theirs = ([(b.name, b.start, b.count, b.world) for b in m.bodies] for m in (model, owner))
+    theirs, x0 = made_of
+    mine = [(b.name, b.start, b.count, b.world) for b in model.bodies]
     if mine != theirs:
         return f"whose bodies (name, first particle, count, world) are {shorten(theirs)}, this model's {shorten(mine)}"
-    moved = np.flatnonzero(np.any(owner.particle_x0 != model.particle_x0, axis=1))
+    moved = np.flatnonzero(np.any(x0 != model.particle_x0, axis=1))
     if len(moved):
         k = int(moved[0])
-        shown = [", ".join(f"{v:g}" for v in m.particle_x0[k]) for m in (owner, model)]
+        shown = [", ".join(f"{v:g}" for v in p[k]) for p in (x0, model.particle_x0)]
         if shown[0] == shown[1]:
             # Moved below :g's six digits (a jitter of 1e-7 m) both read alike: the shortest
             # digits of the precision that tell them apart.
-            shown = [", ".join(str(v) for v in m.particle_x0[k]) for m in (owner, model)]
+            shown = [", ".join(str(v) for v in p[k]) for p in (x0, model.particle_x0)]
         return (f"whose rest positions differ at {plural(len(moved), 'particle')} (particle {k}: ({shown[0]}), this "
                 f"model's ({shown[1]}))")
     return None

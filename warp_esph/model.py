@@ -262,6 +262,10 @@ class State:
         # Held, not weakly: a state of a model built again and dropped (``finalize()`` twice)
         # is still told to be of the same scene.
         self._model = model
+        # And that model's bodies and rest positions as they are now (``checks.same_state``):
+        # a model edited since (``calibrate.jitter_model``) no longer describes this state's
+        # scene, and one built again from the same builder still does.
+        self._made_of = model.scene_snapshot()
         self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         # The positions' round-off (warp_esph/sim/roundoff.py), as F_lo for F below.
         self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
@@ -577,6 +581,7 @@ class Model:
         # (``rest_neighbors()`` builds them once).
         self.rest_x = None
         self._rest_from = None  # the particle_x0 they were built from (_drop_stale_rest)
+        self._snapshot = None  # the last scene_snapshot(), shared by the states made while it holds
         self.rest_nbr = None
         self.rest_count = None
         #: The neighbourhood guard (``neighbors.GUARD_*``) of each particle's rest neighbourhood,
@@ -997,6 +1002,19 @@ class Model:
                 f"or one per material ({len(self.materials)})"
             )
         return [a[starts[w]:starts[w + 1]] for w in range(self.world_count)]
+
+    def scene_snapshot(self) -> tuple:
+        """``(bodies, rest positions)`` as they are now: each body's (name, first particle,
+        count, world) and a read-only copy of ``particle_x0``. The states made while they are
+        unchanged share one copy: comparing with it costs 0.015 ms at 50k particles (CPU), where
+        hashing them (sha1) cost 0.29 ms, a seventh of ``state()``'s 2.0 ms."""
+        bodies = [(b.name, b.start, b.count, b.world) for b in self.bodies]
+        held = self._snapshot
+        if held is None or held[0] != bodies or not np.array_equal(held[1], self.particle_x0):
+            x0 = np.array(self.particle_x0)
+            x0.flags.writeable = False
+            held = self._snapshot = (bodies, x0)
+        return held
 
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""
