@@ -564,6 +564,30 @@ def test_bad_input_raises_value_error_in_python():
         parse_param("density=1:2:lin:2")
 
 
+@pytest.mark.parametrize("spec", ["pair_repulsion=0,1", "paste.pressure_force=0,1", "0.density=1000:1200:lin:2"])
+def test_a_material_setting_given_as_a_swept_parameter_is_said_to_be_a_setting(spec, scene_file, tmp_path, capsys):
+    """``--param pair_repulsion=...`` (or any field of ``Material`` that is not per particle)
+    was refused as an unknown name, as a typo is: it is a setting of the material, made
+    where the material is (``Material(...)``; the scene's material table), in fit's words."""
+    name = spec.partition("=")[0]
+    field = name.rsplit(".", 1)[-1]
+    fields = "mu, lam, yield_stress, flow_rate, hardening, pressure_stiffness, viscosity"
+    where = r"^params entry '{}' is not allowed: unknown parameter; name one of {}, .*\); {} is a material setting, "
+    for params in ([spec], {name: spec.partition("=")[2]}):
+        with pytest.raises(ValueError, match=where.format(re.escape(name), fields, field) + "not a swept parameter: set it in "
+                           rf"the Material \(Material\(\.\.\., {field}=\.\.\.\)\)$"):
+            sweep(scene_file, params, frames=1)
+    assert cli.main(["sweep", scene_file, "--param", spec, "-o", str(tmp_path / "never"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith(
+        f"; {field} is a material setting, not a swept parameter: set it in the scene's material table ({field} = ...)\n"), err
+    assert err.startswith(f"warp-esph: error: --param {name!r} is not allowed: unknown parameter; name one of {fields}, "), err
+    assert not os.path.exists(tmp_path / "never")
+    # A name that is no field at all keeps the plain refusal.
+    with pytest.raises(ValueError, match=r"e\.g\. dough\.yield_stress, 0\.yield_stress\)$"):
+        parse_param("stiffness=1,2")
+
+
 def test_a_range_of_numpy_numbers_is_taken_and_one_wider_than_a_float_is_refused():
     """``Param`` bounds of numpy numbers (a range from ``np.linspace`` or a table) were refused
     as 'need LO < HI' for LO = 1 < HI = 10; they are the floats they hold. A lin range whose

@@ -56,7 +56,7 @@ from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
                      read_tools_csv, surface_particles)
-from .material import LAB_QUANTITIES, PRESSURE_BULK_SHARE, Material, _following_force, lab_value_note
+from .material import LAB_QUANTITIES, PRESSURE_BULK_SHARE, Material, _following_force, lab_value_note, material_setting_note
 from .model import Model, State, check_material_precision
 from .rollout import FRAME_BUFFERS, PARAMETERS, TOOL_GRADIENTS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 from .sim.neighbors import NeighborOverflow
@@ -1804,7 +1804,7 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             lab = (f"{lab_value_note(p, 'parameter')} (fit {LAB_QUANTITIES[p][0]}: the fitted material's {p} is "
                    f"{LAB_QUANTITIES[p][2]})" if isinstance(p, str) and p in LAB_QUANTITIES else "")
             raise ValueError(f"{flag('params')} entry {checks.shorten(p)!r} is not allowed: must be one of "
-                             f"{', '.join(PARAMETERS)}{lab}{_setting_note(p, flag)}")
+                             f"{', '.join(PARAMETERS)}{lab}{material_setting_note(p, 'fitted', flag('params').startswith('--'))}")
     if len(set(params)) != len(params):
         raise ValueError(f"{flag('params')} = {checks.shorten(params)!r} is not allowed: names must be distinct")
     out = {"params": params, "iterations": _count(flag("iterations"), iterations),
@@ -1875,19 +1875,6 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             raise ValueError(f"{said(name, lo, hi)} is not allowed: need lo < hi")
     out["param_scales"] = _check_param_scales(param_scales, params, flag, param_scales_typed or {})
     return out
-
-
-def _setting_note(name, flag) -> str:
-    """``"; NAME is a material setting, not a fitted parameter: ..."`` where ``name`` is a field
-    of ``Material`` that is not among ``PARAMETERS`` (``pair_repulsion``, ``pressure_force``,
-    ``density``, ...), else ``""``: refused as an unknown name, such a field read as a typo, and
-    not as the choice made where the material is (the command line's scene file, or Python's
-    ``Material``)."""
-    if not isinstance(name, str) or name in PARAMETERS or name not in {f.name for f in dataclasses.fields(Material)}:
-        return ""
-    where = (f"the scene's material table ({name} = ...)" if flag("params").startswith("--")
-             else f"the Material (Material(..., {name}=...))")
-    return f"; {name} is a material setting, not a fitted parameter: set it in {where}"
 
 
 def _check_param_scales(param_scales, params, flag, typed) -> dict[str, float]:

@@ -559,6 +559,21 @@ def lab_value_note(name: str, what: str = "field") -> str:
     return f"; {name} is a lab's value, not a {what}: {LAB_QUANTITIES[name][1]}" if name in LAB_QUANTITIES else ""
 
 
+def material_setting_note(name, role: str, cli: bool) -> str:
+    """``"; NAME is a material setting, not a ROLE parameter: set it in ..."`` where ``name`` is
+    a field of ``Material`` that is not per particle (``Model.MATERIAL_FIELDS``), such as
+    ``pair_repulsion``, ``pressure_force`` or ``density``, else ``""``. ``role``: ``fitted``
+    or ``swept``; ``cli``: the command line's words (the scene's material table) or Python's
+    (``Material``). Without it fit's and sweep's refusals of such a field read as of a typo,
+    not as a choice made where the material is made."""
+    from .model import Model  # noqa: PLC0415  (model imports this module)
+
+    if not isinstance(name, str) or name in Model.MATERIAL_FIELDS or name not in {f.name for f in dataclasses.fields(Material)}:
+        return ""
+    where = f"the scene's material table ({name} = ...)" if cli else f"the Material (Material(..., {name}=...))"
+    return f"; {name} is a material setting, not a {role} parameter: set it in {where}"
+
+
 # Presets: soft, kitchen-scale materials that run stably at 1-2 cm spacing with the
 # default time steps. Moduli are of the order measured for the real materials
 # (bread dough E ~ 10^4 Pa, modelling clay ~ 10^5 Pa, soft rubber ~ 10^5-10^6 Pa)

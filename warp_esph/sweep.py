@@ -212,14 +212,15 @@ def parse_param(spec, *, flag=None) -> Param:
             p = Param(name, values=values)
     fields = _fields()
     if not isinstance(p.name, str) or p.field not in fields or (p.target is not None and not p.target):
-        from .material import LAB_QUANTITIES, lab_value_note  # noqa: PLC0415
+        from .material import LAB_QUANTITIES, lab_value_note, material_setting_note  # noqa: PLC0415
 
         lab = (f"{lab_value_note(p.field, 'parameter')} (sweep {LAB_QUANTITIES[p.field][0]})"
                if isinstance(p.name, str) and p.field in LAB_QUANTITIES else "")
+        setting = material_setting_note(p.field, "swept", _cli(flag)) if isinstance(p.name, str) else ""
         raise ValueError(f"{flag('param')} {checks.shorten(p.name)!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
                          f"optionally prefixed by a body name, a material index or a scene file's material name (e.g. dough.yield_stress, "
                          f"0.yield_stress)"
-                         f"{lab}")
+                         f"{lab}{setting}")
     if p.values is not None:
         if not p.values:
             raise ValueError(f"{flag('param')} {p.name}: values = () is not allowed: give at least one value")
