@@ -281,6 +281,26 @@ def test_save_state_refuses_a_state_of_another_scene(tmp_path):
     load_state(tmp_path / "c.npz", _model())
 
 
+def test_save_state_judges_a_state_by_the_scene_its_model_had_when_it_made_it(tmp_path):
+    """A state made by a model that was jittered since (``calibrate.jitter_model``) holds the
+    rest positions it was made with: saved into a model of those positions it was refused,
+    the owner's fingerprint being taken of its jittered positions (``checks.same_state``, which
+    the step runs, took it). One made after the jitter, or of another scene, is still refused."""
+    from warp_esph.calibrate import jitter_model  # noqa: PLC0415
+
+    jittered, model = _model(), _model()
+    made_before = jittered.state()
+    jitter_model(jittered, 0.05, seed=3)
+    made_after = jittered.state()
+    stepped = _advance(model, made_before, 2)  # the step takes it as a state of model's scene
+    save_state(tmp_path / "c.npz", model, stepped, step=2, frame=0)
+    resumed, _ = load_state(tmp_path / "c.npz", _model())
+    np.testing.assert_array_equal(resumed.x.numpy(), stepped.x.numpy())
+    with pytest.raises(ValueError, match=r"state is not allowed: it was made by another model, .* of another scene"):
+        save_state(tmp_path / "d.npz", model, made_after, step=0, frame=0)
+    assert not (tmp_path / "d.npz").exists()
+
+
 
 def test_a_checkpoint_is_not_resumed_with_another_pair_repulsion(tmp_path):
     """``Material.pair_repulsion`` is no fitted parameter, so the checkpoint's arrays do not

@@ -41,17 +41,19 @@ FORMAT = "warp_esph.checkpoint/1"
 FINGERPRINT_VERSION = 2
 
 
-def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION) -> str:
+def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_positions=None) -> str:
     """A hash of everything a step depends on that a checkpoint does not carry: the initial
     particles, bodies, lattice, colliders, force fields, gravity, each material's kind and
     density (the fitted parameters ``Model.MATERIAL_FIELDS`` are in the checkpoint itself),
     the ghost floors and the moving tools and pinned sets (shape, motion, friction, particles).
 
     A checkpoint resumed into a model with another fingerprint would continue a different
-    scene from this one's state, so ``load_state`` refuses it.
+    scene from this one's state, so ``load_state`` refuses it. ``rest_positions``: hashed in
+    place of ``model.particle_x0`` (a state's ``Model.scene_snapshot``, ``_check_state_model``).
     """
     h = hashlib.sha256()
-    for arr in (model.particle_x0, model.particle_v0, model.particle_material_np, model.particle_body_np):
+    x0 = model.particle_x0 if rest_positions is None else rest_positions
+    for arr in (x0, model.particle_v0, model.particle_material_np, model.particle_body_np):
         a = np.ascontiguousarray(arr, dtype=np.float64 if arr.dtype.kind == "f" else np.int64)
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())
@@ -119,7 +121,8 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     non-finite value is refused (``ValueError``): a checkpoint is for resuming. So is a state
     of another model (``model.state()`` and ``load_state`` make a model's states; one that
     ``Solver.step`` wrote or ``State.assign`` copied into stays the state of the model that
-    made it), unless that model is of the same scene (the same ``model_fingerprint``).
+    made it), unless that model is of the same scene (the same ``model_fingerprint``, of the rest
+    positions it had when it made the state).
 
     ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
     ran (``solver_settings``: fit, hourglass, contact ramp, guards, the yield test's pressure,
@@ -265,11 +268,19 @@ def _check_solver(model: Model, solver) -> None:
 def _check_state_model(model: Model, state: State) -> None:
     """``state`` is a state of ``model``, or of a model of the same scene (the same
     fingerprint: ``finalize`` run twice): the checkpoint is filed under ``model``'s
-    fingerprint, and a state of another scene of as many particles would resume there."""
+    fingerprint, and a state of another scene of as many particles would resume there.
+
+    The owner's fingerprint hashes the rest positions it had when it made ``state`` (its
+    ``_made_of``, as ``checks.same_state`` judges them): one edited since
+    (``calibrate.jitter_model``) no longer describes the state, and ``model``, holding those
+    positions, does. Its materials, colliders, tools and bodies' records are hashed as they are
+    now (``same_state``, run next, compares the bodies with the snapshot's)."""
     owner = getattr(state, "_model", None)
     if owner is model:
         return
-    theirs = model_fingerprint(owner) if isinstance(owner, Model) else None
+    made_of = getattr(state, "_made_of", None)
+    theirs = (model_fingerprint(owner, rest_positions=None if made_of is None else made_of[1])
+              if isinstance(owner, Model) else None)
     if theirs != model_fingerprint(model):
         raise ValueError(f"state is not allowed: it was made by another model, {owner!r}, of another scene (its "
                          f"fingerprint {theirs!r} is not this model's {model_fingerprint(model)!r}); a checkpoint of it "
