@@ -2806,3 +2806,30 @@ def test_numpy_text_or_booleans_given_for_a_bodys_numbers_are_refused_by_name():
         with pytest.raises(ValueError, match=said):
             call()
     assert box(velocity=np.zeros((n, 3), dtype=np.int64)).particle_count == n  # integers are numbers
+
+
+def test_a_deep_copy_of_a_state_holds_its_own_arrays_and_steps_as_the_state():
+    """``copy.deepcopy(state)`` raised on warp's arrays (and the model the state holds):
+    'ctypes objects containing pointers cannot be pickled'. The copy holds its own arrays, is of
+    the same model and scene, and steps
+    as the state does, to the bit; editing it leaves the state alone."""
+    import copy
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.2, 0.2, 0.2), we.Material.preset("rubber"))
+    b.add_ground()
+    model = b.finalize()
+    s = model.state()
+    twin = copy.deepcopy(s)
+    assert twin._model is model and twin._made_of is s._made_of
+    assert twin.x.ptr != s.x.ptr
+    runs = []
+    for first in (s, twin):
+        out = model.state()
+        we.Solver(model).step(first, out, 1e-4)
+        runs.append(out.x.numpy())
+    assert np.array_equal(*runs)
+    stepped = copy.deepcopy(out)  # one a step wrote: its reports and neighbours copied too
+    assert np.array_equal(stepped.x.numpy(), out.x.numpy()) and stepped.written_by == out.written_by
+    twin.x.fill_(0.0)
+    assert np.array_equal(s.x.numpy(), model.particle_x0.astype(s.x.numpy().dtype))

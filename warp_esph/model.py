@@ -10,6 +10,7 @@ nothing is allocated inside the step.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -384,6 +385,26 @@ class State:
     #: ``checks.same_state`` checks, so setting it keeps that check's memo (cleared by these
     #: too, the full check ran twice a step, docs/performance.md).
     BOOKKEEPING = frozenset(("time", "rest_model", "flowed", "written_by", "tool_work"))
+
+    def __deepcopy__(self, memo):
+        # Its own arrays (wp.clone: warp's arrays refuse deepcopy, 'ctypes objects containing
+        # pointers cannot be pickled'), of the same model and the same record of its scene.
+        # The memo of checks is not copied: it names the arrays by id.
+        for shared in ("_model", "_made_of", "_d2_spec"):  # read-only, and holding warp's devices
+            if shared in self.__dict__:
+                memo[id(self.__dict__[shared])] = self.__dict__[shared]
+        twin = object.__new__(type(self))
+        memo[id(self)] = twin
+        for name, value in self.__dict__.items():
+            if name in ("_checked_for", "_arrays"):
+                continue
+            if isinstance(value, wp.array):
+                if id(value) not in memo:
+                    memo[id(value)] = wp.clone(value)
+                twin.__dict__[name] = memo[id(value)]
+            else:
+                twin.__dict__[name] = copy.deepcopy(value, memo)
+        return twin
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
