@@ -150,12 +150,13 @@ def two_materials_scene():
 
 @pytest.fixture(scope="session")
 def dropped_cube():
-    """``dropped_cube(yield_stress, flow_rate, size=0.1)``: a float64 model with gradients of a
-    soft cube of side ``size`` (2 cm spacing: 125 particles at 0.1) hitting the ground at
-    1 m/s, the lattice jittered by 1e-3 of the spacing (seed 5)."""
+    """``dropped_cube(yield_stress, flow_rate, size=0.1, fit_weight=None)``: a float64 model
+    with gradients of a soft cube of side ``size`` (2 cm spacing: 125 particles at 0.1) hitting
+    the ground at 1 m/s, the lattice jittered by 1e-3 of the spacing (seed 5); ``fit_weight``:
+    the builder's (None: its default)."""
 
-    def drop(yield_stress, flow_rate, size=0.1):
-        b = we.SceneBuilder(spacing=0.02)
+    def drop(yield_stress, flow_rate, size=0.1, fit_weight=None):
+        b = we.SceneBuilder(spacing=0.02, **({} if fit_weight is None else {"fit_weight": fit_weight}))
         b.add_box((0.0, 0.055, 0.0), (size, size, size), we.Material(mu=2e3, lam=3e3, density=1000.0,
                                                                      yield_stress=yield_stress, flow_rate=flow_rate),
                   velocity=(0.0, -1.0, 0.0))
