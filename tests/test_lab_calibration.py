@@ -1,7 +1,7 @@
 """``examples/calibrate_from_lab.py`` at CI size: the closed-form inversions invert their
 forward formulas, and the joint fit of a slump (final height and spread) and a compression
 force curve, from synthetic lab files with noise, recovers the hidden yield stress and
-plastic viscosity from 2x guesses (tolerance below)."""
+plastic viscosity from 2x guesses (within 3 standard errors; without the noise, within 1 %)."""
 
 import json
 import math
@@ -27,17 +27,33 @@ def test_closed_form_inversions_invert_their_formulas(load_example):
 
 
 def test_joint_fit_of_slump_and_compression_recovers_yield_stress_and_plastic_viscosity(tmp_path, load_example):
-    """48-particle slump (0.3 s) and 48-particle compression (250 steps): within TOL of
-    the truth and within 3 of the diagnostics' standard errors."""
-    TOL = 0.15
+    """48-particle slump (0.3 s) and 48-particle compression (250 steps). With the lab's
+    noise each value lies within 3 of the diagnostics' standard errors, which are below a
+    quarter of the value; without it, started where the noisy fit ended, the fit recovers
+    the truth within 1 % (measured +0.07 / +0.17 % yield stress, +0.03 / +0.08 % flow rate,
+    poly6 / biweight). The noise alone moves the fit by up to about twice its standard
+    error, which is 13-17 % of the yield stress at this size: the noise's seeds 1-6 put the
+    yield stress 0.0-1.9 / 0.2-1.5 standard errors off (-0.0 to +27.7 / +3.0 to +25.9 %), so
+    the bound of 15 % this test had held at seed 1 for poly6 (+12.3 %) and not for the
+    biweight (+19.3 %), and missed two of the six seeds with either (docs/physics.md, "The
+    switch list worked through")."""
+    import dataclasses
+
     ex = load_example("calibrate_from_lab")
     assert ex.main(["--size", "ci", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "result.json").read_text())
     assert (tmp_path / "compression_tools.csv").exists() and (tmp_path / "slump.json").exists()
     true, fitted, se = doc["true"], doc["fitted"], doc["standard_error"]
     for name in ("yield_stress", "flow_rate"):
-        assert fitted[name] == pytest.approx(true[name], rel=TOL), name
         assert abs(fitted[name] - true[name]) < 3.0 * se[name], name
+        assert se[name] < 0.25 * true[name], name
+    # The same lab without noise (1e-9 of it: the chi-square's weights stay finite), the fit
+    # started where the noisy one ended.
+    quiet = dataclasses.replace(ex.SETUPS["ci"], length_noise=1e-9, force_noise=1e-9)
+    ex.measure(str(tmp_path / "quiet"), quiet)
+    result = ex.calibrate(str(tmp_path / "quiet"), quiet, fitted)
+    for name, value in ex.TRUE.items():
+        assert result.params[name][0] == pytest.approx(value, rel=1e-2), (name, result.params, result.stopped)
 
 
 def test_an_out_that_is_a_file_or_an_unknown_optimizer_is_one_line_of_usage_error_before_any_work(tmp_path, capsys, monkeypatch,
