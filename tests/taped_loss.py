@@ -65,3 +65,36 @@ def rollout_central_difference(rollout, loss, name: str, rel_step: float = 1e-5)
         rollout.forward()
         vals.append(loss.value(dict(zip(rollout.frames, rollout.frame_positions))))
     return float(grads[name][0]), (vals[0] - vals[1]) / (2 * h)
+
+
+
+def assert_central_differences_converge(g: float, loss_at, step: float, ladder, bound: float, spread: float,
+                                        what=None) -> tuple:
+    """Asserts that central differences of ``loss_at(offset)`` (the loss with the input moved
+    by ``offset``) close on the tape's gradient ``g`` over a ladder of steps, ``step / k`` for
+    ``k`` in ``ladder`` (from 1 up): within ``bound`` (relative) at the smallest step, and in
+    each ring between two steps, the mean slope ``(L(a) - L(b) + L(-b) - L(-a)) / 2(a - b)``
+    within ``spread`` of ``g`` (both relative to the smallest step's difference). Returns the
+    relative errors at the steps and in the rings.
+
+    Why a ladder rather than one step: the contact and flow laws have kinks (the flow's onset,
+    a tool's whole-depth contact) and steep C1 bends (the touchdown share's smoothstep end,
+    friction's rounded end), and the fit weight moves where a particle meets them. A step
+    that crosses a kink reads the gradient's mean over it, off by up to half the gradient's
+    change there, and falls onto the tape once it no longer reaches the kink; a bend makes
+    the error fall as the step squared, from however far off. A jump J of the loss within
+    a ring reads J / 2(a - b) there, and one inside the smallest step J / 2h: with the
+    largest step the test's old one, a jump within it shows in one ring or at the bottom,
+    while a kink reads at most half the gradient's change, which ``spread`` bounds."""
+    steps = [step / k for k in ladder]
+    plus = [loss_at(h) for h in steps]
+    minus = [loss_at(-h) for h in steps]
+    fd = [(p - m) / (2 * h) for p, m, h in zip(plus, minus, steps)]
+    assert fd[-1] != 0.0, ("the loss does not reach the input", what)
+    scale = abs(fd[-1])
+    errors = [abs(f - g) / scale for f in fd]
+    rings = [abs((plus[i] - plus[i + 1] + minus[i + 1] - minus[i]) / (2 * (steps[i] - steps[i + 1])) - g) / scale
+             for i in range(len(steps) - 1)]
+    assert errors[-1] <= bound, ("the central differences do not close on the tape", what, steps, errors)
+    assert max(rings, default=0.0) <= spread, ("a ring's slope strays from the tape: a jump", what, steps, rings)
+    return errors, rings
