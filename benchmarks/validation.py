@@ -1720,6 +1720,48 @@ def _corotated_energy(model, F: np.ndarray, mu: float, lam: float) -> float:
     return float((model.particle_volume.numpy() * psi).sum())
 
 
+def _hourglass_energy(model, c: float):
+    """The hourglass control's energy ``sum_i E_i`` as a function of the positions
+    (``warp_esph/sim/hourglass.py``: ``E_i = c mu_i V_i / (2 S_i) min_G sum_j w_ij |x_ij - G
+    X_ij|^2``, poly6 weights of the rest distances) over the same-body pairs within the support
+    at rest (the only pairs of non-zero weight; the breathing cube's strain keeps them in the
+    list); 0 where ``c = 0``. The control is conservative: ``energy_drift``'s total with it is
+    what the step conserves."""
+    if c == 0.0:
+        return lambda x: 0.0
+    X = np.asarray(model.particle_x0, dtype=np.float64)
+    h = float(model.support_radius)
+    body = model.particle_body.numpy()
+    r2 = ((X[None, :, :] - X[:, None, :]) ** 2).sum(-1)
+    near = (r2 < h * h) & (body[None, :] == body[:, None])
+    np.fill_diagonal(near, False)
+    width = int(near.sum(1).max())
+    nb = np.zeros((len(X), width), dtype=np.int64)
+    w = np.zeros((len(X), width))
+    for i, row in enumerate(near):
+        js = np.nonzero(row)[0]
+        nb[i, :len(js)] = js
+        w[i, :len(js)] = (h * h - r2[i, js]) ** 3
+    d = X[nb] - X[:, None, :]
+    S = (w * (d * d).sum(-1)).sum(1)
+    A = np.einsum("ij,ijk,ijl->ikl", w, d, d)
+    ok = (S > 0.0) & (np.linalg.det(A) > 1.0e-4 * (S / 3.0) ** 3)  # hourglass.MIN_DET: no control below it
+    A_inv = np.linalg.inv(A[ok])
+    mu = np.array([m.mu for m in model.materials])[model.particle_material.numpy()]
+    coef = (0.5 * c * mu * model.particle_volume.numpy().astype(np.float64) / np.where(S > 0.0, S, 1.0))[ok]
+    nb, w, d = nb[ok], w[ok], d[ok]
+    rows = np.nonzero(ok)[0]
+
+    def energy(x: np.ndarray) -> float:
+        x = x.astype(np.float64)
+        xb = x[nb] - x[rows, None, :]
+        G = np.einsum("ij,ijk,ijl->ikl", w, xb, d) @ A_inv
+        res = xb - np.einsum("ikl,ijl->ijk", G, d)
+        return float((coef * (w * (res * res).sum(-1)).sum(1)).sum())
+
+    return energy
+
+
 #: The elastic energy density ``energy_drift`` measures for each material model: the one
 #: whose gradient the model's stress is where the material cannot flow.
 ENERGY_OF_MODEL = {"stvk": "St. Venant-Kirchhoff", "hyperelastic": "2 x St. Venant-Kirchhoff",
@@ -1738,7 +1780,7 @@ def conserves_elastic_energy(elastic_force: str) -> bool:
 
 def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", resolution: int = 6,
                  periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
-                 deformation: str = "incremental", model: str = "stvk") -> dict:
+                 deformation: str = "incremental", model: str = "stvk", fit_weight: str = "poly6") -> dict:
     """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff or the
     material ``model`` given, pressure off, no gravity, no viscosity) set breathing with
     ``v = a (x - c)`` so that its peak strain is about ``amplitude``. The total energy
@@ -1755,7 +1797,9 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     deviation 0.81, 0.79, 0.79 at dt, dt / 2, dt / 4). The row says which: ``energy`` names
     psi, ``conservative`` whether the force is minus its gradient (else ``drift`` and
     ``max_deviation`` measure the force, not the integration). The hourglass control's
-    energy is not counted."""
+    energy is not counted in them; ``drift_with_control`` and ``max_deviation_with_control``
+    add it (``_hourglass_energy``; the same where the control is off): the total a step with
+    the control conserves. ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     dx = 0.02
     n = resolution
@@ -1763,7 +1807,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
                                  deformation=deformation)
     material_model = model
     conservative = conserves_elastic_energy(mat.elastic_force)  # the force the material resolved
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, 0.0, 0.0), (n * dx,) * 3, mat)
     model = b.finalize(device=wp.get_device())
 
@@ -1781,6 +1825,8 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     mu, lam = mat.mu, mat.lam
     e0 = _kinetic(model, a) + elastic_energy(a.F.numpy(), mu, lam)
     solver = _solver(model, fit=fit, hourglass=hourglass)
+    control_energy = _hourglass_energy(model, solver.hourglass)
+    e0_control = e0 + control_energy(a.x.numpy())
     dt = dt_factor * model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     every = max(1, steps // 400)
@@ -1796,14 +1842,14 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
         # O(dt) oscillation of the kinetic energy of v_{k-1/2} (10 % of E at the stable step).
         v = state.v.numpy().astype(np.float64)
         if pending:
-            tk, pe, v_before = pending.pop()
+            tk, pe, ce, v_before = pending.pop()
             e = 0.5 * float((mass * (0.5 * (v_before + v)) ** 2).sum()) + pe
-            hist.append((tk, e / e0 - 1.0))
+            hist.append((tk, e / e0 - 1.0, (e + ce) / e0_control - 1.0))
             if not math.isfinite(e) or e > 100.0 * e0:
                 return False
         if k % every == 0 or k == steps - 1:
             F = state.F.numpy()
-            pending.append((k * dt, elastic_energy(F, mu, lam), v))
+            pending.append((k * dt, elastic_energy(F, mu, lam), control_energy(state.x.numpy()), v))
             s = np.linalg.svd(F.astype(np.float64), compute_uv=False)
             peak_strain[0] = max(peak_strain[0], float(np.abs(s - 1.0).max()))
 
@@ -1813,9 +1859,10 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     return {"case": "energy", "amplitude": amplitude, "elastic_force": mat.elastic_force, "deformation": deformation,
             "model": material_model, "energy": ENERGY_OF_MODEL[material_model],
             "conservative": conservative,
-            "fit": solver.fit, "hourglass": solver.hourglass, "resolution": n,
+            "fit": solver.fit, "hourglass": solver.hourglass, "fit_weight": fit_weight, "resolution": n,
             "dt_factor": dt_factor, "periods": float(h[-1, 0] * omega / (2.0 * math.pi)),
             "peak_strain": peak_strain[0], "drift": float(h[-1, 1]), "max_deviation": float(np.nanmax(np.abs(h[:, 1]))),
+            "drift_with_control": float(h[-1, 2]), "max_deviation_with_control": float(np.nanmax(np.abs(h[:, 2]))),
             "blew_up": blew, "t": h[:, 0].tolist(), "relative_energy": h[:, 1].tolist(), **_row_fields(solver)}
 
 
