@@ -81,7 +81,7 @@ def _scan_minimum(dt, target, held, name, around, factor=3.0):
     fixed, from a 1-D scan of forward runs (no fit): a geometric grid over ``around`` /
     ``factor`` .. ``around`` * ``factor``, four times a finer one between the best point's
     neighbours, and the parabola (in log) through the finest grid's best three, 0.04 % apart.
-    Three refinements (0.7 % apart) read the biweight's yield stress 0.06 % low: its loss's
+    Two refinements (0.7 % apart) read the biweight's yield stress 0.06 % low: its loss's
     slope leaves the parabola's over 692.6-694.3 Pa (flow rate 15/s, steps of 0.05 %), just
     below its minimum at 695.16 Pa, where the fit ends, and the last three points straddled it."""
     def misfit(v):
