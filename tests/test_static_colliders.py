@@ -20,6 +20,7 @@ import warp_esph as we
 from taped_loss import assert_central_differences_converge, random_weights, taped_gradients, taped_rollout_loss
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP
 from warp_esph.sim.replay import forward_only
+from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT
 
 G = 9.81
 DT = 2.0e-4
@@ -326,8 +327,9 @@ def test_reaction_gradient_matches_central_differences(collider):
     with floor images too, whose row adds the sum of the step's forces (less a force
     field's, ``_field``), and on a sphere and a box collider (their own contact kernels). The
     differences close on the tape from a relative step of 1e-4 to 1e-5
-    (``assert_central_differences_converge``): within 1e-6 at 1e-5 and the ring between off by
-    no more, on the imaged ground 1e-4 and 1e-3. Measured at 1e-4, viscosity / mu, poly6: ground
+    (``assert_central_differences_converge``): with poly6 within 1e-6 at both steps (on the
+    imaged ground 1e-4), the old step's bound; with the biweight within that at 1e-5 and the
+    ring between off by no more, on the imaged ground 1e-3. Measured at 1e-4, viscosity / mu, poly6: ground
     2.7e-10 / 1.4e-8, sphere 1.1e-9 / 1.1e-8, box 9.6e-11 / 6.7e-9, the imaged ground 4.7e-7 /
     1.6e-8 and 1.7e-6 / 4.2e-8 with the field; the biweight: the imaged ground 3.5e-4 / 2.4e-4
     (3.5e-6 / 2.4e-6 at 1e-5, the ring 3.9e-4 / 2.6e-4), with the field 2.0e-5 / 2.2e-6,
@@ -337,7 +339,13 @@ def test_reaction_gradient_matches_central_differences(collider):
     and its differences fall as the step squared."""
     loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True, collider=collider)
     assert touching > 10, "the block lands during the rollout"
-    bound, spread = (1e-4, 1e-3) if collider.startswith("ground_images") else (1e-6, 1e-6)
+    old = 1e-4 if collider.startswith("ground_images") else 1e-6
+    # Poly6 keeps the old bound at both steps; the biweight's imaged ground bends within 1e-4
+    # (the touchdown share's smoothstep end), read at 1e-5 and by the ring.
+    if DEFAULT_FIT_WEIGHT == "poly6":
+        bound, spread = (old, old), None
+    else:
+        bound, spread = old, (1e-3 if collider.startswith("ground_images") else old)
     for name, base, g in (("viscosity", 2.0, g_visc), ("mu", 1.0e3, g_mu)):
         args = {"viscosity": 2.0, "mu": 1.0e3, "collider": collider}
         errors, rings = assert_central_differences_converge(
