@@ -21,13 +21,22 @@ def taped_rollout_loss(solver, states, dt: float, weights: wp.array):
     """Steps ``solver`` through ``states`` (``len(states) - 1`` steps of ``dt``) under a tape
     and adds the loss on the last state; returns ``(loss, tape)``, ``loss`` a 1-element
     float64 array, for the caller's ``tape.backward(loss)``."""
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    losses, tape = taped_rollout_losses(solver, states, dt, [weights])
+    return losses[0], tape
+
+
+def taped_rollout_losses(solver, states, dt: float, weights):
+    """``taped_rollout_loss`` with a loss for each of ``weights`` (a list of weight arrays) on
+    the one tape: ``(losses, tape)``; a ``tape.backward`` of one loss fills its gradients alone
+    (the others' seeds are zero), ``tape.zero()`` between them."""
+    losses = [wp.zeros(1, dtype=wp.float64, requires_grad=True) for _ in weights]
     tape = wp.Tape()
     with tape:
         for a, b in zip(states[:-1], states[1:]):
             solver.step(a, b, dt)
-        wp.launch(dot_loss, len(weights), [states[-1].x, weights], [loss])
-    return loss, tape
+        for w, loss in zip(weights, losses):
+            wp.launch(dot_loss, len(w), [states[-1].x, w], [loss])
+    return losses, tape
 
 
 def untaped_rollout_loss(solver, state, dt: float, steps: int, weights: wp.array) -> float:
@@ -36,13 +45,22 @@ def untaped_rollout_loss(solver, state, dt: float, steps: int, weights: wp.array
     gradient arrays. A taped rollout needs a state per step and their gradient arrays, which a
     central difference never reads; the step runs the same kernels with and without the tape,
     so its loss is the taped one to the bit (``test_gradient_coverage.py`` asserts it)."""
+    return untaped_rollout_losses(solver, state, dt, steps, [weights])[0]
+
+
+def untaped_rollout_losses(solver, state, dt: float, steps: int, weights) -> list:
+    """``untaped_rollout_loss`` for each of ``weights`` (a list of weight arrays), all from the
+    one rollout."""
     a, b = state, solver.model.state(requires_grad=False)
     for _ in range(steps):
         solver.step(a, b, dt)
         a, b = b, a
-    loss = wp.zeros(1, dtype=wp.float64)
-    wp.launch(dot_loss, len(weights), [a.x, weights], [loss])
-    return float(loss.numpy()[0])
+    values = []
+    for w in weights:
+        loss = wp.zeros(1, dtype=wp.float64)
+        wp.launch(dot_loss, len(w), [a.x, w], [loss])
+        values.append(float(loss.numpy()[0]))
+    return values
 
 
 def taped_gradients(model, states, loss, tape, names) -> dict:

@@ -16,7 +16,8 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import assert_central_differences_converge, random_weights, taped_rollout_loss, untaped_rollout_loss
+from taped_loss import (random_weights, taped_rollout_loss, taped_rollout_losses, untaped_rollout_loss,
+                        untaped_rollout_losses)
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP
 
 STEPS = 50
@@ -401,37 +402,76 @@ def _landing_value(model):
     return _value(model, CONTACT_STEPS)
 
 
-#: The most a ring's mean slope may stray from the tape in the landing, relative
-#: (``assert_central_differences_converge``). Measured, poly6 / biweight: lam 2.0e-5 / 1.1e-2
-#: (the biweight's steep bend, ``test_loss_is_smooth_through_ground_contact``), the others
-#: within 1.8e-6 / 5.7e-6.
-LANDING_SPREAD = {"mu": 1e-3, "lam": 5e-2, "yield_stress": 1e-3, "flow_rate": 1e-3, "viscosity": 1e-3}
+#: The seeds of the landing's random loss weights read together (``landing_losses``): seed 0
+#: is the loss of the landing's other tests.
+LOSS_SEEDS = (0, 1, 2, 3)
+
+
+def _landing_weights(model):
+    return [random_weights(model.particle_count, seed) for seed in LOSS_SEEDS]
+
+
+@pytest.fixture(scope="module")
+def landing_losses():
+    """The landing's gradients at ``PARAMS`` of the loss at each of ``LOSS_SEEDS``' weights,
+    ``{name: array over the seeds}``, from one taped run: one backward pass per loss."""
+    model = _landing_model()
+    states = [model.state() for _ in range(CONTACT_STEPS + 1)]
+    losses, tape = taped_rollout_losses(we.Solver(model), states, DT, _landing_weights(model))
+    grads = {name: [] for name in SCANNED}
+    for loss in losses:
+        tape.backward(loss)
+        for name in SCANNED:
+            grads[name].append(getattr(model, name).grad.numpy()[0])
+        tape.zero()
+    return {name: np.array(g) for name, g in grads.items()}
+
+
+def _landing_values(model):
+    """The loss at each of ``LOSS_SEEDS``' weights, from one untaped run of ``model``."""
+    return np.array(untaped_rollout_losses(we.Solver(model), model.state(requires_grad=False), DT, CONTACT_STEPS,
+                                           _landing_weights(model)))
 
 
 @pytest.mark.parametrize("name", SCANNED)
-def test_loss_is_smooth_through_ground_contact(name, taped_base):
+def test_loss_is_smooth_through_ground_contact(name, taped_base, landing_losses):
     """Central differences match the tape in a flowing block that lands on a rough ground:
     a touchdown step removes only a share of the inward normal velocity, smooth in how far
     past the surface the particle drifted (``colliders.touchdown_share``: one that barely
     crosses barely responds), the stick-slip transition is rounded
     (``colliders.slip_speed``) and the plastic flow's volume factor is continuous in J.
     Measured before these changes: over +-1 % of viscosity, loss increments of -20 to 4
-    times the tape's slope (see the next test). The differences close on the tape from a
-    relative step of 1e-4 to 1e-5 (``assert_central_differences_converge``: within 1e-3 at
-    1e-5, the ring between within ``LANDING_SPREAD``). Measured, poly6 / biweight: within
-    1.8e-5 / 1.0e-2 at 1e-4 (the biweight's lam, a C1 bend of the landing: docs/physics.md,
-    "The contact and tools gradients, traced"; its other parameters within 5.1e-6), 2.1e-7 /
-    2.9e-5 at 1e-5."""
+    times the tape's slope (see the next test).
+
+    At a relative step of 1e-4 the central differences of the losses at four random weights
+    (``LOSS_SEEDS``, one rollout for all) match their tape's gradients within 1e-3 of the
+    gradients' rms over the four. Against each loss's own gradient the reading is
+    ill-conditioned where a loss is nearly stationary in the parameter: with the biweight
+    seed 0's lam gradient is 109 times smaller than poly6's and its difference read 1.0e-2
+    of it off (docs/physics.md, "The contact and tools gradients read over a ladder of
+    steps"), while the error is the loss's curvature, the same size in every direction of
+    the weights. Measured, poly6 / biweight: within 3.8e-6 / 2.6e-5 of the rms (poly6's
+    largest mu's, the biweight's lam's; its others within 1.2e-5); seed 0's lam 1.8e-5 / 1.0e-2 of its own gradient.
+    What it catches: a jump J of a loss within the step reads J / 2h, so one over 2e-3 h
+    times the rms (the flow's volume factor jumping in J read gradients -2.7 to 1.12 of the
+    centre's in the scan below); a kink of the gradient by k within the step, at most k / 2.
+    The viscosity's old edge (a kink where a pair left its support, docs/physics.md, "The
+    landing loss's kinks are pairs leaving the viscosity's support") reads 9.3e-5 of the rms
+    with the biweight, under the bound: the viscous pair's own test holds it."""
     run = _landing_run(taped_base)
-    grad = run["grads"][name]
     assert run["neighbors_cut"] == 0
     assert run["alpha_max"] > 0.2, "the block flows"
     on_ground = (run["x"][:, 1] < 1e-9).sum()
     assert on_ground > 50, "the block lies on the ground"
+    grads = landing_losses[name]
+    assert grads[0] == run["grads"][name], "seed 0's loss is the landing's"
     base = PARAMS[name]
-    assert_central_differences_converge(grad, lambda d: _landing_value(_landing_model({name: base + d})), 1e-4 * base,
-                                        (1, 10), 1e-3, LANDING_SPREAD[name], what=name)
-    assert abs(grad) > 1e-9, f"the loss does not reach {name}"
+    eps = 1e-4 * base
+    fd = (_landing_values(_landing_model({name: base + eps})) - _landing_values(_landing_model({name: base - eps}))) / (2 * eps)
+    rms = np.sqrt(np.mean(grads ** 2))
+    print(name, "gradients", grads, "errors / rms", np.abs(fd - grads) / rms, "errors / own", np.abs(fd / grads - 1.0))
+    assert rms > 1e-9, f"the loss does not reach {name}"
+    assert (np.abs(fd - grads) <= 1e-3 * rms).all(), (name, grads, fd)
 
 
 @pytest.mark.parametrize("name", SCANNED)
