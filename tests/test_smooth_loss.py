@@ -530,18 +530,30 @@ def test_no_jump_in_the_loss_through_ground_contact(name, taped_base):
     _assert_smooth(*_scan_against_trapezoid(name, taped_base, points=range(2, 9)))
 
 
-def test_the_pair_repulsion_smooths_the_landing_scan_at_the_default_pressure_stiffness():
-    """At the default pressure force's default ``k_p`` (1.0 here, twice ``PARAMS``') the
+@pytest.mark.parametrize("fit_weight", ["poly6", "biweight"])
+def test_the_pair_repulsion_smooths_the_landing_scan_at_the_default_pressure_stiffness(fit_weight):
+    """At the default pressure force's default ``k_p`` (1.0 here, twice ``PARAMS``') poly6's
     landing's second layer falls onto the first, one particle onto another, and the
     viscosity's scan steps by 11.0 % of the centre's gradient between neighbours (gradients
     0.982-1.327: docs/physics.md, "Why the biweight lets particles pair at the ground"). With
     ``Material.pair_repulsion = 2`` the pair does not meet and the scan reads gradients
     0.985-1.018 of the centre's, neighbours at most 0.64 % apart, increments within 0.10 % of
-    the trapezoid (the hand-written adjoints' tape)."""
-    ratios, grads = _scan_against_trapezoid("viscosity", None, params={"pressure_stiffness": 1.0, "pair_repulsion": 2.0})
+    the trapezoid (the hand-written adjoints' tape).
+
+    The 11 % step is poly6's (the biweight's scan steps by 1.1 % without the repulsion at
+    this ``k_p``), so the range of 5 % is asserted for poly6. With the repulsion the
+    biweight's second layer stops over the first and rises back, a loss that bends steadily
+    in the viscosity: gradients 1.064 down to 0.944 of the centre's, each neighbour 1.2-1.5 %
+    below the last but the end's 0.61 %, so the steps' own changes within 0.58 % (poly6's
+    0.41 %), where a step (a kink or a jump: 11 % above) shows as one neighbour step far off
+    the others; increments within 0.085 % of the trapezoid."""
+    ratios, grads = _scan_against_trapezoid("viscosity", None, params={"pressure_stiffness": 1.0, "pair_repulsion": 2.0},
+                                            fit_weight=fit_weight)
     assert np.abs(ratios - 1.0).max() < 0.01, np.round(ratios, 4)
     assert np.abs(np.diff(grads)).max() < 0.02, np.round(grads, 3)
-    assert np.abs(grads - 1.0).max() < 0.05, np.round(grads, 3)
+    assert np.abs(np.diff(grads, 2)).max() < 0.01, np.round(grads, 3)
+    if fit_weight == "poly6":
+        assert np.abs(grads - 1.0).max() < 0.05, np.round(grads, 3)
 
 
 def _assert_smooth(ratios, grads):
@@ -550,12 +562,12 @@ def _assert_smooth(ratios, grads):
     assert np.abs(grads - 1.0).max() < 0.25, np.round(grads, 3)
 
 
-def _scan_against_trapezoid(name, taped_base, images=False, points=range(11), params=None):
+def _scan_against_trapezoid(name, taped_base, images=False, points=range(11), params=None, **builder):
     """The landing loss at 11 values over +-1 % of ``name`` (those of them ``points`` picks,
     in order): each interval's increment over the mean of the tape's gradients at its ends,
     and the gradients over the centre's. The centre, ``PARAMS`` itself (point 5, which
     ``points`` must hold), is the landing's shared taped run; with ``params`` (over
-    ``PARAMS``) a run of the scan's own."""
+    ``PARAMS``) a run of the scan's own, its scene made with ``builder``'s arguments."""
     base = dict(PARAMS, **(params or {}))[name]
     points = list(points)
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))[points]
@@ -565,7 +577,8 @@ def _scan_against_trapezoid(name, taped_base, images=False, points=range(11), pa
     # (set_materials) and the last run's gradients zeroed (its tape's zero(), the parameters'
     # too) before each: its loss and gradient are a new model's and states' to the bit
     # (measured at three values of mu on the ground and of the viscosity on the imaged ground).
-    model = _landing_model(params, images=images)
+    assert params is not None or not builder, "the shared centre is the default scene's"
+    model = _landing_model(params, images=images, **builder)
     materials = list(model.materials)
     states = [model.state() for _ in range(CONTACT_STEPS + 1)]
     w = random_weights(model.particle_count, 0)
