@@ -432,22 +432,25 @@ def dough_target():
 
 
 def test_small_fit_recovers_two_parameters(dough_target):
-    """L-BFGS from a factor 2 off in both parameters, to the truth within 10 % and 1e-3 of the
-    initial loss in at most 9 evaluations (measured: within 5.6 % and 4.0e-4 at the 9th, 13 %
-    at the 8th; 1.5 % and 2e-5 at the 10th, 0.01 % at the 12th; converged at the 14th)."""
+    """L-BFGS from a factor 2 off in both parameters converges on the truth (made with the same
+    solver and fit weight): within 1e-5 of both and 1e-12 of the initial loss. Measured:
+    converged at the 14th evaluation with poly6 (2e-8 off in both), the 15th with the
+    biweight (3e-8 and 5e-9). Both first go up in the yield stress (to 921 / 932 Pa at the
+    3rd), then down the valley at different paces: at the 9th poly6 is 5.7 % off and 4.5e-4
+    of the initial loss, the biweight 21 % and 4.7e-3 (this test stopped at the 9th until
+    the biweight was measured)."""
     truth, dt, steps, frames, target = dough_target
     model = _dough_block(800.0, 60.0)  # a factor 2 off in both
     assert 200 <= model.particle_count <= 400
     seen = []
-    result = fit(model, target, ["yield_stress", "flow_rate"], steps=steps, dt=dt, frames=frames, iterations=8,
+    result = fit(model, target, ["yield_stress", "flow_rate"], steps=steps, dt=dt, frames=frames, iterations=20,
                  optimizer="lbfgs", progress=False, callback=lambda k, v, p: seen.append(v), noise=1e-4)
-    assert result.stopped in ("converged", "iterations", "stalled")
-    assert result.converged == (result.stopped == "converged")
+    assert result.stopped == "converged" and result.converged, result.stopped
     # Here stress and yield stress are comparable: the data determine both.
     assert result.diagnostics.undetermined == [], result.diagnostics.summary()
-    assert result.params["yield_stress"][0] == pytest.approx(400.0, rel=0.10)
-    assert result.params["flow_rate"][0] == pytest.approx(30.0, rel=0.10)
-    assert result.loss < 1e-3 * result.initial_loss
+    assert result.params["yield_stress"][0] == pytest.approx(400.0, rel=1e-5)
+    assert result.params["flow_rate"][0] == pytest.approx(30.0, rel=1e-5)
+    assert result.loss < 1e-12 * result.initial_loss
     assert len(seen) == len(result.history)
     assert result.material.yield_stress == result.params["yield_stress"][0]
     # The model is left holding the fitted material.
