@@ -1729,6 +1729,8 @@ def _hourglass_energy(model, c: float):
     what the step conserves."""
     if c == 0.0:
         return lambda x: 0.0
+    from warp_esph.sim import hourglass
+
     X = np.asarray(model.particle_x0, dtype=np.float64)
     h = float(model.support_radius)
     body = model.particle_body.numpy()
@@ -1745,7 +1747,7 @@ def _hourglass_energy(model, c: float):
     d = X[nb] - X[:, None, :]
     S = (w * (d * d).sum(-1)).sum(1)
     A = np.einsum("ij,ijk,ijl->ikl", w, d, d)
-    ok = (S > 0.0) & (np.linalg.det(A) > 1.0e-4 * (S / 3.0) ** 3)  # hourglass.MIN_DET: no control below it
+    ok = (S > 0.0) & (np.linalg.det(A) > hourglass.MIN_DET * (S / 3.0) ** 3)  # no control below it
     A_inv = np.linalg.inv(A[ok])
     mu = np.array([m.mu for m in model.materials])[model.particle_material.numpy()]
     coef = (0.5 * c * mu * model.particle_volume.numpy().astype(np.float64) / np.where(S > 0.0, S, 1.0))[ok]
