@@ -20,7 +20,6 @@ import warp_esph as we
 from taped_loss import assert_central_differences_converge, random_weights, taped_gradients, taped_rollout_loss
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP
 from warp_esph.sim.replay import forward_only
-from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT
 
 G = 9.81
 DT = 2.0e-4
@@ -287,7 +286,8 @@ def _landing_reaction_loss(viscosity, mu, grad=False, collider="ground"):
     ``collider``: the ground, the ground with floor images (whose force joins the row; with
     ``_field``, less that of a compression field off the block's centre), a sphere the block
     lands on off its top (so on a curved, tilted patch), or a box whose top face it lands on,
-    its edges a spacing and more from the block."""
+    its edges a spacing and more from the block. With ``grad``: the loss, the steps touching, the
+    gradients in the viscosity and mu, and the model's fit weight (the ladder's bounds are per weight)."""
     dx = 0.02
     b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, 0.045, 0.0), (5 * dx, 4 * dx, 4 * dx),
@@ -317,7 +317,7 @@ def _landing_reaction_loss(viscosity, mu, grad=False, collider="ground"):
     if not grad:
         return loss.numpy()[0], touching
     tape.backward(loss)
-    return loss.numpy()[0], touching, m.viscosity.grad.numpy()[0], m.mu.grad.numpy()[0]
+    return loss.numpy()[0], touching, m.viscosity.grad.numpy()[0], m.mu.grad.numpy()[0], m.fit_weight
 
 
 @pytest.mark.parametrize("collider", ["ground", "ground_images", "ground_images_field", "sphere", "box"])
@@ -337,12 +337,12 @@ def test_reaction_gradient_matches_central_differences(collider):
     (docs/physics.md, "The exit speed of a particle left inside", and "The contact and tools
     gradients, traced": the touchdown share's smoothstep end at +1.4e-3 of the viscosity),
     and its differences fall as the step squared."""
-    loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True, collider=collider)
+    loss, touching, g_visc, g_mu, fit_weight = _landing_reaction_loss(2.0, 1.0e3, grad=True, collider=collider)
     assert touching > 10, "the block lands during the rollout"
     old = 1e-4 if collider.startswith("ground_images") else 1e-6
     # Poly6 keeps the old bound at both steps; the biweight's imaged ground bends within 1e-4
     # (the touchdown share's smoothstep end), read at 1e-5 and by the ring.
-    if DEFAULT_FIT_WEIGHT == "poly6":
+    if fit_weight == "poly6":
         bound, spread = (old, old), None
     else:
         bound, spread = old, (1e-3 if collider.startswith("ground_images") else old)
