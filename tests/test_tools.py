@@ -26,7 +26,7 @@ def _elastic(E, nu=0.3, rho=1000.0, **kw):
 
 
 def _come_to_rest(solver, state, probe, dt):
-    """Stops every particle where it is, for the solver's symplectic Euler: ``v = -dt a(x) / 2``.
+    """Stops every free particle where it is, for the solver's symplectic Euler: ``v = -dt a(x) / 2``.
 
     The stored velocity is the step's, half a step behind ``x``; ``v = 0`` leaves the velocity
     ``dt a / 2`` at ``x``, which is not rest: it can add up to ``1 / (1 - (omega dt / 2)^2)``
@@ -68,7 +68,7 @@ def test_come_to_rest_stops_the_free_particles_and_keeps_a_moving_pins_velocity(
 
 def _run(solver, model, steps, dt, relax_after=None, every=10, state=None):
     """Steps with two swapped states (from ``state``, else the rest state); after time
-    ``relax_after`` kinetic damping (every particle stopped where it is, ``_come_to_rest``,
+    ``relax_after`` kinetic damping (every free particle stopped where it is, ``_come_to_rest``,
     whenever the kinetic energy has dropped since the last check, the dynamic-relaxation way
     to the static solution)."""
     a, b = (state, model.state()) if state is not None else (model.state(), model.state())
