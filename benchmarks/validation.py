@@ -158,6 +158,40 @@ def _damp(state, factor: float):
     state.v.assign(state.v.numpy() * factor)
 
 
+def come_to_rest(solver, state, probe, dt: float):
+    """Stops every free particle where it is, for the solver's symplectic Euler: ``v = -dt a(x) / 2``.
+
+    The stored velocity is the step's, half a step behind ``x``; ``v = 0`` leaves the velocity
+    ``dt a / 2`` at ``x``, which is not rest: it can add up to ``1 / (1 - (omega dt / 2)^2)``
+    to a mode's energy (the least of the integrator's conserved energy over ``v`` is at ``-dt a
+    / 2``), and zeroings in step with a mode pumped the held cantilever's (docs/physics.md, "The
+    held cantilever's float32 late growth"). ``a(x)`` is read from one step into ``probe``
+    (a state of the same model, overwritten); ``state`` keeps its ``x`` and time.
+    A pinned particle keeps its velocity, its pin's: ``probe.v`` is the pin's too, and
+    ``(V - V) / 2`` would stop a moving pin for the next step's neighbours (the viscosity
+    reads it). Free particles beside a moving tool or pin are stopped all the same: kinetic
+    damping is for scenes that come to rest."""
+    solver.step(state, probe, dt)  # probe.v = v + dt a(x) (a pinned particle: its pin's velocity)
+    v = state.v.numpy()
+    stopped = 0.5 * (v - probe.v.numpy())
+    for pin in solver.model.tools.pins if solver.model.tools is not None else ():
+        stopped[pin.indices] = v[pin.indices]
+    state.v.assign(stopped)
+
+
+def kinetic_damping(solver, state, probe, dt: float, mass: np.ndarray, ke_prev: float) -> float:
+    """One check of kinetic damping, the dynamic-relaxation route to a static state that does
+    not change it: if the kinetic energy (``mass`` per particle, a column) has dropped since
+    the last check (``ke_prev``), every particle is stopped where it is (``come_to_rest``).
+    Returns the energy the next check compares with (0 after a stop)."""
+    v = state.v.numpy().astype(np.float64)
+    ke = 0.5 * float((mass * v * v).sum())
+    if ke < ke_prev:
+        come_to_rest(solver, state, probe, dt)
+        return 0.0
+    return ke
+
+
 def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
     """|s| = 2 mu |sigma - mean(sigma)| of the yield test (warp_esph/sim/plasticity.py), sigma
     the singular values of the stored elastic F."""
@@ -1252,9 +1286,8 @@ def _open_interval(name: str, value, lo: float, hi: float, why: str = "") -> flo
 def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, a=None, c=None, every: int = 10,
                       average: int = 100, after=None, viscous: float = 0.0):
     """Step through ``load_time`` (the tools move) and ``hold_time`` (they stay) with kinetic
-    damping during the hold (all velocities zeroed, every ``every`` steps, whenever the kinetic
-    energy has dropped since the last check: the dynamic-relaxation route to the static
-    state, which it does not change), or, with ``viscous`` = c > 0, mass-proportional damping
+    damping during the hold (``kinetic_damping`` every ``every`` steps: every particle stopped
+    where it is whenever the kinetic energy has dropped since the last check), or, with ``viscous`` = c > 0, mass-proportional damping
     instead (every velocity times exp(-c dt) after each step of the hold: it also holds back
     a slowly growing motion, which kinetic damping, acting only when the energy drops, lets
     grow). Returns the states and, per tool name, the mean reaction force on the material
@@ -1263,6 +1296,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
     if a is None:
         a, c = model.state(), model.state()
     mass = model.particle_mass.numpy().astype(np.float64)[:, None]
+    probe = model.state() if viscous <= 0.0 else None
     t_end = a.time + load_time + hold_time
     t_hold = a.time + load_time
     rows, ke_prev, k = [], 0.0, 0
@@ -1273,12 +1307,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
         if a.time > t_hold and viscous > 0.0:
             _damp(a, math.exp(-viscous * dt))
         elif a.time > t_hold and k % every == 0:
-            v = a.v.numpy().astype(np.float64)
-            ke = 0.5 * float((mass * v * v).sum())
-            if ke < ke_prev:
-                a.v.zero_()
-                ke = 0.0
-            ke_prev = ke
+            ke_prev = kinetic_damping(solver, a, probe, dt, mass, ke_prev)
         r = solver.reaction_forces(a)
         rows.append([r[n][0] for n in names])
         if after is not None:

@@ -17,6 +17,8 @@ from warp_esph import tools
 from warp_esph.builder import finalize_worlds
 from warp_esph.model import AUTO_HOURGLASS, CONTACTS
 
+from benchmarks.validation import come_to_rest, kinetic_damping
+
 G = 9.81
 
 
@@ -25,28 +27,8 @@ def _elastic(E, nu=0.3, rho=1000.0, **kw):
     return we.Material.from_young(E, nu, density=rho, pressure_stiffness=0.0, elastic_force="variational", **kw)
 
 
-def _come_to_rest(solver, state, probe, dt):
-    """Stops every free particle where it is, for the solver's symplectic Euler: ``v = -dt a(x) / 2``.
-
-    The stored velocity is the step's, half a step behind ``x``; ``v = 0`` leaves the velocity
-    ``dt a / 2`` at ``x``, which is not rest: it can add up to ``1 / (1 - (omega dt / 2)^2)``
-    to a mode's energy (the least of the integrator's conserved energy over ``v`` is at ``-dt a
-    / 2``), and zeroings in step with a mode pumped the held cantilever's (docs/physics.md, "The
-    held cantilever's float32 late growth"). ``a(x)`` is read from one step into ``probe``.
-    A pinned particle keeps its velocity, its pin's: ``probe.v`` is the pin's too, and
-    ``(V - V) / 2`` would stop a moving pin for the next step's neighbours (the viscosity
-    reads it). Free particles beside a moving tool or pin are stopped all the same: kinetic
-    damping is for scenes that come to rest."""
-    solver.step(state, probe, dt)  # probe.v = v + dt a(x) (a pinned particle: its pin's velocity)
-    v = state.v.numpy()
-    stopped = 0.5 * (v - probe.v.numpy())
-    for pin in solver.model.tools.pins if solver.model.tools is not None else ():
-        stopped[pin.indices] = v[pin.indices]
-    state.v.assign(stopped)
-
-
 def test_come_to_rest_stops_the_free_particles_and_keeps_a_moving_pins_velocity():
-    """``_come_to_rest`` on a block whose bottom layer is pinned and carried at 0.1 m/s: the
+    """``come_to_rest`` on a block whose bottom layer is pinned and carried at 0.1 m/s: the
     pinned particles keep the pin's velocity (it wrote 0 there, ``(V - V) / 2``), while the
     free ones, carried along by then, are stopped."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
@@ -59,7 +41,7 @@ def test_come_to_rest_stops_the_free_particles_and_keeps_a_moving_pins_velocity(
     held = m.tools.pins[0].indices
     free = np.setdiff1d(np.arange(m.particle_count), held)
     carried = np.abs(st.v.numpy()[free, 0]).max()
-    _come_to_rest(s, st, m.state(), dt)
+    come_to_rest(s, st, m.state(), dt)
     v = st.v.numpy()
     np.testing.assert_allclose(v[held], np.tile([0.1, 0.0, 0.0], (len(held), 1)), atol=1e-6)
     print(f"free particles' largest speed along the pin {carried:.3g} m/s, after the stop {np.abs(v[free]).max():.3g}")
@@ -68,23 +50,18 @@ def test_come_to_rest_stops_the_free_particles_and_keeps_a_moving_pins_velocity(
 
 def _run(solver, model, steps, dt, relax_after=None, every=10, state=None):
     """Steps with two swapped states (from ``state``, else the rest state); after time
-    ``relax_after`` kinetic damping (every free particle stopped where it is, ``_come_to_rest``,
-    whenever the kinetic energy has dropped since the last check, the dynamic-relaxation way
-    to the static solution)."""
+    ``relax_after`` kinetic damping (``benchmarks.validation.kinetic_damping``: every particle
+    stopped where it is whenever the kinetic energy has dropped since the last check, the
+    dynamic-relaxation way to the static solution)."""
     a, b = (state, model.state()) if state is not None else (model.state(), model.state())
     probe = model.state() if relax_after is not None else None
-    mass = model.particle_mass.numpy()[:, None]
+    mass = model.particle_mass.numpy().astype(np.float64)[:, None]
     ke_prev = 0.0
     for k in range(steps):
         solver.step(a, b, dt)
         a, b = b, a
         if relax_after is not None and a.time > relax_after and k % every == 0:
-            v = a.v.numpy()
-            ke = 0.5 * float((mass * v * v).sum())
-            if ke < ke_prev:
-                _come_to_rest(solver, a, probe, dt)
-                ke = 0.0
-            ke_prev = ke
+            ke_prev = kinetic_damping(solver, a, probe, dt, mass, ke_prev)
     return a
 
 
@@ -302,8 +279,9 @@ def test_cantilever_on_the_corrected_fit_without_the_control_by_fit_weight(fit_w
     near the clamp, its particles up to 0.23 dx off the static solution; the amplitude read
     below 0.081 dx (poly6: 0.0038 dx, the smooth bend's second difference). The control
     removes it (the test above). Read at rest: 2000 / 3000 steps (poly6 at 1400: 1.0725, the
-    clamp 0.9 % over the weight, still settling since ``_come_to_rest`` stops the beam where
-    zeroing the velocities left it the step's ``dt a / 2``; 1.0656 and 4e-4 at 2000)."""
+    clamp 0.9 % over the weight, still settling since ``come_to_rest`` (benchmarks/validation.py)
+    stops the beam where zeroing the velocities left it the step's ``dt a / 2``; 1.0656 and
+    4e-4 at 2000)."""
     E, nu, rho, dx, L, t = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05
     m, tip = _clamped_beam(dx, L, t, E=E, nu=nu, rho=rho, fit_weight=fit_weight)
     x0 = m.particle_x0
@@ -336,9 +314,9 @@ def test_kinetic_damping_stops_the_held_cantilever_without_pumping_its_edge_mode
     without gravity, so that its rest state is an equilibrium, started with the mode that grew
     in it: its two opposite long edges moving along (0, -1, 1), 1 cm/s, signs at random along
     the beam. Kinetic damping must take the energy out. Zeroing the velocities (before
-    ``_come_to_rest``) pumped that mode (omega dt = 0.46 with the biweight: the zeroings fell
+    ``come_to_rest``) pumped that mode (omega dt = 0.46 with the biweight: the zeroings fell
     every 20 steps in step with it, each adding up to the 1 / (1 - (omega dt / 2)^2) = 1.056
-    of ``_come_to_rest``'s docstring; measured 1.053): 0.137 / 0.342 x the seed's energy after
+    of ``come_to_rest``'s docstring; measured 1.053): 0.137 / 0.342 x the seed's energy after
     500 / 1000 steps (the same in float64), and in the scene with gravity 0.12 J by 12000 steps
     (docs/physics.md, "The held cantilever's float32 late growth"). Stopped at ``v = -dt a /
     2``: 0.039 / 0.027. Undamped the same start keeps 0.62-0.77 x of it: not the step. The
