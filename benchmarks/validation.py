@@ -1652,9 +1652,10 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     ``deflection`` at mid-span in 0.1 s and held ``hold`` s; no gravity, pressure off,
     variational force, ``Solver(hourglass=hourglass, fit=fit)``. During the hold the
     velocities are damped mass-proportionally at c = ``damping`` omega_1 (omega_1 the first
-    bending frequency of the span, Euler-Bernoulli); ``damping=0``: kinetic damping instead,
-    under which a motion starting at the beam's free ends grows after about 0.25 s of hold
-    until contact is lost (docs/validation.md). Measured, as means over the last ``average``
+    bending frequency of the span, Euler-Bernoulli); ``damping=0``: kinetic damping instead
+    (``kinetic_damping``; when it zeroed the velocities a motion starting at the beam's free
+    ends grew after about 0.25 s of hold until contact was lost, 0.277 x Timoshenko at 8
+    across, 0.6 s; with its stop 0.9212, as damped, docs/validation.md Notes). Measured, as means over the last ``average``
     s: the pin's reaction force, the supports' and the mid-span deflection of the beam (mean
     height change of the mid-span particle column's middle layers against that of the two
     columns over the supports, which takes out the local indentation under the pin and at
