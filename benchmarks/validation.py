@@ -1317,7 +1317,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
 
 
 def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e5, nu: float = 0.3,
-                      dtype: str = "float32") -> dict:
+                      dtype: str = "float32", fit_weight: str = "poly6") -> dict:
     """Uniaxial compression between two frictionless plane tools (the texture-analyser test
     with slip): a cube ``resolution`` particles across on a fixed plane, the top plane
     lowered by ``strain`` of the lattice height in 0.05 s, then held and relaxed for 0.1 s;
@@ -1327,7 +1327,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     ``resolution`` >= 2 (the lateral strain needs two side layers), ``strain`` in (0, 1).
     ``dtype``: ``"float32"`` or ``"float64"``; a strain near float32's resolution of the
     sample's place wants float64 (at 1e-6 and 4 across the lateral ratio read 0.62 in float32,
-    for 0.92 at 1 %)."""
+    for 0.92 at 1 %). ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     from warp_esph import tools
 
@@ -1340,7 +1340,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     dx = 0.08 / n
     H = n * dx
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, H / 2, 0.0), (H, H, H), mat, name="sample")
     pts = np.concatenate(b._points)
     ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
@@ -1357,6 +1357,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     lateral = (x[right, 0].mean() - x[left, 0].mean()) / (xs[right].mean() - xs[left].mean()) - 1.0
     theory = E * H * H * strain
     return {"case": "plates", "resolution": n, "particles": model.particle_count, "strain": strain, "dtype": dtype,
+            "fit_weight": model.fit_weight,
             "force": force, "force_theory": theory, "force_ratio": force / theory,
             "lateral_strain": lateral, "lateral_theory": nu * strain,
             "lateral_ratio": lateral / (nu * strain) if nu else float("nan"),
@@ -1404,7 +1405,8 @@ def _interior_axial_and_spacing(x: np.ndarray, F: np.ndarray, mu: float, sigma_y
 
 
 def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0.2, H0: float = 0.1,
-                        load_time: float = 0.5, hold_time: float = 0.2, pressure_stiffness: float | None = None) -> dict:
+                        load_time: float = 0.5, hold_time: float = 0.2, pressure_stiffness: float | None = None,
+                        fit_weight: str = "poly6") -> dict:
     """The slump's material in homogeneous uniaxial flow: a cube ``resolution`` particles across
     (side H0) between two frictionless plane tools, no gravity, the top one lowered by
     ``squeeze`` of the lattice height in ``load_time``, then held ``hold_time`` with
@@ -1415,11 +1417,12 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
     keeps volume) against the uniaxial yield stress sigma_y = S rho g H0 (docs/physics.md,
     "The S = 0.2 gap, part by part": the method's flow stress after plastic flow, without
     the slump's geometry), and the interior particles' mean elastic deviator along the
-    uniaxial pattern (y less the mean of x and z) in sigma_y."""
+    uniaxial pattern (y less the mean of x and z) in sigma_y. ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     if not 0.0 < squeeze < 1.0:
         raise ValueError(f"squeeze = {squeeze!r} is not allowed: must be in (0, 1)")
     _, we = _we()
-    model, _, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, 2.0, squeeze, load_time)
+    model, _, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, 2.0, squeeze, load_time,
+                                                 fit_weight)
     solver = _solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
@@ -1428,7 +1431,7 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
     F = a.F.numpy().astype(np.float64)
     _, axial, nn = _interior_axial_and_spacing(x, F, mu, sigma_y)
     return {"case": "plastic_compression", "resolution": resolution, "squeeze": squeeze,
-            "log_strain": -math.log(1.0 - squeeze), "pressure_stiffness": pressure_stiffness,
+            "log_strain": -math.log(1.0 - squeeze), "pressure_stiffness": pressure_stiffness, "fit_weight": model.fit_weight,
             "stress_over_sigma_y": float(force / area / sigma_y), "interior_axial_over_sigma_y": axial,
             "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y).mean()),
             "nearest_neighbor_min": float(nn.min() / dx), "kinetic_energy": _kinetic(model, a), **_row_fields(solver)}
@@ -1534,7 +1537,7 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
                        R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float | None = None,
                        width: float = 0.10, height: float = 0.04, fit: str | None = None,
-                       deformation: str = "incremental", dtype: str = "float32") -> dict:
+                       deformation: str = "incremental", dtype: str = "float32", fit_weight: str = "poly6") -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
     ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -1559,7 +1562,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     whether the base is held as the bonded theory assumes.
 
     ``resolution`` >= 2; each depth in (0, min(R, h)) (h at the given resolution); ``hold``
-    and ``late`` > 0; ``dtype`` ``"float32"`` or ``"float64"``."""
+    and ``late`` > 0; ``dtype`` ``"float32"`` or ``"float64"``; ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     from warp_esph import checks, tools
 
@@ -1586,7 +1589,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
                        "centres, height - height / resolution")
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational",
                                  deformation=deformation)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, H / 2, 0.0), (Wd, H, Wd), mat, name="block")
     pts = np.concatenate(b._points)
     ylo, ytop = pts[:, 1].min(), pts[:, 1].max()
@@ -1623,6 +1626,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
                        else float("nan"))
     late_force = -f["indenter"][1]
     return {"case": "indentation", "resolution": resolution, "hourglass": solver.hourglass, "fit": solver.fit, "dtype": dtype,
+            "fit_weight": model.fit_weight,
             "particles": model.particle_count, "R": R,
             "width": Wd, "height": H, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
             "hertz": hertz, "theory": theory, "ratios": [f / t for f, t in zip(forces, theory)],
@@ -1646,7 +1650,7 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
                         kappa: float = 0.85, hold: float = 0.5, hourglass: float = 0.1, damping: float = 1.0,
-                        average: float = 0.1, fit: str = "linear", dtype: str = "float32") -> dict:
+                        average: float = 0.1, fit: str = "linear", dtype: str = "float32", fit_weight: str = "poly6") -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
     ``deflection`` at mid-span in 0.1 s and held ``hold`` s; no gravity, pressure off,
@@ -1665,7 +1669,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
 
     ``resolution``: a multiple of 4, so that particle columns stand over the supports;
     ``deflection`` in (0, 4 cm); ``average`` in (0, ``hold``]; ``dtype`` ``"float32"`` or
-    ``"float64"``."""
+    ``"float64"``; ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     from warp_esph import checks, tools
 
@@ -1686,7 +1690,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     damping, kappa = checks.non_negative("damping", damping), checks.positive("kappa", kappa)
     dx = t / resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     # An odd number of particle columns (24 cm + dx): columns at mid-span and over the
     # supports, so the pin and the supports touch a column's face on their axis.
     b.add_box((0.0, t / 2, 0.0), (0.24 + dx, t, t), mat, name="beam")
@@ -1721,7 +1725,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     eb, timo = three_point_stiffness(E, nu, L, t, kappa)
     k = force / sag
     return {"case": "bending", "resolution": resolution, "particles": model.particle_count, "hourglass": hourglass,
-            "dtype": dtype,
+            "dtype": dtype, "fit_weight": model.fit_weight,
             "damping": damping, "fit": fit, "hold": hold, "force": force,
             "support_force": float(f["support_left"][1] + f["support_right"][1]), "deflection": sag,
             "creep": creep, "pin_travel": deflection, "stiffness": k, "theory_euler_bernoulli": eb, "theory": timo,
@@ -2065,6 +2069,15 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for floor in ("slip_ghost_particles", "ground"):
         for res in (4, 6, 8):
             runs.append(("near_yield_column", {"resolution": res, "width": NEAR_YIELD_WIDTH, "floor": floor}))
+    # The biweight twin of every other entry (the paper's force, the energy, the lab tests,
+    # the near-yield column, the 24-across piles, ...): a default switch to the biweight
+    # (docs/physics.md, the Recommendation's step 4) re-measures the whole plan with it, and
+    # ``--only <case>:fit_weight=biweight`` must find each row's twin to run.
+    named = {(n, tuple(sorted(k.items()))) for n, k in runs if "fit_weight" in k}
+    for name, k in list(runs):
+        twin = k | {"fit_weight": "biweight"}
+        if "fit_weight" not in k and (name, tuple(sorted(twin.items()))) not in named:
+            runs.append((name, twin))
     return runs
 
 

@@ -248,7 +248,8 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         for r in energies:
             ls = "-" if r["elastic_force"] == "variational" else "--"
             ax.plot(r["t"], np.abs(np.array(r["relative_energy"])) + 1e-12, ls,
-                    label=f"{_energy_force(r)}, strain {r['peak_strain']:.2g}, dt x {r['dt_factor']}")
+                    label=f"{_energy_force(r)}{_with_weight(_fit_weight(r), ',')}, strain {r['peak_strain']:.2g}, "
+                          f"dt x {r['dt_factor']}")
         ax.set_yscale("log")
         ax.set_xlabel("t (s)")
         ax.set_ylabel("|E - E0| / E0")
@@ -288,6 +289,10 @@ def _fit_weight(r) -> str:
 def _with_weight(weight: str, lead: str = ", with") -> str:
     """What a target's name adds for the fit ``weight``: nothing for the default (poly6)."""
     return "" if weight == "poly6" else f"{lead} the {weight} fit weight"
+
+
+def _weight_order(r) -> int:
+    return FIT_WEIGHT_ORDER.index(_fit_weight(r))
 
 
 def _flow_order(r):
@@ -972,23 +977,24 @@ def _lab_tests(results) -> str:
     """The lab tests done with tools (``plate_compression``, ``sphere_indentation``,
     ``three_point_bending``): a table each."""
     out = []
-    pl = sorted((r for r in results if r["case"] == "plates"), key=lambda r: r["resolution"])
+    pl = sorted((r for r in results if r["case"] == "plates"), key=lambda r: (r["resolution"], _weight_order(r)))
     if pl:
         out.append("### Compression between frictionless plates: force against E A eps, lateral strain against nu eps\n\n"
                    "`plate_compression`: a cube between two frictionless plane tools, the top one lowered by 1 % of the "
                    "lattice height in 0.05 s, then held 0.1 s with kinetic damping; E = 1e5 Pa, no gravity. Force: the "
                    "mean of the two plates' reactions over the last 100 steps.\n\n"
-                   + _table(["across", "particles", "force (N)", "E A eps (N)", "ratio", "lateral strain", "nu eps", "ratio", "run"],
-                            [[r["resolution"], r["particles"], r["force"], r["force_theory"], r["force_ratio"],
+                   + _table(["across", "fit weight", "particles", "force (N)", "E A eps (N)", "ratio", "lateral strain", "nu eps",
+                             "ratio", "run"],
+                            [[r["resolution"], _fit_weight(r), r["particles"], r["force"], r["force_theory"], r["force_ratio"],
                               r["lateral_strain"], r["lateral_theory"], r["lateral_ratio"], _run(r)] for r in pl]))
     ind = sorted((r for r in results if r["case"] == "indentation"),
-                 key=lambda r: (r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0)))
+                 key=lambda r: (r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0), _weight_order(r)))
     if ind:
         rows = []
         for r in ind:
             last = len(r["depths"]) - 1
             for k, d in enumerate(r["depths"]):
-                rows.append([r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0), r["particles"], 1e3 * d,
+                rows.append([r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0), _fit_weight(r), r["particles"], 1e3 * d,
                              r["contact_radius_over_dx"][k],
                              r["chi"][k], r["forces"][k], r["hertz"][k], r["ratios_hertz"][k], r["theory"][k], r["ratios"][k],
                              f"{r['exponent']:.3g} ({r['theory_exponent']:.3g})" if k == last and k > 0 else "",
@@ -1005,9 +1011,9 @@ def _lab_tests(results) -> str:
                    "motion over the depth. fit, hourglass: the fit and the control's strength the solver ran "
                    "(`Solver(fit=..., hourglass=c)`; the default `fit=\"auto\"` runs the curvature-corrected fit with "
                    "c = 0.05 for this elastic block), docs/physics.md, \"Hourglass modes\".\n\n"
-                   + _table(["across", "fit", "hourglass", "particles", "depth (mm)", "contact radius / dx", "chi", "force (N)",
+                   + _table(["across", "fit", "hourglass", "fit weight", "particles", "depth (mm)", "contact radius / dx", "chi", "force (N)",
                              "Hertz (N)", "ratio", "layer (N)", "ratio", "exponent (layer)", "late ratio", "base slip", "run"], rows))
-    be = sorted((r for r in results if r["case"] == "bending"), key=lambda r: r["resolution"])
+    be = sorted((r for r in results if r["case"] == "bending"), key=lambda r: (r["resolution"], _weight_order(r)))
     if be:
         out.append("### Three-point bending: mid-span stiffness against 48 E I / L^3\n\n"
                    "`three_point_bending`: a 24 x 4 x 4 cm beam (E = 1e6 Pa) on two frictionless cylinder tools 18 cm "
@@ -1016,9 +1022,9 @@ def _lab_tests(results) -> str:
                    "Stiffness: the pin's force over the mid-span deflection of the beam's inner layers relative to "
                    "those over the supports, both means over the last 0.1 s; creep: the deflection's rate of change "
                    "over those 0.1 s. Timoshenko: 1 / (L^3 / (48 E I) + L / (4 kappa G A)), kappa = 0.85.\n\n"
-                   + _table(["across", "particles", "hold (s)", "force (N)", "deflection (m)", "creep (1/s)", "stiffness (N/m)",
+                   + _table(["across", "fit weight", "particles", "hold (s)", "force (N)", "deflection (m)", "creep (1/s)", "stiffness (N/m)",
                              "48 E I / L^3", "ratio", "Timoshenko", "ratio", "supports / pin", "run"],
-                            [[r["resolution"], r["particles"], r.get("hold", ""), r["force"], r["deflection"], r.get("creep", ""),
+                            [[r["resolution"], _fit_weight(r), r["particles"], r.get("hold", ""), r["force"], r["deflection"], r.get("creep", ""),
                               r["stiffness"], r["theory_euler_bernoulli"], r["ratio_euler_bernoulli"], r["theory"],
                               r["ratio"], r["support_force"] / r["force"], _run(r)] for r in be]))
     if not out:
@@ -1176,7 +1182,7 @@ def write(results, out: pathlib.Path, meta: dict):
         parts.append(flow)
     en = [r for r in results if r["case"] == "energy"]
     if en:
-        en.sort(key=lambda r: (r["amplitude"], _energy_force(r), -r["dt_factor"]))
+        en.sort(key=lambda r: (r["amplitude"], _energy_force(r), -r["dt_factor"], _weight_order(r)))
         parts.append(
             "## Undamped elastic energy\n\n"
             "`energy_drift`: a 6^3 cube (2 cm spacing, E = 2e5 Pa, nu = 0.3, St. Venant-Kirchhoff, pressure off, "
@@ -1194,9 +1200,9 @@ def write(results, out: pathlib.Path, meta: dict):
             "even integrated exactly, so its rows (`conserved by the force`: no) measure that force's own work "
             "against psi, not the time step's error (a 4^3 cube over 3 periods: largest deviation 0.81, 0.79, 0.79 "
             "at dt, dt / 2, dt / 4; `validation.energy_drift`).\n\n"
-            + _table(["force", "conserved by the force", "dt / stable", "peak strain", "periods", "drift", "max deviation",
+            + _table(["force", "fit weight", "conserved by the force", "dt / stable", "peak strain", "periods", "drift", "max deviation",
                       "blew up", "run"],
-                     [[_energy_force(r), "yes" if _energy_conserved(r) else "no", r["dt_factor"], r["peak_strain"],
+                     [[_energy_force(r), _fit_weight(r), "yes" if _energy_conserved(r) else "no", r["dt_factor"], r["peak_strain"],
                        r["periods"], r["drift"], r["max_deviation"], r["blew_up"], _run(r)] for r in en])
             + "\n\n![energy](images/validation/energy.png)\n")
     st = [r for r in results if r["case"] == "stability"]

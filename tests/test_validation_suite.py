@@ -975,8 +975,8 @@ def test_the_fixed_width_near_yield_study_stays_short_of_buckling_at_every_resol
     tall) at 4, 6 and 8 across on both floors, its height 0.79 of the buckling length (closed
     form: 0.2 m against 0.2519 m), so its resolutions resolve one column that stands."""
     runs = validation.select(validation.plan(False), f"near_yield_column:width={validation.NEAR_YIELD_WIDTH}")
-    assert sorted((k["floor"], k["resolution"]) for _, k in runs) == sorted(
-        (f, n) for f in ("ground", "slip_ghost_particles") for n in (4, 6, 8))
+    assert sorted((k["floor"], k["resolution"], k.get("fit_weight", "poly6")) for _, k in runs) == sorted(
+        (f, n, w) for f in ("ground", "slip_ghost_particles") for n in (4, 6, 8) for w in ("biweight", "poly6"))
     for _, k in runs:
         dx = validation.column_spacing(k["resolution"], k["width"])
         assert dx * k["resolution"] == pytest.approx(0.04)
@@ -1418,6 +1418,33 @@ def test_report_judges_the_elastic_references_and_the_step_bound_per_fit_weight(
     assert len([line for line in lines if line.startswith("| preset clay | variational | variational | biweight |")]) == 1
 
 
+def test_report_lists_the_lab_tests_and_the_energy_rows_with_their_fit_weight(tmp_path):
+    """The plates, indentation, bending and energy tables name each row's fit weight (a
+    biweight twin read without it would stand as a second poly6 measurement of the same row),
+    poly6 first; rows written before the option read as poly6."""
+    import json
+
+    from benchmarks import validation_report
+
+    old = json.loads((ROOT / "docs" / "validation.json").read_text())["results"]
+    rows = []
+    for case in ("plates", "indentation", "bending", "energy"):
+        first = next(r for r in old if r["case"] == case and r.get("fit_weight", "poly6") == "poly6")
+        first = {k: v for k, v in first.items() if k not in ("run", "fit_weight")}
+        rows += [first | {"fit_weight": "biweight"}, first]
+    meta = {"command": "python -m benchmarks.validation", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    doc = validation.merge(None, rows, meta)
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    for title in ("### Compression between frictionless plates", "### Sphere indentation", "### Three-point bending",
+                  "## Undamped elastic energy"):
+        table = [line for line in text.split(title, 1)[1].split("\n#", 1)[0].splitlines() if line.startswith("|")]
+        header = [c.strip() for c in table[0].strip("|").split("|")]
+        col = header.index("fit weight")
+        weights = [[c.strip() for c in line.strip("|").split("|")][col] for line in table[2:]]
+        assert weights and weights == sorted(weights, key=("poly6", "biweight").index), (title, weights)
+        assert weights.count("poly6") == weights.count("biweight"), (title, weights)
+
 def test_report_says_which_deformation_model_the_default_ran_for_the_variational_rows(tmp_path):
     """The default solver runs the rest model for a purely elastic scene without floor images or
     a ghost floor and the incremental composition elsewhere (``rest_model_steps`` counts the
@@ -1492,9 +1519,47 @@ def test_the_full_plan_has_a_biweight_twin_of_every_target_row_below_24_across()
     twins = {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in biweight}
     assert {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in poly6} == twins
     assert {k["floor"] for n, k in biweight if "floor" in k} == {"ghost_particles"}
-    assert validation.select(runs, "slump:S=0.05:fit_weight=biweight") == [
+    assert validation.select(runs, "slump:S=0.05:elastic_force=variational:fit_weight=biweight") == [
         ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0,
                    "fit_weight": "biweight"}) for res in (8, 12)]
+
+
+def test_the_full_plan_has_a_biweight_twin_of_every_entry():
+    """Step 4 of docs/physics.md's Recommendation: before the default weight becomes the
+    biweight, every row of docs/validation.md needs its biweight measurement, not only the
+    targets' (the paper's force, the energy, the lab tests, the near-yield column, the 24-across
+    piles). Each poly6 entry of the full plan has its twin with ``fit_weight="biweight"`` and no
+    other; each lab function runs a model of the weight it is given (the sentinel stops it at
+    the solver)."""
+    runs = validation.plan(False)
+    key = [(n, tuple(sorted((k | {"fit_weight": k.get("fit_weight", "poly6")}).items()))) for n, k in runs]
+    assert len(set(key)) == len(key), "an entry is planned twice"
+    poly6 = {(n, tuple((f, v) for f, v in k if f != "fit_weight")) for n, k in key if dict(k)["fit_weight"] == "poly6"}
+    biweight = {(n, tuple((f, v) for f, v in k if f != "fit_weight")) for n, k in key if dict(k)["fit_weight"] == "biweight"}
+    assert poly6 == biweight, (sorted(poly6 - biweight), sorted(biweight - poly6))
+    assert {n for n, _ in poly6} >= {"plate_compression", "sphere_indentation", "three_point_bending", "energy_drift"}
+
+
+class _Built(Exception):
+    pass
+
+
+@pytest.mark.parametrize("case, kwargs", [("plate_compression", {"resolution": 2}),
+                                          ("sphere_indentation", {"resolution": 2, "depths": (0.001,)}),
+                                          ("three_point_bending", {"resolution": 4}),
+                                          ("plastic_compression", {"resolution": 2})])
+def test_each_lab_function_builds_its_model_with_the_fit_weight_it_is_given(monkeypatch, case, kwargs):
+    seen = []
+
+    def solver(model, **kw):
+        seen.append(model.fit_weight)
+        raise _Built
+
+    monkeypatch.setattr(validation, "_solver", solver)
+    for weight in ("biweight", "poly6"):
+        with pytest.raises(_Built):
+            getattr(validation, case)(fit_weight=weight, **kwargs)
+    assert seen == ["biweight", "poly6"], seen
 
 
 def test_slump_at_rest_needs_both_a_still_top_and_a_still_pile():
