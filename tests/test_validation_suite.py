@@ -1445,6 +1445,26 @@ def test_report_lists_the_lab_tests_and_the_energy_rows_with_their_fit_weight(tm
         assert weights and weights == sorted(weights, key=("poly6", "biweight").index), (title, weights)
         assert weights.count("poly6") == weights.count("biweight"), (title, weights)
 
+def test_the_energy_plot_draws_the_default_weights_rows_only(tmp_path, monkeypatch):
+    """The energy figure draws poly6's rows (the table lists the biweight's beside them): with
+    both weights' twins its legend of 24 lines covered the curves."""
+    import json
+
+    from benchmarks import validation_report
+
+    drawn = {}
+
+    def save(fig, img, name, made):
+        drawn[name] = [line.get_label() for ax in fig.axes for line in ax.get_lines()]
+        made.append(name)
+
+    monkeypatch.setattr(validation_report, "_save", save)
+    old = json.loads((ROOT / "docs" / "validation.json").read_text())["results"]
+    energy = [r for r in old if r["case"] == "energy" and r.get("fit_weight", "poly6") == "poly6"][:2]
+    rows = energy + [r | {"fit_weight": "biweight"} for r in energy]
+    validation_report._plots(rows, tmp_path)
+    assert len(drawn["energy.png"]) == 2 and not any("biweight" in label for label in drawn["energy.png"]), drawn
+
 def test_report_says_which_deformation_model_the_default_ran_for_the_variational_rows(tmp_path):
     """The default solver runs the rest model for a purely elastic scene without floor images or
     a ghost floor and the incremental composition elsewhere (``rest_model_steps`` counts the
