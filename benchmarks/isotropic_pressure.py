@@ -173,7 +173,8 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=8.0)
     ap.add_argument("--baseline", action="store_true")
     # Not argparse choices: validation refuses an unknown weight with the allowed ones named.
-    ap.add_argument("--fit-weight", default="poly6", help="the incremental fit's weight (validation's fit_weight)")
+    ap.add_argument("--fit-weight", default="poly6", help="the incremental fit's weight (validation's fit_weight; default poly6, the weight "
+                         "of the runs docs/physics.md records)")
     ap.add_argument("--every", type=float, default=0.0,
                     help="column: print its state every this many axial periods (0: the end only)")
     ap.add_argument("--save", type=lambda t: _cli.check_output_file(t, "--save"),

@@ -428,8 +428,8 @@ def ground_image_rates(n: int, device, args) -> dict:
 
 
 def fit_weight_rates(n: int, device, args) -> dict:
-    """Forward rate of the dough with the paper's poly6 fit weight (the default) and the
-    biweight (``SceneBuilder(fit_weight="biweight")``), blocks interleaved in one run; the
+    """Forward rate of the dough with the paper's poly6 fit weight
+    (``SceneBuilder(fit_weight="poly6")``) and the biweight (the default), blocks interleaved in one run; the
     ratio biweight / poly6. Then the taped window (forward + backward, ``time_taped``) of
     each from its own warmed state, ``--taped-repeats`` windows alternating between the
     weights (the best of each), so that the cost of a switch to the other weight is
@@ -745,7 +745,7 @@ def main(argv=None):
     p.add_argument("--ground-images", action="store_true",
                    help="also time the dough on the ground with floor images against the plain ground (interleaved)")
     p.add_argument("--fit-weights", action="store_true",
-                   help="also time the dough with the poly6 (default) and the biweight fit weight, interleaved, "
+                   help="also time the dough with the poly6 and the biweight (default) fit weight, interleaved, "
                         "forward and a taped forward + backward window")
     p.add_argument("--fit-weight", default=None, type=_cli.Check(_fit_weight),
                    help="the fit weight of the main benchmark's model (SceneBuilder(fit_weight=); default: the "

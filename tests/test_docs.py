@@ -15,7 +15,7 @@ from warp_esph import scene_file
 from warp_esph.cli import _build_parser
 from warp_esph.model import CONTACTS, FITS
 from warp_esph.sim import guards
-from warp_esph.sim.smoothing import FIT_WEIGHTS
+from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
@@ -104,6 +104,26 @@ def test_the_defaults_cli_md_states_are_the_parsers(command, option, value, phra
     _, commands = _subparsers()
     action = next(a for a in commands[command]._actions if option in a.option_strings)
     assert action.default == value
+
+
+def test_the_default_fit_weight_the_pages_and_helps_state_is_the_codes():
+    """Which fit weight is the default (``smoothing.DEFAULT_FIT_WEIGHT``) is stated in
+    docs/cli.md, docs/scene_format.md, README.md, ``SceneBuilder``'s docstring and every
+    ``--fit-weight`` help; when the biweight became the default (2026-12-07) each still named
+    poly6, which the parsers cannot show (their default is None: the scene's, else the
+    builder's)."""
+    d = DEFAULT_FIT_WEIGHT
+    cli = _plain((DOCS / "cli.md").read_text())
+    assert f"(default: the scene's, else {d};" in cli
+    fmt = _plain((DOCS / "scene_format.md").read_text())
+    other = next(w for w in FIT_WEIGHTS if w != d)
+    assert f'| fit_weight | "{d}" or "{other}" | "{d}" |' in fmt
+    assert f'"{d}" (default' in fmt
+    assert f"The fit's weight: the {d} " in _plain((ROOT / "README.md").read_text())
+    assert f'"{d}" (the default)' in _plain(we.SceneBuilder.__doc__)
+    _, commands = _subparsers()
+    helps = [a.help for sub in commands.values() for a in sub._actions if "--fit-weight" in a.option_strings]
+    assert len(helps) >= 3 and all(_plain(h).endswith(f"else {d}") for h in helps), helps
 
 
 def test_every_commands_dt_help_names_the_scene_files_dt_as_its_default():

@@ -121,9 +121,9 @@ class SceneBuilder:
     off; None: by the fit, ``Model.solver_choice``). Scene files set them in ``[solver]``.
 
     ``fit_weight`` is the model's ``Model.fit_weight``, the weights of the incremental fit
-    (``smoothing.FIT_WEIGHTS``): ``"poly6"``, the paper's eq. 7 (the default), or
-    ``"biweight"``, which keeps a flowing material's stress through large strain nearer the
-    continuum's (docs/physics.md, "The fit's weight").
+    (``smoothing.FIT_WEIGHTS``): ``"biweight"`` (the default), which keeps a flowing material's
+    stress through large strain nearer the continuum's (docs/physics.md, "The fit's weight"), or
+    ``"poly6"``, the paper's eq. 7.
     """
 
     def __init__(

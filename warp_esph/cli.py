@@ -249,9 +249,9 @@ def _add_solver_arguments(parser) -> None:
                              "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
                              "[solver] hourglass, else 0.05 where the auto fit chose curvature_corrected and 0 otherwise")
     parser.add_argument("--fit-weight", metavar="NAME",
-                        help="weights of the incremental fit: poly6 (the paper's eq. 7) or biweight (keeps a flowing "
-                             "material's stress through large strain nearer the continuum's); default: the scene's "
-                             "[solver] fit_weight, else poly6")
+                        help="weights of the incremental fit: biweight (keeps a flowing material's stress through large "
+                             "strain nearer the continuum's) or poly6 (the paper's eq. 7); default: the scene's "
+                             "[solver] fit_weight, else biweight")
 
 
 def _solver_options(args) -> dict:

@@ -492,7 +492,7 @@ class Model:
         self._spacing = float(spacing)
         self._support_radius = float(support_radius)
         #: The weights of the incremental fit and the sums that share them
-        #: (``smoothing.FIT_WEIGHTS``: ``"poly6"``, the paper's eq. 7; ``"biweight"``;
+        #: (``smoothing.FIT_WEIGHTS``: ``"biweight"``, the default; ``"poly6"``, the paper's eq. 7;
         #: ``SceneBuilder(fit_weight=)``, docs/physics.md, "The fit's weight").
         self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
         self.max_neighbors = int(max_neighbors)

@@ -29,7 +29,7 @@ within a step ``F_i = dF_i(y) F_i`` with ``dF_i = B_i A_i^-1`` linear in the end
 
     M_i = V_i P*_i F_i^T A_i^-1,   g_ij = w_ij M_i xb_ij,   f_j -= g_ij,   f_i += g_ij
 
-with ``w_ij`` and ``A_i`` the fit's own poly6 weights and moment matrix. Its linear
+with ``w_ij`` and ``A_i`` the fit's own weights (``Model.fit_weight``) and moment matrix. Its linear
 stiffness is ``sum_i V_i G_i^T C G_i`` (``G_i`` the fit's gradient operator): symmetric,
 so an undamped body cannot gain energy by flutter, which eqs. 10-13 (a different weight
 in the force than in the fit) allow. A particle whose fit is guarded (too few

@@ -46,8 +46,8 @@ MAX_CONDITION = 20.0
 FADE = 2.0
 #: A neighbour counts whole for the few-neighbours guard up to this fraction of the support
 #: radius ``h`` and fades to nothing at ``h``. Lattice neighbours at ``h = 2 dx`` (at most
-#: ``sqrt(3) dx = 0.87 h``) count whole; the fit's poly6 weight beyond it is below 0.1 % of
-#: its peak. A wider band (0.9) counted the axis neighbours of a body compressed by its
+#: ``sqrt(3) dx = 0.87 h``) count whole; beyond it the fit's weight is below 1 % of its peak
+#: (the biweight's; poly6's below 0.1 %). A wider band (0.9) counted the axis neighbours of a body compressed by its
 #: weight (at 1.8-1.9 dx) short, so that 60 % more particle-steps of Fig. 6's star lost
 #: their fit than with the switch (docs/physics.md, "The few-neighbours guard fades").
 COUNT_FADE = 0.95

@@ -242,9 +242,12 @@ def funcs(scalar) -> types.SimpleNamespace:
 #: density, the hourglass control and the ghost floor's stencil keep poly6.
 FIT_WEIGHTS = ("poly6", "biweight")
 #: The weight a model gets unless it names one (``SceneBuilder``, ``Model``, a scene file's
-#: ``[solver]``, the neighbour search): every bound of the test suite and every row of
-#: docs/validation.md without a ``fit_weight`` was measured with it.
-DEFAULT_FIT_WEIGHT = "poly6"
+#: ``[solver]``, the neighbour search): the biweight since 2026-12-07, for the large-strain flow
+#: stress and the S = 0.3 slump height it keeps with every target poly6 meets (docs/physics.md,
+#: "The fit weight's default: the evidence"). Poly6, the paper's eq. 7, stays selectable by name.
+#: The test suite's bounds hold under either weight; docs/validation.md's rows carry their
+#: weight, and a row written before the option was poly6's.
+DEFAULT_FIT_WEIGHT = "biweight"
 
 
 @functools.cache
