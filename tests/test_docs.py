@@ -468,23 +468,27 @@ def test_the_bar_frequencies_the_pages_quote_are_the_validation_suites():
     assert quoted == 2, "the pages' bar frequencies were not found: has their wording changed?"
 
 
-def test_the_slump_heights_readme_gives_as_not_met_are_the_validation_suites():
+def test_the_slump_heights_readme_gives_as_met_or_not_are_the_validation_suites():
     """README.md says which validation targets are not met and by how much: the slump's centre
-    thickness at S = 0.2 and 0.3, 24 across, on the defaults, against the 1-D height. The
-    numbers must be docs/validation.json's, and the page must call them outside the 10 %
-    target only while they are."""
+    thickness at S = 0.2 and 0.3, 24 across, on the defaults (the default fit weight's rows),
+    against the 1-D height. The numbers must be docs/validation.json's, and the page must call
+    each outside the 10 % target only while it is: with the biweight the default, S = 0.3 is
+    met (poly6's 13.9 % below was quoted as not met after the switch)."""
     import json  # noqa: PLC0415
+
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT  # noqa: PLC0415
 
     rows = json.loads((DOCS / "validation.json").read_text())["results"]
     off = {r["S"]: 100.0 * (1.0 - r["thickness_over_H0"] / r["theory_h_over_H0"]) for r in rows
            if r["case"] == "slump" and r["resolution"] == 24 and r.get("floor") == "particles"
-           and r.get("fit_weight", "poly6") == "poly6" and r["elastic_force"] == "variational"}
+           and r.get("fit_weight", "poly6") == DEFAULT_FIT_WEIGHT and r["elastic_force"] == "variational"}
     text = _plain((ROOT / "README.md").read_text())
-    m = re.search(r"slump's height at S = 0\.2 and 0\.3, which at 24 particles across rests ([\d.]+) % and ([\d.]+) % "
-                  r"below the 1-D theory, outside its 10 %", text)
-    assert m, "README.md no longer says how far the S = 0.2 and 0.3 slumps are from the 1-D theory"
-    assert [float(m.group(1)), float(m.group(2))] == [round(off[0.2], 1), round(off[0.3], 1)]
-    assert off[0.2] > 10.0 and off[0.3] > 10.0
+    met = re.search(r"Met on the defaults: [^.]*the slump's height at S = 0\.3, ([\d.]+) % below the 1-D theory at 24 "
+                    r"particles across\. Not met: the slump's height at S = 0\.2, which at 24 particles across rests "
+                    r"([\d.]+) % below the 1-D theory, outside its 10 %", text)
+    assert met, "README.md no longer says how far the S = 0.2 and 0.3 slumps are from the 1-D theory"
+    assert [float(met.group(2)), float(met.group(1))] == [round(off[0.2], 1), round(off[0.3], 1)]
+    assert off[0.2] > 10.0 and off[0.3] <= 10.0
 
 
 def test_the_readmes_documentation_list_names_every_page():
