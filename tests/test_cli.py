@@ -277,6 +277,29 @@ def test_fit_weight_from_scene_file_cli_and_resume(tmp_path, capsys):
     assert_one_line_error(capsys.readouterr().err, f"--fit-weight = '{DEFAULT_FIT_WEIGHT}'", "is not allowed with --resume")
 
 
+def test_a_checkpoint_whose_run_predates_the_fit_weight_resumes_on_poly6(tmp_path, capsys):
+    """A run record written before ``fit_weight`` existed has none, and its run was poly6's
+    (then the only weight). Since the biweight became the default (2026-12-07) such a
+    checkpoint resumed on the scene's weight, the biweight, whose fingerprint is another's:
+    refused as "written for another scene", with ``--fit-weight`` refused beside ``--resume``,
+    so it could not be resumed at all. It resumes on poly6: the frames of the uninterrupted
+    poly6 run."""
+    from warp_esph import checkpoint
+
+    plain, chosen, falling = _falling_scenes(tmp_path, '[solver]\nfit_weight = "poly6"\n')
+    x_whole = _box_frames(_run_four_frames(tmp_path, chosen, "whole"))
+    part = _run_four_frames(tmp_path, chosen, "part", "--frames", "2", "--checkpoint-every", "2")
+    ckpt = pathlib.Path(str(part) + ".checkpoint.npz")
+    meta, arrays = checkpoint.read_checkpoint(ckpt)
+    del meta["run"]["fit_weight"]  # as the run record was before the option
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with open(ckpt, "wb") as f:
+        np.savez(f, **arrays)
+    chosen.write_text(falling)  # and its scene named no weight
+    assert main(["run", "--resume", str(ckpt), "--frames", "4", "--no-progress"]) == 0, capsys.readouterr().err
+    assert all(np.array_equal(a, b) for a, b in zip(_box_frames(part), x_whole))
+
+
 RESTING_TOML = textwrap.dedent(
     """
     [scene]

@@ -75,7 +75,7 @@ def scene_record(model: Model, version: int = FINGERPRINT_VERSION) -> dict:
         "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
         "fields": [repr(f) for f in model.force_fields],
     }
-    if model.fit_weight != "poly6":  # only where set: checkpoints written before the option still match
+    if model.fit_weight != "poly6":  # poly6 was the only weight before the option: its checkpoints still match
         record["fit_weight"] = model.fit_weight
     if any(m.pair_repulsion for m in model.materials):  # likewise; not a fitted parameter, so not in the arrays
         record["pair_repulsion"] = [m.pair_repulsion for m in model.materials]

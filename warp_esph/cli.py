@@ -567,6 +567,9 @@ def _cmd_run(args) -> int:
         every = every or run.get("checkpoint_every")
         # the run's own, not the scene's now
         options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass", "fit_weight") if k in run}
+        # A record without a weight predates the option, when every run was poly6's; the
+        # scene's weight now (the biweight by default) would be another model's fingerprint.
+        options.setdefault("fit_weight", "poly6")
     args.dtype = args.dtype or "float32"
     scene = load_scaled_scene(args.scene, scale)
     _apply_solver_options(scene.builder, options)
