@@ -7,8 +7,8 @@ weighted least-squares affine fit to the same-body neighbours is
     A = sum_j w_j xb_j xb_j^T,  B = sum_j w_j yb_j xb_j^T,  dF = B A^-1  (eqs. 5-6)
     F_i <- dF F_i                                                       (eq. 8)
 
-(``Model.fit_weight`` "biweight": ``w_j`` is ``(h^2 - |xb_j|^2)^2`` instead,
-``smoothing.fit_weight_funcs``.) Relative vectors make the fit translation invariant; it
+(``Model.fit_weight`` "biweight", the default: ``w_j`` is ``(h^2 - |xb_j|^2)^2`` instead,
+``smoothing.fit_weight_funcs``; "poly6" is the paper's above.) Relative vectors make the fit translation invariant; it
 reproduces any affine motion exactly, whatever the weights. The update is skipped (the old F kept, and counted) when the neighbourhood
 guard of ``neighbors`` fired or the candidate has ``det <= 0`` (an inverted or
 degenerate F: with the rotation-variant SVD that is exactly a signed singular value
