@@ -538,6 +538,8 @@ def test_physics_md_reader_path_links_every_open_problem():
 #: rows and docs/mpm_slump.json); after it: an expression of the row's fields (``flow(lo, hi)``: a
 #: uniaxial flow's stress over Bingham's at the log strains in ``[lo, hi)``). The quoted number must
 #: be the expression's value rounded to the decimals it shows (a ``-`` after a number or its comment is a range's).
+#: A marker naming no ``fit_weight`` quotes the default weight's row (the page's "the default solver"); one
+#: naming a weight other than the default quotes it by name: the list item or paragraph it sits in names it.
 VJ = re.compile(r"(?P<num>(?:(?<![\d.>])-)?\d+(?:\.\d+)?)\s*(?:%|x)?\s*<!-- vj: (?P<sel>[^;]*?)\s*;\s*(?P<expr>.*?)\s*-->")
 #: Values of a filter's key where a row predates the key.
 VJ_DEFAULTS = {"fit_weight": "poly6"}
@@ -553,6 +555,19 @@ def _vj_rows():
     keys = ["floor", "fit_weight", "resolution", "S", "thickness_over_H0", "yield_1d", "continuum",
             "continuum_thickness_over_H0", "yield_continuum", "log_s_moves"]
     return results, [dict(zip(keys, row)) for row in vr._fitted_yield_rows(results, mpm)]
+
+
+def _vj_filters(sel: str) -> tuple[bool, list[str]]:
+    """A marker's selection: whether it reads the fitted-yield table, and its filters, the default fit
+    weight's where it names none."""
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT  # noqa: PLC0415
+
+    filters = sel.split()
+    fitted = bool(filters) and filters[0] == "yf"
+    filters = filters[1:] if fitted else filters
+    if not any(f.startswith("fit_weight=") for f in filters):
+        filters.append(f"fit_weight={DEFAULT_FIT_WEIGHT}")
+    return fitted, filters
 
 
 def _vj_matches(row: dict, filters: list[str]) -> bool:
@@ -574,15 +589,17 @@ def test_accuracy_md_quotes_the_near_yield_column_from_the_fixed_width_study():
     resolution and reached their buckling length, so their shortenings are no convergence. Its
     plastic shortenings carry those rows (``test_every_number_accuracy_md_quotes...`` checks the
     values), every across the study measured on each floor."""
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT  # noqa: PLC0415
+
     text = (DOCS / "accuracy.md").read_text()
     section = text.split("**The near-yield column", 1)[1].split("\n\n", 1)[0]
-    quoted = {(dict(f.partition("=")[::2] for f in m.group("sel").split()).get("floor"),
-               int(dict(f.partition("=")[::2] for f in m.group("sel").split()).get("resolution", -1)))
-              for m in VJ.finditer(section)
-              if m.group("expr") == "plastic_over_theory" and "case=near_yield_column" in m.group("sel")
-              and "width=0.04" in m.group("sel")}
+    sels = [dict(f.partition("=")[::2] for f in _vj_filters(m.group("sel"))[1]) for m in VJ.finditer(section)
+            if m.group("expr") == "plastic_over_theory" and "case=near_yield_column" in m.group("sel")
+            and "width=0.04" in m.group("sel")]
+    quoted = {(sel.get("floor"), int(sel.get("resolution", -1))) for sel in sels if sel["fit_weight"] == DEFAULT_FIT_WEIGHT}
     results = _vj_rows()[0]
-    study = {(r["floor"], r["resolution"]) for r in results if r["case"] == "near_yield_column" and r.get("width") == 0.04}
+    study = {(r["floor"], r["resolution"]) for r in results if r["case"] == "near_yield_column" and r.get("width") == 0.04
+             and r.get("fit_weight", VJ_DEFAULTS["fit_weight"]) == DEFAULT_FIT_WEIGHT}
     assert study, "docs/validation.json holds no fixed-width near-yield rows"
     assert quoted == study, (sorted(quoted), sorted(study))
 
@@ -590,15 +607,26 @@ def test_accuracy_md_quotes_the_near_yield_column_from_the_fixed_width_study():
 def test_every_number_accuracy_md_quotes_from_a_validation_row_is_the_rows():
     """docs/accuracy.md answers "how far can I trust a fitted parameter" with numbers of
     docs/validation.json; each carries the row it was read from, so a re-measured row that moves
-    a number, or a number mistyped, fails here rather than misleading a reader."""
+    a number, or a number mistyped, fails here rather than misleading a reader. A number quoted for
+    the default is the default fit weight's: a marker naming the other weight's row must sit where the
+    text names that weight."""
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT  # noqa: PLC0415
+
     text = (DOCS / "accuracy.md").read_text()
     results, fitted = _vj_rows()
     found, wrong = 0, []
     for m in VJ.finditer(text):
         found += 1
-        filters = m.group("sel").split()
-        rows = fitted if filters and filters[0] == "yf" else results
-        filters = filters[1:] if rows is fitted else filters
+        is_fitted, filters = _vj_filters(m.group("sel"))
+        rows = fitted if is_fitted else results
+        weight = next(f for f in filters if f.startswith("fit_weight=")).partition("=")[2]
+        if weight != DEFAULT_FIT_WEIGHT:
+            start = max(text.rfind(b, 0, m.start()) for b in ("\n\n", "\n- ", "\n| "))
+            ends = [e for e in (text.find(b, m.end()) for b in ("\n\n", "\n- ", "\n| ")) if e >= 0]
+            item = re.sub(r"<!--.*?-->", "", text[start:min(ends, default=len(text))], flags=re.S)
+            if weight not in item:
+                wrong.append(f"{m.group(0)!r}: quotes {weight}'s row, not the default's ({DEFAULT_FIT_WEIGHT}), "
+                             f"where the text does not name {weight}")
         picked = [r for r in rows if _vj_matches(r, filters)]
         if len(picked) != 1:
             wrong.append(f"{m.group(0)!r}: {len(picked)} rows match, not one")
