@@ -279,7 +279,7 @@ def test_fit_weight_from_scene_file_cli_and_resume(tmp_path, capsys):
 
 def test_a_checkpoint_whose_run_predates_the_fit_weight_resumes_on_poly6(tmp_path, capsys):
     """A run record written before ``fit_weight`` existed has none, and its run was poly6's
-    (then the only weight). Since the biweight became the default (2026-12-07) such a
+    (then the only weight). Since the biweight became the default (2026-12-06) such a
     checkpoint resumed on the scene's weight, the biweight, whose fingerprint is another's:
     refused as "written for another scene", with ``--fit-weight`` refused beside ``--resume``,
     so it could not be resumed at all. It resumes on poly6: the frames of the uninterrupted

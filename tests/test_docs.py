@@ -109,7 +109,7 @@ def test_the_defaults_cli_md_states_are_the_parsers(command, option, value, phra
 def test_the_default_fit_weight_the_pages_and_helps_state_is_the_codes():
     """Which fit weight is the default (``smoothing.DEFAULT_FIT_WEIGHT``) is stated in
     docs/cli.md, docs/scene_format.md, README.md, ``SceneBuilder``'s docstring and every
-    ``--fit-weight`` help; when the biweight became the default (2026-12-07) each still named
+    ``--fit-weight`` help; when the biweight became the default (2026-12-06) each still named
     poly6, which the parsers cannot show (their default is None: the scene's, else the
     builder's)."""
     d = DEFAULT_FIT_WEIGHT

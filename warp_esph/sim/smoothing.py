@@ -242,7 +242,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 #: density, the hourglass control and the ghost floor's stencil keep poly6.
 FIT_WEIGHTS = ("poly6", "biweight")
 #: The weight a model gets unless it names one (``SceneBuilder``, ``Model``, a scene file's
-#: ``[solver]``, the neighbour search): the biweight since 2026-12-07, for the large-strain flow
+#: ``[solver]``, the neighbour search): the biweight since 2026-12-06, for the large-strain flow
 #: stress and the S = 0.3 slump height it keeps with every target poly6 meets (docs/physics.md,
 #: "The fit weight's default: the evidence"). Poly6, the paper's eq. 7, stays selectable by name.
 #: The test suite's bounds hold under either weight; docs/validation.md's rows carry their
