@@ -33,6 +33,7 @@ move when that choice changes; a run with none cannot (the count errs on the ful
 
 from __future__ import annotations
 
+import ast
 import json
 import math
 import pathlib
@@ -45,10 +46,23 @@ import numpy as np
 G = 9.81
 RHO = 1000.0
 FORCES = ("paper", "variational")
-#: The fit's weights (``warp_esph.sim.smoothing.FIT_WEIGHTS``, which imports Warp: this module
-#: must not; tests/test_validation_suite.py checks the two agree).
-FIT_WEIGHTS = ("poly6", "biweight")
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def _solver_fit_weights() -> tuple[tuple[str, ...], str]:
+    """``warp_esph.sim.smoothing``'s ``FIT_WEIGHTS`` and ``DEFAULT_FIT_WEIGHT``, read from its
+    source: importing it loads Warp, which this module must not (tests/test_validation_suite.py
+    checks the values are the module's)."""
+    tree = ast.parse((ROOT / "warp_esph" / "sim" / "smoothing.py").read_text())
+    found = {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
+             for t in node.targets if isinstance(t, ast.Name) and t.id in ("FIT_WEIGHTS", "DEFAULT_FIT_WEIGHT")}
+    return tuple(found["FIT_WEIGHTS"]), found["DEFAULT_FIT_WEIGHT"]
+
+
+#: The fit's weights, and the one a scene gets without naming one: a case function's
+#: ``fit_weight`` and a plan entry without one run it, so the plan's base entries measure what
+#: a user gets; each base entry's twins name the others.
+FIT_WEIGHTS, DEFAULT_FIT_WEIGHT = _solver_fit_weights()
 #: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
 SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
 #: A slump is at rest when, over the last quarter of its run, the top's height moves less than
@@ -345,7 +359,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
                 flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
                 support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
-                aspect: float = 1.0, dtype=None, requires_grad: bool = False, fit_weight: str = "poly6"):
+                aspect: float = 1.0, dtype=None, requires_grad: bool = False, fit_weight: str = DEFAULT_FIT_WEIGHT):
     """``slump``'s scene (its arguments, its docstring): ``(model, free, mu, Y)``, the model in
     ``dtype`` (default float32; ``requires_grad`` for a taped run), the mask of its free
     particles, the shear modulus and the yield stress."""
@@ -373,7 +387,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
           dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy_spiky", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
           stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
-          aspect: float = 1.0, fit_weight: str = "poly6") -> dict:
+          aspect: float = 1.0, fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
@@ -526,7 +540,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
            samples: int = 200, floor: str = "particles", floor_radius: float = 1.2,
-           pressure_force: str = "energy_spiky", fit_weight: str = "poly6") -> dict:
+           pressure_force: str = "energy_spiky", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -639,7 +653,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
             ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky",
-            fit_weight: str = "poly6", floor_margin: float = 0.0) -> dict:
+            fit_weight: str = DEFAULT_FIT_WEIGHT, floor_margin: float = 0.0) -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -789,7 +803,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
                   periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
+                  deformation: str = "incremental", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """Free-free bar, ``resolution`` x ``resolution`` particles across, ``slenderness`` times
     as long, pressure off, no gravity, started in its first longitudinal mode
     (``v = strain c cos(pi X / L)``). The frequency is read from the upward zero crossings
@@ -840,7 +854,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
 def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
                     periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
                     kappa: float = 0.85, dtype: str = "float32", fit: str | None = None,
-                    hourglass: float | None = None, deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
+                    hourglass: float | None = None, deformation: str = "incremental", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A square beam ``resolution`` particles thick on two supports under its own weight
     (``fit``, ``hourglass``: the solver's incremental fit and hourglass control,
     ``Solver(fit=..., hourglass=...)``; None: the default, ``Model.solver_choice``).
@@ -918,7 +932,7 @@ COLUMN_FLOORS = ("ground", "slip_ghost_particles")
 
 
 def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32", floor: str = "ground",
-                 fit_weight: str = "poly6"):
+                 fit_weight: str = DEFAULT_FIT_WEIGHT):
     """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
     on a frictionless floor (laterally free). Returns the model, its height, the initial
     positions, the masks of its top and bottom layers and of its particles (not the floor's)
@@ -1003,7 +1017,7 @@ def _lean(x: np.ndarray, top, bottom) -> float:
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
                   deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground",
-                  fit_weight: str = "poly6", tilt: float = 0.0, width: float | None = None) -> dict:
+                  fit_weight: str = DEFAULT_FIT_WEIGHT, tilt: float = 0.0, width: float | None = None) -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall (``width``: its width in m, the spacing ``width / resolution``; None: spacing 0.01 m,
     ``column_spacing``), on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
@@ -1063,7 +1077,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 36.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
                       dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground",
-                      tilt: float = 0.0, width: float | None = None, fit_weight: str = "poly6") -> dict:
+                      tilt: float = 0.0, width: float | None = None, fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
     ``aspect`` times as tall, ``width`` m wide or, without one, spacing 0.01 m, frictionless
     ground collider, relaxed dynamically) of a
@@ -1190,7 +1204,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
 # ------------------------------------------------------------------ poisson
 def poisson_compression(resolution: int = 6, elastic_force: str = "variational", strain: float = 1.0e-3,
                         E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
+                  deformation: str = "incremental", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A block ``resolution`` particles across and ``aspect`` times as long, compressed along
     x by ``strain`` (positions and F together) and held between two frictionless planes
     at its end layers; no gravity, pressure off, relaxed dynamically. Measured: the lateral
@@ -1317,7 +1331,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
 
 
 def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e5, nu: float = 0.3,
-                      dtype: str = "float32", fit_weight: str = "poly6") -> dict:
+                      dtype: str = "float32", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """Uniaxial compression between two frictionless plane tools (the texture-analyser test
     with slip): a cube ``resolution`` particles across on a fixed plane, the top plane
     lowered by ``strain`` of the lattice height in 0.05 s, then held and relaxed for 0.1 s;
@@ -1365,7 +1379,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
 
 
 def _plastic_cube(resolution: int, S: float, H0: float, pressure_stiffness, support_radius: float, squeeze: float,
-                  load_time: float, fit_weight: str = "poly6"):
+                  load_time: float, fit_weight: str = DEFAULT_FIT_WEIGHT):
     """The slump's material (``plastic_compression``'s docstring) as a cube ``resolution``
     across between two frictionless plane tools, the top one lowered by ``squeeze`` of the span
     between the plates in ``load_time``: ``(model, span, dx, mu, Y, sigma_y)``."""
@@ -1406,7 +1420,7 @@ def _interior_axial_and_spacing(x: np.ndarray, F: np.ndarray, mu: float, sigma_y
 
 def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0.2, H0: float = 0.1,
                         load_time: float = 0.5, hold_time: float = 0.2, pressure_stiffness: float | None = None,
-                        fit_weight: str = "poly6") -> dict:
+                        fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """The slump's material in homogeneous uniaxial flow: a cube ``resolution`` particles across
     (side H0) between two frictionless plane tools, no gravity, the top one lowered by
     ``squeeze`` of the lattice height in ``load_time``, then held ``hold_time`` with
@@ -1448,7 +1462,7 @@ def bingham_uniaxial_stress(S: float, strain_rate: float, H0: float = 0.1, stiff
 
 def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4.0, S: float = 0.2, H0: float = 0.1,
                   pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 40,
-                  fit_weight: str = "poly6") -> dict:
+                  fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """The slump's material in sustained uniaxial flow to large strain: a cube ``resolution``
     particles across (side H0), no gravity, between two frictionless plane tools, the top one
     lowered at a constant speed by ``strain`` of the span between the plates' rows in
@@ -1537,7 +1551,7 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
                        R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float | None = None,
                        width: float = 0.10, height: float = 0.04, fit: str | None = None,
-                       deformation: str = "incremental", dtype: str = "float32", fit_weight: str = "poly6") -> dict:
+                       deformation: str = "incremental", dtype: str = "float32", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
     ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -1650,7 +1664,7 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
                         kappa: float = 0.85, hold: float = 0.5, hourglass: float = 0.1, damping: float = 1.0,
-                        average: float = 0.1, fit: str = "linear", dtype: str = "float32", fit_weight: str = "poly6") -> dict:
+                        average: float = 0.1, fit: str = "linear", dtype: str = "float32", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
     ``deflection`` at mid-span in 0.1 s and held ``hold`` s; no gravity, pressure off,
@@ -1816,7 +1830,7 @@ def conserves_elastic_energy(elastic_force: str) -> bool:
 
 def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", resolution: int = 6,
                  periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
-                 deformation: str = "incremental", model: str = "stvk", fit_weight: str = "poly6") -> dict:
+                 deformation: str = "incremental", model: str = "stvk", fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff or the
     material ``model`` given, pressure off, no gravity, no viscosity) set breathing with
     ``v = a (x - c)`` so that its peak strain is about ``amplitude``. The total energy
@@ -1919,7 +1933,7 @@ def _stability_materials():
 
 
 def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: float = 0.5, limit: float = 5.0,
-              fit_weight: str = "poly6") -> dict:
+              fit_weight: str = DEFAULT_FIT_WEIGHT) -> dict:
     """A ``resolution``^3 box of ``material`` (2 cm spacing) resting on the ground (friction
     0.5), run at ``dt_factor`` x ``Model.stable_dt()`` for ``duration`` s. It blew up if a
     particle ever moved faster than ``limit`` m/s (a body at rest under gravity: well below
@@ -1955,8 +1969,10 @@ def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: f
 
 # ------------------------------------------------------------------- driver
 def plan(quick: bool) -> list[tuple[str, dict]]:
-    """(function name, kwargs) of every run of the suite."""
+    """(function name, kwargs) of every run of the suite. An entry without a ``fit_weight``
+    runs ``DEFAULT_FIT_WEIGHT``; the full plan's twins of it name each other weight, once."""
     runs: list[tuple[str, dict]] = []
+    twins = tuple(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT)
     if quick:
         for f in FORCES:
             # On the particle floor (the default) the S = 0.2 pile rests by about 4 s, within 1.7 R0.
@@ -2013,9 +2029,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs.append(("sphere_indentation", {"resolution": 16, "fit": "linear", "hourglass": 0.1}))
     # The flow stress past the particles' rearrangement (docs/physics.md, "The flow stress in
     # sustained uniaxial flow"): the same log strains at four resolutions, with each fit weight.
-    for weight in FIT_WEIGHTS:
+    for weight in (DEFAULT_FIT_WEIGHT, *twins):
         for res in (6, 8, 12, 16):
-            runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0, "fit_weight": weight}))
+            runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0}
+                         | ({"fit_weight": weight} if weight != DEFAULT_FIT_WEIGHT else {})))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:
@@ -2023,14 +2040,15 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for label, _ in _stability_materials():
         for f in FORCES:
             runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
-    # The biweight fit weight (docs/physics.md, "The fit's weight") on the elastic references
-    # and the step bound, with the default elastic force.
-    for res in (4, 6):
-        for case in ("bar_frequency", "beam_deflection", "column_settlement", "poisson_compression"):
-            runs.append((case, {"resolution": res, "elastic_force": "variational", "fit_weight": "biweight"}))
-    for label, _ in _stability_materials():
-        for f in FORCES:
-            runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0, "fit_weight": "biweight"}))
+    # The other fit weight (docs/physics.md, "The fit's weight") on the elastic references and
+    # the step bound, with the default elastic force: twins that run here, early, not at the end.
+    for weight in twins:
+        for res in (4, 6):
+            for case in ("bar_frequency", "beam_deflection", "column_settlement", "poisson_compression"):
+                runs.append((case, {"resolution": res, "elastic_force": "variational", "fit_weight": weight}))
+        for label, _ in _stability_materials():
+            for f in FORCES:
+                runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0, "fit_weight": weight}))
     # The spread limit: three resolutions at a = h_RC / R_RC = 0.25, and a shallower pile.
     for res in (3, 4, 5):
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0}))
@@ -2041,25 +2059,26 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     # pile on one CPU core).
     for S in (0.2, 0.3, 0.1, 0.5):
         runs.append(("slump", {"S": S, "resolution": 24, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
-    # The biweight fit weight (docs/physics.md, "The fit's weight") where the targets read:
-    # the slumps at the three resolutions of the convergence verdict (with S = 0.05 at 8 and 12
+    # The other fit weight (docs/physics.md, "The fit's weight") where the targets read: the
+    # slumps at the three resolutions of the convergence verdict (with S = 0.05 at 8 and 12
     # across, which the rest target names beside its finest rows) and the three spread piles
-    # (poly6's convergence verdict includes the one 3 through).
-    for res in (8, 12, 16):
-        for S in SLUMP_S if res < 16 else (0.1, 0.2, 0.3, 0.5):
-            runs.append(("slump", {"S": S, "resolution": res, "elastic_force": "variational",
-                                   "duration": SLUMP_DURATION_FINE if res == 16 else SLUMP_DURATION,
-                                   "fit_weight": "biweight"}))
-    for res in (3, 4, 5):
-        runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "fit_weight": "biweight"}))
+    # (the default's convergence verdict includes the one 3 through).
+    for weight in twins:
+        for res in (8, 12, 16):
+            for S in SLUMP_S if res < 16 else (0.1, 0.2, 0.3, 0.5):
+                runs.append(("slump", {"S": S, "resolution": res, "elastic_force": "variational",
+                                       "duration": SLUMP_DURATION_FINE if res == 16 else SLUMP_DURATION,
+                                       "fit_weight": weight}))
+        for res in (3, 4, 5):
+            runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "fit_weight": weight}))
     # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
-    # "The no-slip ghost floor"); they rest by about 4 s. Then with the biweight, whose
+    # "The no-slip ghost floor"); they rest by about 4 s. Then with the other weight, whose
     # targets include this floor's.
-    for weight in FIT_WEIGHTS:
+    for weight in (DEFAULT_FIT_WEIGHT, *twins):
         for res in (8, 12, 16):
             for S in (0.1, 0.2, 0.3, 0.5):
                 runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}
-                             | ({"fit_weight": weight} if weight != "poly6" else {})))
+                             | ({"fit_weight": weight} if weight != DEFAULT_FIT_WEIGHT else {})))
     # The near-yield column at a fixed width (docs/physics.md, "The near-yield column at a
     # fixed width"): 4 cm wide and 20 cm tall at every resolution, 0.79 of its self-weight
     # buckling length, so the resolutions resolve one column (without a width it grows with
@@ -2069,15 +2088,16 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for floor in ("slip_ghost_particles", "ground"):
         for res in (4, 6, 8):
             runs.append(("near_yield_column", {"resolution": res, "width": NEAR_YIELD_WIDTH, "floor": floor}))
-    # The biweight twin of every other entry (the paper's force, the energy, the lab tests,
-    # the near-yield column, the 24-across piles, ...): a default switch to the biweight
-    # (docs/physics.md, the Recommendation's step 4) re-measures the whole plan with it, and
-    # ``--only <case>:fit_weight=biweight`` must find each row's twin to run.
+    # The other weight's twin of every other entry (the paper's force, the energy, the lab
+    # tests, the near-yield column, the 24-across piles, ...): the plan measures both weights
+    # (docs/physics.md, the Recommendation's step 4, and the switch of the default), and
+    # ``--only <case>:fit_weight=<weight>`` must find each row's twin to run.
     named = {(n, tuple(sorted(k.items()))) for n, k in runs if "fit_weight" in k}
     for name, k in list(runs):
-        twin = k | {"fit_weight": "biweight"}
-        if "fit_weight" not in k and (name, tuple(sorted(twin.items()))) not in named:
-            runs.append((name, twin))
+        for weight in twins if "fit_weight" not in k else ():
+            twin = k | {"fit_weight": weight}
+            if (name, tuple(sorted(twin.items()))) not in named:
+                runs.append((name, twin))
     return runs
 
 
@@ -2249,9 +2269,9 @@ def main(argv=None) -> int:
 def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, dict]]:
     """The runs of ``plan`` that ``--only`` keeps: each comma-separated entry is a case function
     name, optionally followed by ``:key=value`` pairs that the run's keyword arguments must
-    match (compared as written: ``resolution=12``, ``S=0.2``, ``elastic_force=paper``); an entry
-    without the key matches its value in ``IDENTITY_DEFAULTS`` (``fit_weight=poly6`` keeps the
-    runs that do not name a weight)."""
+    match (compared as written: ``resolution=12``, ``S=0.2``, ``elastic_force=paper``); a run
+    without the key matches its value in ``PLAN_DEFAULTS`` (``fit_weight=<DEFAULT_FIT_WEIGHT>``
+    keeps the runs that do not name a weight)."""
     if not only:
         return list(runs)
     keep = []
@@ -2267,7 +2287,7 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
         keep.append((name, want))
 
     def matches(run, name, want):
-        args = IDENTITY_DEFAULTS | run[1]
+        args = PLAN_DEFAULTS | run[1]
         return run[0] == name and all(k in args and str(args[k]) == v for k, v in want.items())
 
     return [r for r in runs if any(matches(r, name, want) for name, want in keep)]
@@ -2279,9 +2299,13 @@ IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_
             "width")
 
 
-#: Identity fields whose absence means a value: a row written before the field existed
-#: ran the solver's default then (the fit weight was poly6 before it was an option).
+#: Identity fields whose absence from a ROW means a value: a row written before the field
+#: existed ran the solver's default then, which stays its value whatever the default is now
+#: (the fit weight was poly6 before it was an option). Not a plan entry's: ``PLAN_DEFAULTS``.
 IDENTITY_DEFAULTS = {"fit_weight": "poly6"}
+#: Keyword arguments whose absence from a PLAN ENTRY means a value: the entry calls the case
+#: function without it, which runs the solver's default now, not what an old row ran.
+PLAN_DEFAULTS = {"fit_weight": DEFAULT_FIT_WEIGHT}
 
 
 def same_run(a: dict, b: dict) -> bool:

@@ -19,6 +19,10 @@ if str(ROOT) not in sys.path:
 
 from benchmarks import validation  # noqa: E402
 
+#: The default fit weight, whose rows the report's unnamed targets read, and the other one,
+#: whose rows are named for it: the tests below hold under either default.
+DEFAULT_WEIGHT = validation.DEFAULT_FIT_WEIGHT
+OTHER_WEIGHT, = (w for w in validation.FIT_WEIGHTS if w != DEFAULT_WEIGHT)
 
 
 def test_slump_theory_is_the_1d_analysis():
@@ -975,7 +979,7 @@ def test_the_fixed_width_near_yield_study_stays_short_of_buckling_at_every_resol
     tall) at 4, 6 and 8 across on both floors, its height 0.79 of the buckling length (closed
     form: 0.2 m against 0.2519 m), so its resolutions resolve one column that stands."""
     runs = validation.select(validation.plan(False), f"near_yield_column:width={validation.NEAR_YIELD_WIDTH}")
-    assert sorted((k["floor"], k["resolution"], k.get("fit_weight", "poly6")) for _, k in runs) == sorted(
+    assert sorted((k["floor"], k["resolution"], (validation.PLAN_DEFAULTS | k)["fit_weight"]) for _, k in runs) == sorted(
         (f, n, w) for f in ("ground", "slip_ghost_particles") for n in (4, 6, 8) for w in ("biweight", "poly6"))
     for _, k in runs:
         dx = validation.column_spacing(k["resolution"], k["width"])
@@ -1109,10 +1113,18 @@ def test_biweight_fit_keeps_the_flow_stress_through_the_particles_rearrangement(
     assert 0.78 < min(ratios) and max(ratios) < 1.0, ratios
 
 
-def test_the_validation_plan_names_the_solvers_fit_weights():
-    from warp_esph.sim.smoothing import FIT_WEIGHTS
+def test_the_validation_plan_names_the_solvers_fit_weights_and_runs_its_default():
+    """The suite reads the solver's weights and default without importing Warp: a case run
+    without a ``fit_weight``, and a plan entry without one, run ``DEFAULT_FIT_WEIGHT``."""
+    import inspect
 
-    assert validation.FIT_WEIGHTS == FIT_WEIGHTS
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
+
+    assert validation.FIT_WEIGHTS == FIT_WEIGHTS and validation.DEFAULT_FIT_WEIGHT == DEFAULT_FIT_WEIGHT
+    assert validation.PLAN_DEFAULTS == {"fit_weight": DEFAULT_FIT_WEIGHT}
+    for name in validation.RESULT_CASES:
+        default = inspect.signature(getattr(validation, name)).parameters["fit_weight"].default
+        assert default == DEFAULT_FIT_WEIGHT, (name, default)
 
 
 @pytest.fixture(scope="module")
@@ -1306,9 +1318,10 @@ def test_only_selects_plan_entries_by_case_and_keyword_values():
     assert validation.select(runs, None) == runs
     # A run that names no fit weight runs the default's, and is selected by it.
     bars = validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational")
-    assert [k.get("fit_weight") for _, k in bars] == [None, "biweight"]
-    assert validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational:fit_weight=poly6") == bars[:1]
-    assert validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational:fit_weight=biweight") == bars[1:]
+    assert [k.get("fit_weight") for _, k in bars] == [None, OTHER_WEIGHT]
+    at = "bar_frequency:resolution=4:elastic_force=variational:fit_weight="
+    assert validation.select(runs, at + DEFAULT_WEIGHT) == bars[:1]
+    assert validation.select(runs, at + OTHER_WEIGHT) == bars[1:]
     with pytest.raises(ValueError, match="key=value"):
         validation.select(runs, "slump:resolution")
 
@@ -1519,12 +1532,12 @@ def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan
     assert quick and all(k["duration"] <= 5.0 for k in quick)
 
 
-def test_the_full_plan_has_a_biweight_twin_of_every_target_row_below_24_across():
-    """A default switch to the biweight must re-measure every row the targets of issue 12 read
-    (docs/physics.md, "The fit weight's default: the evidence"): each poly6 slump of the full
-    plan with the default elastic force below 24 across (the particle floor's, S = 0.05 with
+def test_the_full_plan_has_a_twin_of_every_target_row_below_24_across():
+    """A default switch must re-measure every row the targets of issue 12 read (docs/physics.md,
+    "The fit weight's default: the evidence"): each slump of the full plan of the default fit
+    weight with the default elastic force below 24 across (the particle floor's, S = 0.05 with
     them, and the no-slip ghost floor's) and each spread pile at a = 0.25 has the same entry
-    with ``fit_weight="biweight"``, so ``--only ...:fit_weight=biweight`` can run it."""
+    with the other weight, so ``--only ...:fit_weight=<it>`` can run it."""
     runs = validation.plan(False)
 
     def wanted(name, k):
@@ -1532,32 +1545,44 @@ def test_the_full_plan_has_a_biweight_twin_of_every_target_row_below_24_across()
             return k.get("elastic_force", "variational") == "variational" and k["resolution"] < 24
         return name == "spread" and k["shallowness"] == 0.25
 
-    poly6 = [(n, k) for n, k in runs if wanted(n, k) and k.get("fit_weight", "poly6") == "poly6"]
-    biweight = [(n, k) for n, k in runs if wanted(n, k) and k.get("fit_weight") == "biweight"]
-    assert {(n, k["resolution"], k.get("S"), k.get("floor")) for n, k in poly6} == {
-        (n, k["resolution"], k.get("S"), k.get("floor")) for n, k in biweight}
-    twins = {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in biweight}
-    assert {(n, tuple(sorted((k | {"fit_weight": "poly6"}).items()))) for n, k in poly6} == twins
-    assert {k["floor"] for n, k in biweight if "floor" in k} == {"ghost_particles"}
-    assert validation.select(runs, "slump:S=0.05:elastic_force=variational:fit_weight=biweight") == [
-        ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0,
-                   "fit_weight": "biweight"}) for res in (8, 12)]
+    base = [(n, k) for n, k in runs if wanted(n, k) and "fit_weight" not in k]
+    other = [(n, k) for n, k in runs if wanted(n, k) and k.get("fit_weight") == OTHER_WEIGHT]
+    assert not [k for n, k in runs if k.get("fit_weight") == DEFAULT_WEIGHT], "the default's entries name no weight"
+    assert {(n, k["resolution"], k.get("S"), k.get("floor")) for n, k in base} == {
+        (n, k["resolution"], k.get("S"), k.get("floor")) for n, k in other}
+    twins = {(n, tuple(sorted((k | {"fit_weight": DEFAULT_WEIGHT}).items()))) for n, k in other}
+    assert {(n, tuple(sorted((k | {"fit_weight": DEFAULT_WEIGHT}).items()))) for n, k in base} == twins
+    assert {k["floor"] for n, k in other if "floor" in k} == {"ghost_particles"}
+    for weight in validation.FIT_WEIGHTS:
+        assert validation.select(runs, f"slump:S=0.05:elastic_force=variational:fit_weight={weight}") == [
+            ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0}
+             | ({"fit_weight": weight} if weight != DEFAULT_WEIGHT else {})) for res in (8, 12)]
 
 
-def test_the_full_plan_has_a_biweight_twin_of_every_entry():
-    """Step 4 of docs/physics.md's Recommendation: before the default weight becomes the
-    biweight, every row of docs/validation.md needs its biweight measurement, not only the
-    targets' (the paper's force, the energy, the lab tests, the near-yield column, the 24-across
-    piles). Each poly6 entry of the full plan has its twin with ``fit_weight="biweight"`` and no
-    other; each lab function runs a model of the weight it is given (the sentinel stops it at
-    the solver)."""
-    runs = validation.plan(False)
-    key = [(n, tuple(sorted((k | {"fit_weight": k.get("fit_weight", "poly6")}).items()))) for n, k in runs]
-    assert len(set(key)) == len(key), "an entry is planned twice"
-    poly6 = {(n, tuple((f, v) for f, v in k if f != "fit_weight")) for n, k in key if dict(k)["fit_weight"] == "poly6"}
-    biweight = {(n, tuple((f, v) for f, v in k if f != "fit_weight")) for n, k in key if dict(k)["fit_weight"] == "biweight"}
-    assert poly6 == biweight, (sorted(poly6 - biweight), sorted(biweight - poly6))
-    assert {n for n, _ in poly6} >= {"plate_compression", "sphere_indentation", "three_point_bending", "energy_drift"}
+def _planned(runs, default):
+    """Each entry of ``runs`` as (case, its keyword arguments with the fit weight it runs)."""
+    return [(n, tuple(sorted(({"fit_weight": default} | k).items()))) for n, k in runs]
+
+
+def test_the_full_plan_runs_each_entry_once_with_each_fit_weight(monkeypatch):
+    """Before and after the default weight became the biweight (docs/physics.md's
+    Recommendation), every row of docs/validation.md has its measurement with each weight,
+    not only the targets' (the paper's force, the energy, the lab tests, the near-yield column,
+    the 24-across piles): each entry of the full plan runs once with each weight, whichever
+    weight is the default (the entries that named the biweight while poly6 was the default ran
+    twice after a switch), and the plan is the same set of runs under either default."""
+    plans = {}
+    for default in validation.FIT_WEIGHTS:
+        monkeypatch.setattr(validation, "DEFAULT_FIT_WEIGHT", default)
+        plans[default] = _planned(validation.plan(False), default)
+    for default, key in plans.items():
+        assert len(set(key)) == len(key), (default, sorted(k for k in key if key.count(k) > 1)[:3])
+        by_weight = [{(n, tuple((f, v) for f, v in k if f != "fit_weight")) for n, k in key if dict(k)["fit_weight"] == w}
+                     for w in validation.FIT_WEIGHTS]
+        assert by_weight[0] == by_weight[1], (default, sorted(by_weight[0] ^ by_weight[1])[:3])
+        assert {n for n, _ in by_weight[0]} >= {"plate_compression", "sphere_indentation", "three_point_bending",
+                                                 "energy_drift"}
+    assert set(plans["poly6"]) == set(plans["biweight"])
 
 
 class _Built(Exception):
