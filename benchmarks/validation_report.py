@@ -15,6 +15,8 @@ import sys
 
 import numpy as np
 
+from benchmarks.validation import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS, IDENTITY_DEFAULTS
+
 NOTES = ("<!-- notes -->", "<!-- /notes -->")
 MARK = {"paper": "o", "variational": "s"}
 FORCE_COLOR = {"paper": "tab:blue", "variational": "tab:orange"}
@@ -135,11 +137,11 @@ def _plots(results, img: pathlib.Path) -> list[str]:
     img.mkdir(parents=True, exist_ok=True)
     made = []
     # The suite's floor; the ghost floor's rows join the plot against resolution only.
-    # Poly6 (the default fit weight); the biweight's rows join the plot against resolution.
-    slumps = [r for r in results if r["case"] == "slump" and _floor(r) == "particles" and _fit_weight(r) == "poly6"]
-    ghosts = [r for r in results if r["case"] == "slump" and _floor(r) == "ghost_particles" and _fit_weight(r) == "poly6"]
-    biweights = [r for r in results if r["case"] == "slump" and _floor(r) == "particles" and _fit_weight(r) == "biweight"
-                 and r["elastic_force"] == "variational" and r.get("aspect", 1.0) == 1.0]
+    # The default fit weight's; the other weight's rows join the plot against resolution.
+    slumps = [r for r in results if r["case"] == "slump" and _floor(r) == "particles" and _fit_weight(r) == DEFAULT_FIT_WEIGHT]
+    ghosts = [r for r in results if r["case"] == "slump" and _floor(r) == "ghost_particles" and _fit_weight(r) == DEFAULT_FIT_WEIGHT]
+    others = [r for r in results if r["case"] == "slump" and _floor(r) == "particles" and _fit_weight(r) != DEFAULT_FIT_WEIGHT
+              and r["elastic_force"] == "variational" and r.get("aspect", 1.0) == 1.0]
     if slumps:
         S = np.linspace(0.03, 0.6, 100)
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
@@ -200,10 +202,11 @@ def _plots(results, img: pathlib.Path) -> list[str]:
                 for r in gs:
                     ax.plot(r["resolution"], r["h_over_H0"] / r["theory_h_over_H0"], "^", color=color,
                             mfc=color if _at_rest(r) else "none")
-            bs = [r for r in biweights if r["S"] == S]
+            bs = [r for r in others if r["S"] == S]
             for r in bs:
                 ax.plot(r["resolution"], r["h_over_H0"] / r["theory_h_over_H0"], "D", color=S_COLOR.get(S, "k"),
-                        mfc=S_COLOR.get(S, "k") if _at_rest(r) else "none", label=f"S = {S:g}, biweight" if r is bs[0] else None)
+                        mfc=S_COLOR.get(S, "k") if _at_rest(r) else "none",
+                        label=f"S = {S:g}, {_fit_weight(r)}" if r is bs[0] else None)
         ax.axhline(1.0, color="k", lw=0.8)
         ax.axhspan(0.9, 1.1, color="k", alpha=0.06)
         ax.set_xscale("log", base=2)
@@ -227,24 +230,28 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         axes = np.atleast_1d(axes)
         for ax, (c, key, label) in zip(axes, elastic):
             for f in MARK:
-                for prec, weight, line in (("float32", "poly6", "-"), ("float64", "poly6", ":"), ("float32", "biweight", "--")):
-                    rs = sorted((r for r in results if r["case"] == c and r["elastic_force"] == f and r.get("dtype", "float32") == prec
-                                 and _fit_weight(r) == weight and r.get("span_over_thickness", 10) == 10
-                                 and not (c == "beam" and _beam_blew_up(r))),
-                                key=lambda r: r["resolution"])
-                    if rs:
-                        name = f + (", float64" if prec == "float64" else "") + (f", {weight}" if weight != "poly6" else "")
-                        ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + line,
-                                color=FORCE_COLOR[f], label=name)
+                for weight in FIT_WEIGHT_ORDER:
+                    for prec in ("float32", "float64"):
+                        line = ("-" if prec == "float32" else ":") if weight == DEFAULT_FIT_WEIGHT else \
+                            ("--" if prec == "float32" else "-.")
+                        rs = sorted((r for r in results if r["case"] == c and r["elastic_force"] == f
+                                     and r.get("dtype", "float32") == prec and _fit_weight(r) == weight
+                                     and r.get("span_over_thickness", 10) == 10 and not (c == "beam" and _beam_blew_up(r))),
+                                    key=lambda r: r["resolution"])
+                        if rs:
+                            name = (f + (", float64" if prec == "float64" else "")
+                                    + (f", {weight}" if weight != DEFAULT_FIT_WEIGHT else ""))
+                            ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + line,
+                                    color=FORCE_COLOR[f], label=name)
             ax.axhline(1.0, color="k", lw=0.8)
             ax.set_xlabel("particles across")
             ax.set_title(label, fontsize=9)
             ax.legend(fontsize=7)
         _save(fig, img, "elastic_resolution.png", made)
 
-    # Poly6's rows (the default fit weight): with the biweight's twins the legend of 24 lines
+    # The default fit weight's rows: with the other weight's twins the legend of 24 lines
     # covered the curves; the table lists both.
-    energies = [r for r in results if r["case"] == "energy" and _fit_weight(r) == "poly6"]
+    energies = [r for r in results if r["case"] == "energy" and _fit_weight(r) == DEFAULT_FIT_WEIGHT]
     if energies:
         fig, ax = plt.subplots(figsize=(6.5, 4))
         for r in energies:
@@ -269,7 +276,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
             q = np.array([x["stress_over_sigma_y"] / x["bingham_over_sigma_y"] for x in r["history"]])
             c = f"C{resolutions.index(r['resolution'])}"
             weight = _fit_weight(r)
-            marker = "-o" if weight == "poly6" else "-^"
+            marker = "-o" if weight == DEFAULT_FIT_WEIGHT else "-^"
             ax.plot(e[e <= thin], q[e <= thin], marker, ms=3, color=c, label=f"{r['resolution']} across, {weight}")
             late = max(0, int((e <= thin).sum()) - 1)
             ax.plot(e[late:], q[late:], ":", color=c)
@@ -283,13 +290,19 @@ def _plots(results, img: pathlib.Path) -> list[str]:
 
 
 def _fit_weight(r) -> str:
-    """The fit weight a result ran with (rows written before the option: the paper's poly6)."""
-    return r.get("fit_weight", "poly6")
+    """The fit weight a result ran with (rows written before the option ran the paper's poly6,
+    ``validation.IDENTITY_DEFAULTS``, whatever the default is now)."""
+    return r.get("fit_weight", IDENTITY_DEFAULTS["fit_weight"])
+
+
+#: How a target's name calls each fit weight.
+WEIGHT_NAMES = {"poly6": "the paper's poly6", "biweight": "the biweight"}
 
 
 def _with_weight(weight: str, lead: str = ", with") -> str:
-    """What a target's name adds for the fit ``weight``: nothing for the default (poly6)."""
-    return "" if weight == "poly6" else f"{lead} the {weight} fit weight"
+    """What a target's name adds for the fit ``weight``: nothing for the default
+    (``DEFAULT_FIT_WEIGHT``), whose rows are the targets' own."""
+    return "" if weight == DEFAULT_FIT_WEIGHT else f"{lead} {WEIGHT_NAMES[weight]} fit weight"
 
 
 def _weight_order(r) -> int:
@@ -297,7 +310,7 @@ def _weight_order(r) -> int:
 
 
 def _flow_order(r):
-    return (_fit_weight(r) != "poly6", r["resolution"])
+    return (_weight_order(r), r["resolution"])
 
 
 #: Log-strain bands of the uniaxial flow's table.
@@ -404,10 +417,11 @@ def continuum_plugs(mpm: dict | None, base: str) -> dict[float, list[dict]]:
     return out
 
 
-def _slump_targets(results, floor: str, weight: str = "poly6", mpm: dict | None = None) -> list[tuple[str, str, str, str]]:
+def _slump_targets(results, floor: str, weight: str = DEFAULT_FIT_WEIGHT,
+                   mpm: dict | None = None) -> list[tuple[str, str, str, str]]:
     """The slump's targets (height, rest, plug) over the rows on ``floor`` (the suite's
     ``"particles"``, or ``"ghost_particles"``, whose rows are named for it) with the fit
-    ``weight`` (the default's rows, poly6, unnamed); ``mpm``, the continuum's runs, to say
+    ``weight`` (the default's rows unnamed); ``mpm``, the continuum's runs, to say
     where the continuum on the floor's base misses the plug target too."""
     out = []
     default = "variational"
@@ -556,12 +570,12 @@ def _slump_targets(results, floor: str, weight: str = "poly6", mpm: dict | None 
 
 
 #: The fit weights in the order the report lists them (the default first).
-FIT_WEIGHT_ORDER = ("poly6", "biweight")
+FIT_WEIGHT_ORDER = (DEFAULT_FIT_WEIGHT, *(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT))
 
 
 def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
     """The spread limit's target over the rows on the particle floor with the fit ``weight``
-    (the default's, poly6, unnamed)."""
+    (the default's unnamed)."""
     default = "variational"
     out = []
     spreads = [r for r in results if r["case"] == "spread" and r.get("elastic_force", default) == default
@@ -586,8 +600,8 @@ def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
 
 
 def _elastic_targets(results, weight: str) -> list[tuple[str, str, str, str]]:
-    """The bar's and the beam's targets over the rows with the fit ``weight`` (the default's,
-    poly6, unnamed), on the default elastic force (variational)."""
+    """The bar's and the beam's targets over the rows with the fit ``weight`` (the default's
+    unnamed), on the default elastic force (variational)."""
     out = []
     default = "variational"
     on = _with_weight(weight)
@@ -717,7 +731,7 @@ def _fitted_yield_rows(results, mpm) -> list[list]:
 
 def _fitted_yield_plot(rows, img: pathlib.Path, made: list[str]) -> None:
     """Y fitted / Y against resolution, per S: to the continuum (solid) and to the 1-D height
-    (dashed), the particle floor with the paper's poly6 fit weight."""
+    (dashed), the particle floor with the default fit weight."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -725,7 +739,7 @@ def _fitted_yield_plot(rows, img: pathlib.Path, made: list[str]) -> None:
 
     img.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 4))
-    mine = [r for r in rows if r[0] == "particles" and r[1] == "poly6"]
+    mine = [r for r in rows if r[0] == "particles" and r[1] == DEFAULT_FIT_WEIGHT]
     for S in sorted({r[3] for r in mine}):
         rs = sorted((r for r in mine if r[3] == S), key=lambda r: r[2])
         color = S_COLOR.get(S, "k")
@@ -735,19 +749,20 @@ def _fitted_yield_plot(rows, img: pathlib.Path, made: list[str]) -> None:
     ax.axhline(1.0, color="k", lw=0.8)
     ax.set_xlabel("particles across H0")
     ax.set_ylabel("Y fitted / Y")
-    ax.set_title("yield stress a slump fit recovers (particle floor, poly6)")
-    if mine:  # a report without poly6 particle rows has no curve to name
+    ax.set_title(f"yield stress a slump fit recovers (particle floor, {DEFAULT_FIT_WEIGHT})")
+    if mine:  # a report without the default's particle rows has no curve to name
         ax.legend(fontsize=7, ncol=2)
     _save(fig, img, "slump_fitted_yield.png", made)
 
 
 def _fitted_yield_target(results, mpm) -> list[tuple[str, str, str, str]]:
-    """The default's (particle floor, poly6) recovered yield stress at its finest resolution
-    of each S against the continuum on the matching base, and within 10 % there."""
+    """The default's (particle floor, ``DEFAULT_FIT_WEIGHT``) recovered yield stress at its
+    finest resolution of each S against the continuum on the matching base, and within 10 % there."""
     base = continuum_slumps(mpm).get(CONTINUUM_BASE["particles"], {})
-    piles = [r for r in results if r["case"] == "slump" and r.get("floor") == "particles" and _fit_weight(r) == "poly6"
-             and r["elastic_force"] == "variational" and r.get("aspect", 1.0) == 1.0 and r.get("thickness_over_H0")]
-    curves = {n: c for n, c in _slump_curves(piles, "particles", "poly6").items() if len(c) >= 3}
+    piles = [r for r in results if r["case"] == "slump" and r.get("floor") == "particles"
+             and _fit_weight(r) == DEFAULT_FIT_WEIGHT and r["elastic_force"] == "variational"
+             and r.get("aspect", 1.0) == 1.0 and r.get("thickness_over_H0")]
+    curves = {n: c for n, c in _slump_curves(piles, "particles", DEFAULT_FIT_WEIGHT).items() if len(c) >= 3}
     got, used, worst = [], [], 0.0
     for S in sorted({S for c in curves.values() for S in c} & set(base)):
         n = max(k for k, c in curves.items() if S in c)
@@ -780,6 +795,9 @@ NEAR_YIELD_GROWING = (
     "run on to 72 periods it went into gross motion, 10.5 x the 1-D plastic shortening: the column, 12 cm wide "
     "and 60 cm tall, is 1.15 x its self-weight buckling length (8 / 10 across: 1.00 / 1.08 x) and leans over, "
     "docs/physics.md, \"The near-yield column's late collapse\")")
+#: The fit weight of the dx = 0.01 m rows (measured before the option existed), whose target
+#: row carries them whatever the default.
+NEAR_YIELD_GROWING_WEIGHT = "poly6"
 NEAR_YIELD_GROWING_MET = ("at dx = 0.01 m: holds, base only yielding (within a width): yes; the 1-D spreading: no (on "
                           "the slip ghost floor: within 10 % at 10 and 12 across, columns at and past their buckling "
                           "length; at rest: not at 12 across)")
@@ -800,7 +818,7 @@ def near_yield_at_rest(r: dict) -> bool:
     return r["kinetic_over_weight"] < NEAR_YIELD_REST_KINETIC and near_yield_creep(r) < NEAR_YIELD_REST_CREEP
 
 
-def _near_yield_target(results, weight: str = "poly6") -> list[tuple[str, str, str, str]]:
+def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[str, str, str, str]]:
     """The near-yield column's row: its fixed-width study (``near_yield_column`` with a
     ``width``; docs/physics.md, "The near-yield column at a fixed width") per floor, judged on
     the finest resolution: holds (at every resolution no lean past a spacing and shortened
@@ -808,12 +826,14 @@ def _near_yield_target(results, weight: str = "poly6") -> list[tuple[str, str, s
     its plastic shortening within 10 % of the 1-D analysis's and converging. Rest is not part
     of "holds": a resolution not at rest (``near_yield_at_rest``) is named after the verdict.
     Then the dx = 0.01 m rows (``NEAR_YIELD_GROWING``), whose columns grow with the resolution.
-    The rows of the fit ``weight`` alone: another weight's rows are a row of their own, with
-    no dx = 0.01 m part, and none where that weight has no fixed-width run."""
+    The rows of the fit ``weight`` alone, named for it unless it is the default; the dx = 0.01 m
+    part goes with ``NEAR_YIELD_GROWING_WEIGHT``'s row, and another weight without a
+    fixed-width run has no row."""
     rows = [r for r in results if r["case"] == "near_yield_column" and r.get("width") is not None
             and r.get("elastic_force") == "variational" and r.get("dtype", "float32") == "float32"
             and not r.get("tilt") and _fit_weight(r) == weight]
-    if weight != "poly6" and not rows:
+    growing = weight == NEAR_YIELD_GROWING_WEIGHT
+    if not growing and not rows:
         return []
     measured, met, used = [], [], []
     for floor, name in (("slip_ghost_particles", "the slip ghost floor"), ("ground", "the ground collider")):
@@ -853,23 +873,22 @@ def _near_yield_target(results, weight: str = "poly6") -> list[tuple[str, str, s
         if unrested:
             verdict += f"; at rest: not at {' / '.join(unrested)} across"
         met.append(verdict)
-    if weight != "poly6":
+    if not growing:
         return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured), "; ".join(met), _runs_of(used))]
-    return [(NEAR_YIELD_TARGET, "; ".join(measured + [NEAR_YIELD_GROWING]), "; ".join(met + [NEAR_YIELD_GROWING_MET]),
-             _runs_of(used) if used else "–")]
+    return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured + [NEAR_YIELD_GROWING]),
+             "; ".join(met + [NEAR_YIELD_GROWING_MET]), _runs_of(used) if used else "–")]
 
 
 def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     """(target of issue 12, measured, met?, runs): one row per target, on the default elastic
-    force (variational) and the default fit, the suite's plan sizes; the biweight fit weight's
+    force (variational) and the default fit, the suite's plan sizes; the other fit weight's
     rows after the default's where it was measured."""
     out = []
     for weight in FIT_WEIGHT_ORDER:
         out += _elastic_targets(results, weight)
-    out += _slump_targets(results, "particles", mpm=mpm)
-    out += _slump_targets(results, "ghost_particles", mpm=mpm)
-    out += _slump_targets(results, "particles", "biweight", mpm=mpm)
-    out += _slump_targets(results, "ghost_particles", "biweight", mpm=mpm)
+    for weight in FIT_WEIGHT_ORDER:
+        out += _slump_targets(results, "particles", weight, mpm=mpm)
+        out += _slump_targets(results, "ghost_particles", weight, mpm=mpm)
     out += _fitted_yield_target(results, mpm)
     for weight in FIT_WEIGHT_ORDER:
         out += _near_yield_target(results, weight)
@@ -1059,7 +1078,8 @@ def write(results, out: pathlib.Path, meta: dict):
     parts = [INTRO.format(runs=listed, summary=_summary(tg))]
     if tg:
         parts.append("## Targets of issue 12\n\nOne row per target, on the defaults (variational elastic force, "
-                     "default fit, `energy_spiky` pressure force, particle floor); the case tables below give every "
+                     f"default fit, the {DEFAULT_FIT_WEIGHT} fit weight, `energy_spiky` pressure force, particle floor; "
+                     "a row named for another fit weight reads that weight's twins); the case tables below give every "
                      "run, the paper's force included. A slump height *converges* where its last three "
                      "resolutions n fit `h_inf + C n^-p` with p > 0 (changes of one sign, each smaller than the "
                      "slowest such law allows; `validation_report.convergence`), or its last change is too small "
@@ -1070,7 +1090,7 @@ def write(results, out: pathlib.Path, meta: dict):
     if slumps:
         from benchmarks.validation import REST_KINETIC, REST_RATE
 
-        slumps.sort(key=lambda r: (r["S"], r["resolution"], r["elastic_force"], _fit_weight(r) != "poly6"))
+        slumps.sort(key=lambda r: (r["S"], r["resolution"], r["elastic_force"], _weight_order(r)))
         rows = [[r["S"], r["resolution"], r["elastic_force"], r.get("floor", "ground"), _fit_weight(r), r["particles"], r["duration"],
                  r["h_over_H0"], r.get("thickness_over_H0"), r["theory_h_over_H0"],
                  r["ratio_to_theory"], r["top_rate_pct_H0_per_s"],
@@ -1124,7 +1144,7 @@ def write(results, out: pathlib.Path, meta: dict):
                      fitted) + "\n\n![yield stress a slump fit recovers](images/validation/slump_fitted_yield.png)\n")
         _fitted_yield_plot(fitted, out / "images" / "validation", made)
     spreads = sorted((r for r in results if r["case"] == "spread"),
-                     key=lambda r: (-r["shallowness"], r["resolution"], _fit_weight(r) != "poly6"))
+                     key=lambda r: (-r["shallowness"], r["resolution"], _weight_order(r)))
     if spreads:
         rows = [[r["shallowness"], r["resolution"], r.get("floor", "ground"), _fit_weight(r), r["particles"], r["duration"], r["radius_over_theory"],
                  r["height_over_theory"], r["height_over_radius"], min(p for p in r["profile_over_theory"] if p > 0),

@@ -69,7 +69,7 @@ def _plug_row(plugs, mpm=None):
     from benchmarks.validation_report import _slump_targets
 
     rows = [{"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": "particles",
-             "theory_h_over_H0": 0.5, "thickness_over_H0": 0.5, "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
+             "fit_weight": DEFAULT_WEIGHT, "theory_h_over_H0": 0.5, "thickness_over_H0": 0.5, "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
              "at_rest": True, "duration": 8.0, "plug_particles": 24, "plug_unyielded_fraction": f,
              "plug_plastic_strain": e, "run": 0} for (S, n), (f, e) in plugs.items()]
     return next(t for t in _slump_targets(rows, "particles", mpm=mpm) if t[0].startswith("an unyielded plug"))
@@ -147,7 +147,7 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
 
     def pile(S, n, share, floor="particles"):
         return {"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": floor,
-                "theory_h_over_H0": one_d_height(S), "h_over_H0": share * one_d_height(S),
+                "fit_weight": DEFAULT_WEIGHT, "theory_h_over_H0": one_d_height(S), "h_over_H0": share * one_d_height(S),
                 "thickness_over_H0": share * one_d_height(S), "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
                 "at_rest": True, "duration": 8.0, "particles": 100 * n, "ratio_to_theory": 1.0, "fraction_at_yield": 0.5,
                 "plug_particles": 0, "plug_unyielded_fraction": float("nan"), "radius_over_R0": 2.0,
@@ -170,7 +170,7 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
         if verdict == "yes":
             assert "S = 0.2 at 12 across 1.000" in target, target
         assert "## The yield stress a slump fit recovers" in text
-        assert "| particles | poly6 | 8 | 0.2 |" in text and "slip, H0 / 16 |" in text
+        assert f"| particles | {DEFAULT_WEIGHT} | 8 | 0.2 |" in text and "slip, H0 / 16 |" in text
 
 
 def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
@@ -1004,13 +1004,14 @@ def test_the_near_yield_target_judges_the_fixed_width_study_per_floor():
     last three, a lean past a spacing or a yield front more than a width above the 1-D depth as
     not holding, and a top whose creep would move the plastic shortening by 1 % of the
     analysis's over another run as not at rest; the dx = 0.01 m columns, which grow with the
-    resolution, are said apart."""
-    from benchmarks.validation_report import NEAR_YIELD_TARGET, _near_yield_target
+    resolution, are said apart (in the row of the weight they ran, ``NEAR_YIELD_GROWING_WEIGHT``;
+    a row without a ``fit_weight`` ran poly6)."""
+    from benchmarks.validation_report import NEAR_YIELD_GROWING_WEIGHT, NEAR_YIELD_TARGET, _near_yield_target
 
     rows = [_near_yield_row(4, 0.44), _near_yield_row(6, 0.80), _near_yield_row(8, 0.95),
             _near_yield_row(4, 0.06, "ground", front=0.5), _near_yield_row(6, 0.30, "ground", lean=2.0, rate=1.0)]
-    (target, measured, met, runs), = _near_yield_target(rows)
-    assert target == NEAR_YIELD_TARGET and runs == "R1"
+    (target, measured, met, runs), = _near_yield_target(rows, NEAR_YIELD_GROWING_WEIGHT)
+    assert target.startswith(NEAR_YIELD_TARGET) and runs == "R1"
     slip, ground, growing = met.split("; on ")[0], met.split("; on ")[1], met.split("; at dx")[1]
     assert slip.startswith("on the slip ghost floor (fixed width): holds, base only yielding (within a width): yes"), met
     assert "within 10 % at 8 across: yes (0.95 x); converging: yes" in slip and "at rest" not in slip, met
@@ -1020,24 +1021,28 @@ def test_the_near_yield_target_judges_the_fixed_width_study_per_floor():
     assert growing.startswith(" = 0.01 m"), met
     assert "at 4 / 6 / 8 across: plastic shortening 0.44 / 0.80 / 0.95 x" in measured, measured
     # Without fixed-width rows only the growing columns' verdict stands.
-    assert _near_yield_target([])[0][2].startswith("at dx = 0.01 m: holds")
+    assert _near_yield_target([], NEAR_YIELD_GROWING_WEIGHT)[0][2].startswith("at dx = 0.01 m: holds")
 
 
 def test_the_near_yield_target_reads_each_fit_weight_on_its_own():
-    """A biweight column at a resolution poly6 also has (the 8-across row of each) is a target
-    row of its own, after poly6's, without the dx = 0.01 m part; poly6's verdict reads its own
+    """A column of the other fit weight at a resolution the default's also has (the 8-across
+    row of each) is a target row of its own, after the default's and named for its weight; the
+    dx = 0.01 m part stays with poly6's row, which ran it; the default's verdict reads its own
     rows alone (the two 8-across rows together were refused as resolutions not increasing)."""
-    from benchmarks.validation_report import NEAR_YIELD_TARGET, _targets
+    from benchmarks.validation_report import NEAR_YIELD_GROWING_WEIGHT, NEAR_YIELD_TARGET, WEIGHT_NAMES, _targets
 
-    rows = [_near_yield_row(4, 0.44), _near_yield_row(6, 0.53), _near_yield_row(8, 0.62),
-            dict(_near_yield_row(8, 0.56), fit_weight="biweight", run=1)]
+    rows = [dict(_near_yield_row(n, q), fit_weight=DEFAULT_WEIGHT) for n, q in ((4, 0.44), (6, 0.53), (8, 0.62))]
+    rows.append(dict(_near_yield_row(8, 0.56), fit_weight=OTHER_WEIGHT, run=1))
+    other = NEAR_YIELD_TARGET + f", with {WEIGHT_NAMES[OTHER_WEIGHT]} fit weight"
     near = [t for t in _targets(rows) if t[0].startswith(NEAR_YIELD_TARGET)]
-    assert [t[0] for t in near] == [NEAR_YIELD_TARGET, NEAR_YIELD_TARGET + ", with the biweight fit weight"], near
-    assert "within 10 % at 8 across: no (0.62 x)" in near[0][2] and "at dx = 0.01 m" in near[0][2], near[0]
-    assert "within 10 % at 8 across: no (0.56 x)" in near[1][2] and "dx = 0.01 m" not in near[1][2], near[1]
+    assert [t[0] for t in near] == [NEAR_YIELD_TARGET, other], near
+    assert "within 10 % at 8 across: no (0.62 x)" in near[0][2] and "within 10 % at 8 across: no (0.56 x)" in near[1][2]
+    for t, weight in zip(near, (DEFAULT_WEIGHT, OTHER_WEIGHT)):
+        assert ("at dx = 0.01 m" in t[2]) == (weight == NEAR_YIELD_GROWING_WEIGHT), t
     assert "only 8 across measured" in near[1][2] and near[1][3] == "R2", near[1]
-    # No biweight row: no biweight target.
-    assert [t[0] for t in _targets(rows[:3]) if t[0].startswith(NEAR_YIELD_TARGET)] == [NEAR_YIELD_TARGET]
+    # No row of the other weight: no target of it, unless it holds the dx = 0.01 m part.
+    assert [t[0] for t in _targets(rows[:3]) if t[0].startswith(NEAR_YIELD_TARGET)] == [NEAR_YIELD_TARGET] + (
+        [other] if OTHER_WEIGHT == NEAR_YIELD_GROWING_WEIGHT else [])
 
 
 @pytest.mark.parametrize("width", [0.0, -0.04, float("nan"), "4 cm"])
@@ -1404,37 +1409,41 @@ def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
 
 
 def test_report_judges_the_elastic_references_and_the_step_bound_per_fit_weight(tmp_path):
-    """Bar and stability rows of the biweight are listed with their weight and judged in
-    target rows named for it; the default's targets read only poly6's rows, whatever the
-    order of the rows."""
+    """Bar and stability rows of the other fit weight are listed with their weight and judged
+    in target rows named for it; the default's targets read only the default's rows, whatever
+    the order of the rows."""
     from benchmarks import validation_report
+
+    named = f"with {validation_report.WEIGHT_NAMES[OTHER_WEIGHT]} fit weight"
 
     bar = {"case": "bar", "elastic_force": "variational", "particles": 640, "frequency": 12.5, "theory": 12.5,
            "resolution": 4}
     stab = {"case": "stability", "label": "preset clay", "elastic_force": "variational", "preset_force": "variational",
             "dt": 3e-4, "duration": 1.0, "max_speed": 0.5, "blew_up": False, "blew_up_at": None}
-    rows = [bar | {"ratio": 0.9975}, bar | {"ratio": 0.95, "fit_weight": "biweight"}, stab,
-            stab | {"fit_weight": "biweight", "max_speed": 7.0, "blew_up": True, "blew_up_at": 0.4}]
+    rows = [bar | {"ratio": 0.9975, "fit_weight": DEFAULT_WEIGHT}, bar | {"ratio": 0.95, "fit_weight": OTHER_WEIGHT},
+            stab | {"fit_weight": DEFAULT_WEIGHT},
+            stab | {"fit_weight": OTHER_WEIGHT, "max_speed": 7.0, "blew_up": True, "blew_up_at": 0.4}]
     meta = {"command": "python -m benchmarks.validation", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
     doc = validation.merge(None, rows[::-1], meta)
     md, _ = validation_report.write(doc["results"], tmp_path, doc)
     lines = md.read_text().splitlines()
     bars = [line for line in lines if line.startswith("| bar frequency within 2 %")]
     assert len(bars) == 2 and "0.9975 x c/(2L)" in bars[0] and bars[0].endswith("| yes | R1 |"), bars
-    assert "with the biweight fit weight" in bars[1] and "0.9500 x c/(2L)" in bars[1] and "| no |" in bars[1], bars
+    assert named in bars[1] and "0.9500 x c/(2L)" in bars[1] and "| no |" in bars[1], bars
     steps = [line for line in lines if line.startswith("| no preset or default material blows up")]
     assert len(steps) == 2 and "none of 1 runs" in steps[0] and steps[0].endswith("| yes | R1 |"), steps
-    assert "with the biweight fit weight" in steps[1] and "blew up: preset clay (variational)" in steps[1], steps
+    assert named in steps[1] and "blew up: preset clay (variational)" in steps[1], steps
     assert [line for line in lines if line.startswith("| 4 | variational |")] == [
         line for line in lines if line.startswith("| 4 | variational | poly6 |")
         or line.startswith("| 4 | variational | biweight |")]
-    assert len([line for line in lines if line.startswith("| preset clay | variational | variational | biweight |")]) == 1
+    assert len([line for line in lines
+                if line.startswith(f"| preset clay | variational | variational | {OTHER_WEIGHT} |")]) == 1
 
 
 def test_report_lists_the_lab_tests_and_the_energy_rows_with_their_fit_weight(tmp_path):
     """The plates, indentation, bending and energy tables name each row's fit weight (a
     biweight twin read without it would stand as a second poly6 measurement of the same row),
-    poly6 first; rows written before the option read as poly6."""
+    the default's first; rows written before the option read as poly6."""
     import json
 
     from benchmarks import validation_report
@@ -1455,12 +1464,12 @@ def test_report_lists_the_lab_tests_and_the_energy_rows_with_their_fit_weight(tm
         header = [c.strip() for c in table[0].strip("|").split("|")]
         col = header.index("fit weight")
         weights = [[c.strip() for c in line.strip("|").split("|")][col] for line in table[2:]]
-        assert weights and weights == sorted(weights, key=("poly6", "biweight").index), (title, weights)
+        assert weights and weights == sorted(weights, key=(DEFAULT_WEIGHT, OTHER_WEIGHT).index), (title, weights)
         assert weights.count("poly6") == weights.count("biweight"), (title, weights)
 
 def test_the_energy_plot_draws_the_default_weights_rows_only(tmp_path, monkeypatch):
-    """The energy figure draws poly6's rows (the table lists the biweight's beside them): with
-    both weights' twins its legend of 24 lines covered the curves."""
+    """The energy figure draws the default fit weight's rows (the table lists the other's beside
+    them): with both weights' twins its legend of 24 lines covered the curves."""
     import json
 
     from benchmarks import validation_report
@@ -1474,9 +1483,10 @@ def test_the_energy_plot_draws_the_default_weights_rows_only(tmp_path, monkeypat
     monkeypatch.setattr(validation_report, "_save", save)
     old = json.loads((ROOT / "docs" / "validation.json").read_text())["results"]
     energy = [r for r in old if r["case"] == "energy" and r.get("fit_weight", "poly6") == "poly6"][:2]
-    rows = energy + [r | {"fit_weight": "biweight"} for r in energy]
+    rows = [r | {"fit_weight": DEFAULT_WEIGHT} for r in energy] + [r | {"fit_weight": OTHER_WEIGHT, "dt_factor": 7.0}
+                                                                  for r in energy]
     validation_report._plots(rows, tmp_path)
-    assert len(drawn["energy.png"]) == 2 and not any("biweight" in label for label in drawn["energy.png"]), drawn
+    assert len(drawn["energy.png"]) == 2 and not any("dt x 7.0" in label for label in drawn["energy.png"]), drawn
 
 def test_report_says_which_deformation_model_the_default_ran_for_the_variational_rows(tmp_path):
     """The default solver runs the rest model for a purely elastic scene without floor images or
@@ -1618,9 +1628,10 @@ def test_slump_at_rest_needs_both_a_still_top_and_a_still_pile():
 
 
 def _slump_row(S, resolution, rate, ke=1e-10, force="variational", **extra):
+    """A slump's row as the case function writes it, of the default fit weight unless ``extra`` names one."""
     h = validation.slump_theory(S)
     row = {"case": "slump", "S": S, "resolution": resolution, "aspect": 1.0, "elastic_force": force,
-           "floor": "particles", "particles": 100, "duration": 8.0, "h_over_H0": h, "theory_h_over_H0": h,
+           "floor": "particles", "fit_weight": DEFAULT_WEIGHT, "particles": 100, "duration": 8.0, "h_over_H0": h, "theory_h_over_H0": h,
            "ratio_to_theory": 1.0, "top_rate_pct_H0_per_s": rate, "kinetic_over_MgH0": ke,
            "kinetic_last_quarter_over_MgH0": ke, "at_rest": validation.slump_at_rest(rate, ke),
            "fraction_at_yield": 0.9, "plug_particles": 0, "plug_unyielded_fraction": float("nan"),
@@ -1644,10 +1655,10 @@ def test_report_gives_the_uniaxial_flow_against_bingham_by_band_of_log_strain(tm
     doc = {"runs": [{"command": "python -m benchmarks.validation --only uniaxial_flow"}], "results": rows}
     md, made = validation_report.write(rows, tmp_path, doc)
     text = md.read_text()
-    # A row written before the fit weight was recorded is the paper's poly6, listed first.
+    # A row written before the fit weight was recorded is the paper's poly6; the default's first.
     assert "| 8 | poly6 | 0.75 | 4 | 1.00-1.10 | 0.75-0.75 | 0.70-0.70 | 0.65-0.65 | R1 |" in text, text
     assert "| 8 | biweight | 0.75 | 4 | 0.92-0.92 | 0.92-0.92 | 0.92-0.92 | 0.92-0.92 | R1 |" in text, text
-    assert text.index("| 8 | poly6 |") < text.index("| 8 | biweight |")
+    assert text.index(f"| 8 | {DEFAULT_WEIGHT} |") < text.index(f"| 8 | {OTHER_WEIGHT} |")
     assert "uniaxial_flow.png" in made
     # Flows at another strain or with another fit weight are other rows, not the same one measured again.
     assert not validation.same_run(rows[0], rows[0] | {"strain": 0.6})
@@ -1726,14 +1737,16 @@ def test_the_command_line_records_the_device_of_each_row(tmp_path):
 
 
 def test_report_judges_the_default_fit_weight_and_gives_the_biweight_targets_of_their_own(tmp_path):
-    """Rows measured with the biweight fit weight (``fit_weight="biweight"``) are listed with
-    their weight and judged in target rows named for it; the default's target rows read only
-    the rows of poly6 (those written before the field existed included)."""
+    """Rows measured with the other fit weight than the default are listed with their weight
+    and judged in target rows named for it; the default's target rows read only the rows of
+    ``DEFAULT_FIT_WEIGHT``."""
     from benchmarks import validation_report
 
     S = (0.1, 0.2, 0.3, 0.5)
     rows = [_slump_row(s, 16, 0.0) for s in S]
-    rows += [_slump_row(s, 16, 0.0, fit_weight="biweight", thickness_over_H0=0.8 * validation.slump_theory(s)) for s in S]
+    rows += [_slump_row(s, 16, 0.0, fit_weight=OTHER_WEIGHT, thickness_over_H0=0.8 * validation.slump_theory(s))
+             for s in S]
+    named = f"with {validation_report.WEIGHT_NAMES[OTHER_WEIGHT]} fit weight"
     meta = {"command": "python -m benchmarks.validation --only slump", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
     doc = validation.merge(None, rows, meta)
     assert len(doc["results"]) == 8
@@ -1741,10 +1754,11 @@ def test_report_judges_the_default_fit_weight_and_gives_the_biweight_targets_of_
     text = md.read_text()
     height = [line for line in text.splitlines() if line.startswith("| slump height within 10 %")]
     assert len(height) == 2, height
-    assert "with the biweight" not in height[0] and "| within 10 %: yes;" in height[0], height[0]
-    assert "with the biweight fit weight" in height[1] and "S = 0.1 -20.0 %" in height[1], height[1]
+    assert " fit weight" not in height[0] and "| within 10 %: yes;" in height[0], height[0]
+    assert named in height[1] and "S = 0.1 -20.0 %" in height[1], height[1]
     assert "| within 10 %: no (S = 0.1, S = 0.2, S = 0.3, S = 0.5);" in height[1], height[1]
-    assert len([line for line in text.splitlines() if line.startswith("| 0.2 | 16 | variational | particles | biweight |")]) == 1
+    assert len([line for line in text.splitlines()
+                if line.startswith(f"| 0.2 | 16 | variational | particles | {OTHER_WEIGHT} |")]) == 1
 
 
 def test_the_validation_page_opens_with_every_target_it_does_not_meet():
