@@ -13,8 +13,8 @@ Where the other combinations are checked (float64 central differences of a taped
   (``test_material_gradient...``, ``_OTHER_PATHS``; at rest on a floor, ``AT_REST``);
 - the comparison models (``rest``, ``additive``) and the default elastic solver's rest model:
   ``test_gradients.py`` (``test_comparison_models...``, ``REST_CASES``, the hand-over);
-- the curvature-corrected fit, the hourglass control, ``energy_spiky``, the biweight fit
-  weight on the incremental fits, the floor images, the guards' fades, keyed rows:
+- the curvature-corrected fit, the hourglass control, ``energy_spiky``, either fit weight
+  on the incremental fits, the floor images, the guards' fades, keyed rows:
   ``test_gradients.py``; a pressure stiffness or viscosity of 0: ``SPH_AT_ZERO`` there;
 - the ghost floor: ``test_ghost_floor.py``; the static colliders and the contact ramps:
   ``test_static_colliders.py``, ``test_friction.py``, ``test_smooth_loss.py``;
@@ -40,6 +40,12 @@ import warp as wp
 import warp_esph as we
 from taped_loss import random_weights, taped_gradients, taped_rollout_loss, untaped_rollout_loss
 from warp_esph import tools
+from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
+
+#: The fit weight a model gets only by name (poly6, the paper's eq. 7, since the biweight became
+#: the default): every case but the ``*other_weight*`` ones runs the default, so without these
+#: the other weight would have no central differences on the paths where the fit's weight enters.
+(OTHER_FIT_WEIGHT,) = (w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT)
 
 DT = 1.0e-3
 STEPS = 8
@@ -50,9 +56,10 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: an elastic linear (or non-Newtonian) material on the variational force takes the corotated
 #: stress (``forces.corotated_stress``) on the incremental fits, fused, not fused and corrected;
 #: ``default_elastic*``: what ``Solver(model)`` runs for an elastic model (the rest model with
-#: the corrected total fit and the hourglass control), also with the biweight; the biweight on
-#: the rest and additive materials, the ghost floor and the non-fused floor images; the hourglass
-#: control beside the paper's force, the floor images and the ghost floor; the ``energy`` and
+#: the corrected total fit and the hourglass control), also with the other fit weight
+#: (``OTHER_FIT_WEIGHT``); the other weight on the rest and additive materials, the ghost floor
+#: and the non-fused floor images; the hourglass control beside the paper's force, the floor
+#: images and the ghost floor; the ``energy`` and
 #: ``spiky`` pressure forces on the non-fused schedule (one unclamped); a block held on a mesh
 #: tool and on a cylinder tool standing on its axis; an elastic block (the corotated stress, with
 #: the ghosts in its linear fit) on a no-slip and on a slip ghost floor, a plastic one on the slip
@@ -72,13 +79,13 @@ CASES = {
     "corotated_non_newtonian": ({**ELASTIC, "model": "non_newtonian"}, {"fit": "linear"}, {}, "ground"),
     "corotated_corrected": (ELASTIC, {"fit": "curvature_corrected"}, {}, "ground"),
     "default_elastic": (ELASTIC, {}, {}, "ground"),
-    "default_elastic_biweight": (ELASTIC, {}, {"fit_weight": "biweight"}, "ground"),
-    "biweight_rest_variational": ({"deformation": "rest", "elastic_force": "variational"}, {}, {"fit_weight": "biweight"},
-                                  "ground"),
-    "biweight_rest_paper": ({"deformation": "rest"}, {}, {"fit_weight": "biweight"}, "ground"),
-    "biweight_additive": ({"deformation": "additive"}, {}, {"fit_weight": "biweight"}, "ground"),
-    "biweight_ghost_floor": ({}, {}, {"fit_weight": "biweight"}, "ghost"),
-    "biweight_unfused_images": ({}, {"fused": False}, {"fit_weight": "biweight"}, "images"),
+    "default_elastic_other_weight": (ELASTIC, {}, {"fit_weight": OTHER_FIT_WEIGHT}, "ground"),
+    "other_weight_rest_variational": ({"deformation": "rest", "elastic_force": "variational"}, {},
+                                      {"fit_weight": OTHER_FIT_WEIGHT}, "ground"),
+    "other_weight_rest_paper": ({"deformation": "rest"}, {}, {"fit_weight": OTHER_FIT_WEIGHT}, "ground"),
+    "other_weight_additive": ({"deformation": "additive"}, {}, {"fit_weight": OTHER_FIT_WEIGHT}, "ground"),
+    "other_weight_ghost_floor": ({}, {}, {"fit_weight": OTHER_FIT_WEIGHT}, "ghost"),
+    "other_weight_unfused_images": ({}, {"fused": False}, {"fit_weight": OTHER_FIT_WEIGHT}, "images"),
     "hourglass_paper": ({"elastic_force": "paper"}, {"hourglass": 0.5}, {}, "ground"),
     "hourglass_images": ({}, {"hourglass": 0.5}, {}, "images"),
     "hourglass_ghost_floor": ({}, {"hourglass": 0.5}, {}, "ghost"),
@@ -183,7 +190,8 @@ def test_gradients_of_the_remaining_step_options_match_central_differences(case,
     generated = _loss(case, _model(case, scene), w, (name, "v0"), hand_adjoints=False)[0]
     for n in (name, "v0"):
         np.testing.assert_allclose(grads[n], generated[n], rtol=1e-8, atol=1e-12 * np.abs(generated[n]).max())
-    # The case runs what its name says, and the floor holds the block.
+    # The case runs what its name says (its fit weight too), and the floor holds the block.
+    assert model.fit_weight == (OTHER_FIT_WEIGHT if "other_weight" in case else DEFAULT_FIT_WEIGHT)
     floor = CASES[case][3]
     if case.startswith("pair_repulsion"):
         off = _model(case, scene)
@@ -267,7 +275,7 @@ def test_the_isotropic_pressures_stiffness_gradient_from_zero_matches_forward_di
 #: switches models): (case of ``CASES``, material options, ``Solver`` options or None for the
 #: case's, hand-written adjoints).
 _TABLE_SCENES = [
-    ("biweight_ghost_floor", None, None, True),
+    ("other_weight_ghost_floor", None, None, True),
     ("default_elastic", None, None, True),
     ("default_elastic", None, None, False),
     ("hourglass_images", None, None, True),
@@ -356,8 +364,8 @@ def test_the_central_differences_untaped_runs_are_the_taped_runs_to_the_bit():
 
 #: Step paths the worlds' other gradient tests (``test_worlds.py``: the fused linear fit on the
 #: ground, the default elastic solver's rest model beside tools) do not take, each with two worlds.
-WORLD_CASES = ["corotated_unfused", "hourglass_paper", "hourglass_images", "biweight_ghost_floor", "corotated_corrected",
-               "biweight_rest_paper", "biweight_additive", "pinned_floor_elastic"]
+WORLD_CASES = ["corotated_unfused", "hourglass_paper", "hourglass_images", "other_weight_ghost_floor", "corotated_corrected",
+               "other_weight_rest_paper", "other_weight_additive", "pinned_floor_elastic"]
 
 
 @pytest.mark.parametrize("case", WORLD_CASES)
@@ -371,6 +379,7 @@ def test_each_worlds_mu_gradient_on_the_other_step_paths_matches_central_differe
     world1 = {"mu": 1.4e3, "lam": 2.0e3, "yield_stress": 14.0}
     model = _model(case, "thrown", worlds=2, world1=world1)
     assert model.world_count == 2
+    assert model.fit_weight == (OTHER_FIT_WEIGHT if "other_weight" in case else DEFAULT_FIT_WEIGHT)
     w = random_weights(model.particle_count, 2)
     grads = _loss(case, model, w, ("mu",))[0]["mu"]
     first = model.world_material_start
