@@ -1714,6 +1714,36 @@ def test_the_command_refuses_to_resume_a_table_of_another_sweep_before_any_sampl
     assert (tmp_path / "sw" / "sweep.csv").read_bytes() == before
 
 
+def test_a_sweep_that_ran_poly6_by_default_is_told_to_resume_with_fit_weight_poly6(scene_file, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """A sweep begun before the biweight became the default (2026-12-06) with no weight named
+    ran poly6 and recorded it (``solver``'s ``fit_weight``: every sweep record holds it, the
+    option being older than the record). The same command now names the biweight and another
+    model, and is refused; the refusal named the model and the solver's dict alone, read as
+    another scene. It names the option that resumes it, and with that option the table's rows
+    are kept and no sample runs again."""
+    from warp_esph import sweep as sweep_module
+
+    args = ["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1", "--no-progress"]
+    # The record a pre-switch run of the same command wrote: poly6, named by the option now.
+    assert cli.main([*args, "-o", str(tmp_path / "whole"), "--fit-weight", "poly6"]) == 0
+    assert json.loads((tmp_path / "whole" / "sweep.json").read_text())["sweep"]["solver"]["fit_weight"] == "poly6"
+    shutil.copytree(tmp_path / "whole", tmp_path / "sw")
+    capsys.readouterr()
+    monkeypatch.setattr(sweep_module, "_run_sample", lambda *a: pytest.fail("a sample ran"))
+    assert cli.main([*args, "-o", str(tmp_path / "sw"), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its table is of another sweep: model = " in err, err
+    assert "resume it with the settings it was run with (its fit weight: --fit-weight poly6; a sweep begun before " \
+           "2026-12-06 that named none ran poly6, the default then)" in err, err
+    with pytest.raises(ValueError, match=re.escape("(its fit weight: the scene's fit_weight = 'poly6', "
+                                                   "SceneBuilder(fit_weight=...) or [solver] fit_weight; a sweep begun")):
+        sweep(scene_file, ["yield_stress=10,100"], frames=1, workers=1, resume=str(tmp_path / "sw"))
+    assert cli.main([*args, "-o", str(tmp_path / "sw"), "--resume", "--fit-weight", "poly6"]) == 0
+    assert "2 kept from its table, 0 to run" in capsys.readouterr().err
+    assert _rows(SweepTable.read_csv(tmp_path / "sw" / "sweep.csv")) == _rows(SweepTable.read_csv(tmp_path / "whole" / "sweep.csv"))
+
+
 # ------------------------------------------------------------------ CUDA samples on Ray
 def test_a_cuda_sweep_s_ray_tasks_see_a_gpu_where_ray_hides_them_from_tasks_that_ask_none(monkeypatch):
     """Older Ray (as Ray with RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO=1, set here) sets

@@ -1751,7 +1751,8 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
             if table.identity.get(k) != v and k != "version"]
     if diff:
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
-                         f"it with the settings it was run with, or run this sweep anew without resuming")
+                         f"it with the settings it was run with{_weight_hint(table.identity, plan.identity, name)}, or "
+                         f"run this sweep anew without resuming")
     names = [p.name for p in plan.params]
     kept: dict[int, dict] = {}
     for r in table.rows:
@@ -1772,6 +1773,20 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
     # resumed table's columns are those of one run straight through.
     return [{k: v for k, v in r.items() if v is not None} for i, r in sorted(kept.items())
             if not retry_failed or r["status"] == "ok"]
+
+
+def _weight_hint(theirs: dict, ours: dict, name: str) -> str:
+    """What names the table's fit weight where it is not this sweep's, else ''. The same
+    command begun before the biweight became the default ran poly6, which its record holds
+    (every sweep record has the weight: the option is older); its refusal named the model's
+    digest and the solver's dict alone, read as another scene, not the option to give."""
+    weight = (theirs.get("solver") if isinstance(theirs.get("solver"), dict) else {}).get("fit_weight")
+    if not isinstance(weight, str) or weight == ours["solver"]["fit_weight"]:
+        return ""
+    how = (f"--fit-weight {weight}" if name.startswith("--")
+           else f"the scene's fit_weight = {weight!r}, SceneBuilder(fit_weight=...) or [solver] fit_weight")
+    then = "; a sweep begun before 2026-12-06 that named none ran poly6, the default then" if weight == "poly6" else ""
+    return f" (its fit weight: {how}{then})"
 
 
 def _check_record_format(theirs: dict, ours: dict, name: str, shown: str) -> None:
