@@ -758,3 +758,27 @@ def test_a_checkpoint_given_as_a_named_pipe_is_refused_without_waiting_for_a_sec
     assert not hung, "the refusal opened the pipe again and waited for a writer"
     assert said == [f"--resume = '{fifo}' is not allowed: not a readable warp_esph checkpoint (it is a named pipe, not a file: "
                     "a checkpoint is read from its .npz file)"]
+
+
+def test_a_checkpoint_of_the_other_fit_weight_is_refused_naming_the_weight(tmp_path):
+    """Since the biweight became the default fit weight (2026-12-06) a script that builds its
+    model without naming a weight gets the biweight, and its checkpoints written before, poly6's,
+    were refused as "written for another scene ... was the scene edited?", though only the
+    weight differs. The refusal names both weights and the way to build the model that resumes
+    it, each way round; a scene that differs otherwise keeps the old refusal."""
+    def model(weight, ground=0.0):
+        b = we.SceneBuilder(spacing=0.02, fit_weight=weight)
+        b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+        b.add_ground(ground)
+        return b.finalize()
+
+    for written, resumed in (("poly6", "biweight"), ("biweight", "poly6")):
+        m = model(written)
+        path = tmp_path / f"{written}.npz"
+        save_state(path, m, _advance(m, m.state(), 2), step=2, frame=0)
+        load_state(path, model(written))
+        with pytest.raises(ValueError, match=rf"it was written by a model of the {written} fit weight, this model's is "
+                                             rf"{resumed} .*SceneBuilder\(fit_weight='{written}'\)"):
+            load_state(path, model(resumed))
+    with pytest.raises(ValueError, match=r"written for another scene .* was the scene edited"):
+        load_state(tmp_path / "poly6.npz", model("biweight", ground=0.001))

@@ -41,7 +41,8 @@ FORMAT = "warp_esph.checkpoint/1"
 FINGERPRINT_VERSION = 2
 
 
-def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_positions=None) -> str:
+def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_positions=None,
+                      fit_weight: str | None = None) -> str:
     """A hash of everything a step depends on that a checkpoint does not carry: the initial
     particles, bodies, lattice, colliders, force fields, gravity, each material's kind and
     density (the fitted parameters ``Model.MATERIAL_FIELDS`` are in the checkpoint itself),
@@ -49,7 +50,9 @@ def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_pos
 
     A checkpoint resumed into a model with another fingerprint would continue a different
     scene from this one's state, so ``load_state`` refuses it. ``rest_positions``: hashed in
-    place of ``model.particle_x0`` (a state's ``Model.scene_snapshot``, ``_check_state_model``).
+    place of ``model.particle_x0`` (a state's ``Model.scene_snapshot``, ``_check_state_model``);
+    ``fit_weight``: hashed in place of ``model.fit_weight`` (``load_state`` names the weight a
+    checkpoint was written with).
     """
     h = hashlib.sha256()
     x0 = model.particle_x0 if rest_positions is None else rest_positions
@@ -57,11 +60,11 @@ def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_pos
         a = np.ascontiguousarray(arr, dtype=np.float64 if arr.dtype.kind == "f" else np.int64)
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())
-    h.update(repr(scene_record(model, version)).encode())
+    h.update(repr(scene_record(model, version, fit_weight)).encode())
     return h.hexdigest()[:32]
 
 
-def scene_record(model: Model, version: int = FINGERPRINT_VERSION) -> dict:
+def scene_record(model: Model, version: int = FINGERPRINT_VERSION, fit_weight: str | None = None) -> dict:
     """What ``model_fingerprint`` hashes beside the particle arrays: the lattice, bodies,
     colliders, force fields, gravity, each material's kind and density, the ghost floors and
     the moving tools and pinned sets, as values whose ``repr`` is the same in every process
@@ -75,8 +78,9 @@ def scene_record(model: Model, version: int = FINGERPRINT_VERSION) -> dict:
         "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
         "fields": [repr(f) for f in model.force_fields],
     }
-    if model.fit_weight != "poly6":  # poly6 was the only weight before the option: its checkpoints still match
-        record["fit_weight"] = model.fit_weight
+    fit_weight = model.fit_weight if fit_weight is None else fit_weight
+    if fit_weight != "poly6":  # poly6 was the only weight before the option: its checkpoints still match
+        record["fit_weight"] = fit_weight
     if any(m.pair_repulsion for m in model.materials):  # likewise; not a fitted parameter, so not in the arrays
         record["pair_repulsion"] = [m.pair_repulsion for m in model.materials]
     # Likewise only where the model has them: ghost floors and the moving tools and pinned sets.
@@ -407,6 +411,18 @@ def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[Sta
                          f"precision it was written in: finalize the model with dtype=wp.{meta['dtype']}")
     version = meta.get("fingerprint_version", 1)
     if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model, version):
+        from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
+
+        # Since the biweight became the default (2026-12-06) a script that built its model
+        # without naming a weight meets its older poly6 checkpoints here: say the weight, not
+        # "was the scene edited?".
+        weight = next((w for w in FIT_WEIGHTS if w != model.fit_weight
+                       and meta["fingerprint"] == model_fingerprint(model, version, fit_weight=w)), None)
+        if weight is not None:
+            raise ValueError(f"{where}: it was written by a model of the {weight} fit weight, this model's is "
+                             f"{model.fit_weight} (the default is the biweight since 2026-12-06, poly6 before): build the model "
+                             f"with SceneBuilder(fit_weight={weight!r}) (a scene file's [solver] fit_weight) to resume "
+                             f"it")
         raise ValueError(
             f"{where}: it was written for another scene (its fingerprint {meta['fingerprint']!r} is not this model's "
             f"{model_fingerprint(model, version)!r}: particles, bodies, colliders, tools, pins, fields or materials differ; "
