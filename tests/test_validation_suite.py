@@ -950,7 +950,9 @@ def test_near_yield_column_at_a_fixed_width_keeps_its_size_and_holds_its_top():
 def test_near_yield_column_passes_its_fit_weight_to_the_column_and_its_elastic_reference(monkeypatch):
     """``fit_weight`` reaches the model of the plastic run and of the yield-off reference whose
     shortening it subtracts (a reference with the other weight would leave its elastic
-    difference in the plastic part), and the row records the model's."""
+    difference in the plastic part), and the row records the model's. The weight given is not
+    the default's: given the default (the biweight, since 2026-12-06), a call that dropped it
+    would build the same models."""
     built = []
     free_column = validation._free_column
 
@@ -961,8 +963,8 @@ def test_near_yield_column_passes_its_fit_weight_to_the_column_and_its_elastic_r
 
     monkeypatch.setattr(validation, "_free_column", recording)
     r = validation.near_yield_column(resolution=4, width=0.06, ramp=0.5, periods=1.0, elastic_periods=0.5,
-                                     floor="slip_ghost_particles", fit_weight="biweight")
-    assert built == ["biweight", "biweight"] and r["fit_weight"] == "biweight", (built, r.get("fit_weight"))
+                                     floor="slip_ghost_particles", fit_weight=OTHER_WEIGHT)
+    assert built == [OTHER_WEIGHT, OTHER_WEIGHT] and r["fit_weight"] == OTHER_WEIGHT, (built, r.get("fit_weight"))
 
 
 @pytest.mark.parametrize("fit_weight", ["gauss", "Biweight", None])
