@@ -27,8 +27,9 @@ The "measurements" here are synthetic: runs of a hidden material, with noise add
 3. prints a table: true value, fitted value with the diagnostics' standard error, and the
    closed-form inversions, all as ``yield_stress`` (``Y = sqrt(2/3) sigma_y = sqrt(2) tau_y``).
 
-Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 21
-forward runs of both experiments to convergence plus the diagnostics' 9, about half a minute
+Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 18
+forward runs of both experiments to convergence with the biweight fit weight, the default, 21
+with poly6, plus the diagnostics' 9, about half a minute
 on a shared core once Warp has compiled its kernels; ``--size ci`` is the small version the
 tests run, 10-25 s). ``--out DIR`` keeps the lab files and the result (default: a temporary
 folder).
