@@ -718,7 +718,7 @@ def test_rest_models_hand_written_adjoints_match_central_differences(weights, ca
     guarded rest neighbourhoods and through inverted rest fits (a bottom corner, 0: guarded in
     ``guarded``, on the ground in ``contact``; an interior particle, 41), all four from one
     taped run; with the default fit weight (the other: ``test_default_solver_of_an_elastic_model...``
-    and the hand-over's tests here, ``test_gradient_coverage.py``'s ``default_elastic_other_weight``).
+    here, ``test_gradient_coverage.py``'s ``default_elastic_other_weight``).
     Measured (CPU, float64): the biweight's largest relative error 4.7e-7 (poly6's 1.0e-6)."""
     loss, grads = _rest_case_loss(case, weights, grad_of=("mu", "lam", "v0", "x0"))
     # The central differences' runs, untaped, difference the taped rollout's loss: to the bit.
@@ -777,9 +777,10 @@ def _handover_loss(weights, dF=None, dx=None, grad=False):
     """The elastic block's default solver (the rest model) from a state an incremental step
     wrote (``State.rest_model`` False) whose stored ``F`` is not the rest fit of its positions
     (a flowed body's): its first step hands ``F`` over (``F_p = F^-1 G(x)``,
-    ``comparison.rest_handover``). ``dF``/``dx``: ``(i, a, b, delta)``/``(i, c, delta)`` added
-    to the first state's ``F``/``x``."""
-    model = _elastic_model()
+    ``comparison.rest_handover``), with the default fit weight (``G``'s). ``dF``/``dx``:
+    ``(i, a, b, delta)``/``(i, c, delta)`` added to the first state's ``F``/``x``."""
+    model = _elastic_model(fit_weight=DEFAULT_FIT_WEIGHT)
+    assert model.fit_weight == DEFAULT_FIT_WEIGHT
     solver = we.Solver(model)
     assert solver.rest_model
     # A central difference's run without a tape.
@@ -809,7 +810,9 @@ def test_gradient_through_the_rest_models_hand_over_matches_central_differences(
     """The switch back to the rest model after incremental steps (a parameter made the body
     elastic again) hands the stored ``F`` over through ``F_p = F^-1 G(x)``: the gradient of
     the loss in the first state's ``F`` and ``x`` through that hand-over, the rest model's
-    steps after it, and its ``F_p``, against central differences (float64)."""
+    steps after it, and its ``F_p``, against central differences (float64). Measured: the
+    biweight's largest relative error 5.2e-6 (poly6's 5.4e-6, whose rest fit ``G`` the rest model's
+    checks take)."""
     loss, gF, gx = _handover_loss(weights, grad=True)
     assert _handover_loss(weights) == loss  # the untaped runs' loss is the taped one's, to the bit
     for i, a, b in [(7, 0, 1), (20, 2, 0), (33, 1, 1)]:
