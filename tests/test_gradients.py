@@ -671,10 +671,10 @@ REST_INVERSION = np.diag([1.04, 0.97, -0.6])
 
 def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), hand_adjoints=True, F_loss=False):
     """The loss of ``case`` (``REST_CASES``) on the default solver, which runs the rest model
-    (``Solver.rest_model``), with the default fit weight; ``dx``/``dv``: ``(i, c, delta)`` added to the first state's
-    ``x``/``v``. With ``grad_of``: ``(loss, grads)`` as ``_rollout_loss``'s, the first state's
-    ``x`` as ``"x0"``; ``F_loss``: their gradients with a random weighted sum of the last
-    state's ``F`` added to the loss (a guarded particle's F reaches no position)."""
+    (``Solver.rest_model``), with the default fit weight; ``dx``/``dv``: ``(i, c, delta)`` added
+    to the first state's ``x``/``v``. With ``grad_of``: ``(loss, grads)`` as ``_rollout_loss``'s,
+    the first state's ``x`` as ``"x0"``; ``F_loss``: their gradients with a random weighted sum of
+    the last state's ``F`` added to the loss (a guarded particle's F reaches no position)."""
     model = _elastic_model(params, ground=-0.0305 if case == "contact" else None, fit_weight=DEFAULT_FIT_WEIGHT)
     assert model.fit_weight == DEFAULT_FIT_WEIGHT
     if case == "contact":
