@@ -830,7 +830,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     left = x0[:, 0] < x0[:, 0].min() + 0.5 * dx
     right = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
     solver = _solver(model, fit=fit, hourglass=hourglass)
-    dt = model.stable_dt(hourglass=solver.hourglass)
+    dt = solver.stable_dt()
     steps = int(periods / f_theory / dt)
     lengths = []
 
@@ -895,7 +895,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     omega1 = (math.pi / L) ** 2 * math.sqrt(E * I / (RHO * A))
     damping = 1.4 * omega1
     solver = _solver(model, fit=fit, hourglass=hourglass)
-    dt = model.stable_dt(hourglass=solver.hourglass)
+    dt = solver.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega1 / dt)
     factor = math.exp(-damping * dt)
     hist_t, hist_d = [], []
@@ -1040,7 +1040,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = _solver(model, fit=fit, hourglass=hourglass)
-    dt = model.stable_dt(hourglass=solver.hourglass)
+    dt = solver.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-1.4 * omega * dt)
     hist = []
@@ -1242,7 +1242,7 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     c_p = mat.p_wave_speed
     omega = math.pi * c_p / (n * dx)
     solver = _solver(model, fit=fit, hourglass=hourglass)
-    dt = model.stable_dt(hourglass=solver.hourglass)
+    dt = solver.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-omega * dt)
     hist = []
@@ -1306,7 +1306,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
     a slowly growing motion, which kinetic damping, acting only when the energy drops, lets
     grow). Returns the states and, per tool name, the mean reaction force on the material
     over the last ``average`` steps."""
-    dt = model.stable_dt(hourglass=solver.hourglass)
+    dt = solver.stable_dt()
     if a is None:
         a, c = model.state(), model.state()
     mass = model.particle_mass.numpy().astype(np.float64)[:, None]
@@ -1729,7 +1729,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
         sags.append((state.time, -(y[mid].mean() - y[ends].mean())))
 
     omega1 = (math.pi / L) ** 2 * math.sqrt(E * t * t / (12.0 * RHO))
-    steps = max(1, int(round(average / model.stable_dt(hourglass=solver.hourglass))))
+    steps = max(1, int(round(average / solver.stable_dt())))
     a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, hold,
                                 average=steps, after=record, viscous=damping * omega1)
     ts, ss = np.array(sags[-steps:]).T
@@ -1877,7 +1877,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     solver = _solver(model, fit=fit, hourglass=hourglass)
     control_energy = _hourglass_energy(model, solver.hourglass)
     e0_control = e0 + control_energy(a.x.numpy())
-    dt = dt_factor * model.stable_dt(hourglass=solver.hourglass)
+    dt = dt_factor * solver.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega / dt)
     every = max(1, steps // 400)
     hist = []

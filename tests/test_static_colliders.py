@@ -1031,10 +1031,11 @@ def test_an_undamped_elastic_layer_on_a_floor_does_not_gain_energy(floor, fit):
     assert late < 2.0 * early, (early, late)
 
 
-def _dropped_box_kinetic_energy(duration=3.0):
+def _dropped_box_kinetic_energy(duration=3.0, dt_factor=1.0):
     """An elastic 4^3 box (E 200 kPa, nu 0.3, 2 cm spacing, the defaults: no viscosity, the
     corrected fit with the control, the default fit weight; float64) dropped from 2 spacings
-    onto ``add_ground(images=True)``, run ``duration`` s at ``Model.stable_dt()``. Returns the
+    onto ``add_ground(images=True)``, run ``duration`` s at ``dt_factor`` x ``Model.stable_dt()``
+    (the corrected fit on the incremental composition: half the wave limit). Returns the
     largest kinetic energy of the 1st second (the fall and the impact) and the times and
     energies after it, sampled every 20 steps, up to the first above that largest (where the
     run stops: the box then gains)."""
@@ -1045,7 +1046,8 @@ def _dropped_box_kinetic_energy(duration=3.0):
     m = b.finalize(dtype=wp.float64)
     s = we.Solver(m)
     assert s.fit == "curvature_corrected" and s.hourglass == 0.05
-    dt = m.stable_dt()
+    assert m.corrected_incremental()
+    dt = dt_factor * m.stable_dt()
     mass = m.particle_mass.numpy()[:, None]
     a, c = m.state(), m.state()
     first, later = 0.0, []
@@ -1068,21 +1070,25 @@ def _dropped_box_kinetic_energy(duration=3.0):
     return first, np.array(later)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="Model.stable_dt() does not hold for an elastic impact on the imaged ground: the dropped "
-                   "box gains with either fit weight and not at half the step (docs/physics.md, \"The biweight's "
-                   "incremental composition (measured)\"); measured 4^3, float64: peak kinetic energy 0.169 / "
-                   "0.196 / 11.1 J in the 1st / 2nd / 3rd second, above the 1st second's from 1.95 s")
 def test_an_elastic_box_dropped_on_the_imaged_ground_gains_no_energy_at_the_stable_step():
     """After the impact an undamped elastic box on the imaged ground, a floor that stores the
-    work done on it, should ring with no more kinetic energy than the fall gave it: nothing
-    after the 1st second above that second's largest. At ``Model.stable_dt()`` it gains with
-    either weight (4^3, float64: the biweight 0.169 / 0.196 / 11.1 J, largest speed 35 m/s;
-    poly6 0.172 / 0.096 / 0.62 J, above from 2.72 s; the 6^3 box of docs/physics.md 0.58 /
-    0.35 / 1.12 J with the biweight, and with poly6 past 5 m/s at 2.74 s). At half the step
-    neither gains (0.169 / 0.126 / 0.138 J, poly6 0.172 / 0.120 / 0.116 J): it is the step's."""
+    work done on it, rings with no more kinetic energy than the fall gave it: nothing after the
+    1st second above that second's largest. ``Model.stable_dt()`` is half the wave limit here
+    (``CORRECTED_INCREMENTAL_STEP``: the corrected fit on the incremental composition, which
+    the imaged ground keeps). Measured 4^3, float64: 0.169 / 0.126 / 0.138 J in the 1st / 2nd /
+    3rd second (poly6 0.172 / 0.120 / 0.116 J)."""
     first, later = _dropped_box_kinetic_energy()
     assert later[-1, 0] > 2.9 and later[:, 1].max() <= first, (first, later[-1])
+
+
+def test_an_elastic_box_dropped_on_the_imaged_ground_gains_at_twice_the_stable_step():
+    """The factor is needed: at 2 x the stable step (the full wave limit, ``stable_dt``'s step
+    before the factor) the same box gains (measured 0.169 / 0.196 / 11.1 J in the 1st / 2nd /
+    3rd second, largest speed 35 m/s; poly6 0.172 / 0.096 / 0.62 J, above from 2.72 s; the 6^3
+    box of docs/physics.md 0.58 / 0.35 / 1.12 J), and the step warns it is past the limit."""
+    with pytest.warns(RuntimeWarning, match="the wave limit x 0.5 for the curvature-corrected fit"):
+        first, later = _dropped_box_kinetic_energy(dt_factor=2.0)
+    assert later[:, 1].max() > first, (first, later[-1])
 
 
 def test_pinned_particles_inside_a_collider_add_nothing_to_its_reaction():

@@ -53,6 +53,15 @@ MAX_CONTACT_RAMP = 10.0
 #: field's step at ``C = 0.3``: the margin the wave limit was measured to have at least
 #: (docs/method.md §8), which the hourglass control's limit keeps too.
 FIELD_MARGIN = 1.5
+#: The fraction of the wave limit ``Model.stable_dt`` keeps where the step runs the
+#: curvature-corrected fit with the incremental composition ``F <- dF F`` (not the rest model):
+#: under compression a mode of that fit's step potential stiffens (``det A~ / det A`` 0.21-0.24)
+#: until ``omega dt`` rose from 0.64 at rest to 2.13 at the full step, past symplectic Euler's 2.
+#: Measured: the large breathing 6^3 cube (biweight) ran away at 1.0 x (1279 x its energy in
+#: 6.7 periods), bounded at 0.5 x (1.23 x over 10); an elastic 4^3 box dropped on the imaged
+#: ground gained at 1.0 x (11.1 J in the 3rd second against 0.169 J in the 1st), not at 0.5 x
+#: (docs/physics.md, "The biweight's incremental composition (measured)").
+CORRECTED_INCREMENTAL_STEP = 0.5
 
 
 #: The deviatoric singular-value spread ``|dev sigma|`` a plastic material's squared flow stress
@@ -820,6 +829,15 @@ class Model:
         return (asked == "auto" and self.scene_allows_rest
                 and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
 
+    def corrected_incremental(self, fit: str | None = None) -> bool:
+        """Whether a ``Solver(model, fit=fit)`` (None: the model's fit) runs the
+        curvature-corrected fit with the incremental composition for some material now: the fit
+        ``solver_choice`` resolves to is corrected, the parameters do not choose the rest model
+        (``auto_runs_rest``) and some material's ``deformation`` is ``"incremental"``. Then
+        ``stable_dt`` keeps ``CORRECTED_INCREMENTAL_STEP`` of the wave limit."""
+        return (self.solver_choice(fit)[0] == "curvature_corrected" and not self.auto_runs_rest(fit)
+                and any(m.deformation == "incremental" for m in self.materials))
+
     @property
     def scene_allows_rest(self) -> bool:
         """The scene's part of ``may_run_rest``: no ghost floor, no floor images (tools, pins
@@ -1180,7 +1198,7 @@ class Model:
             raise ValueError(f"gravity = {checks.shorten(value)!r} is not allowed in {self.scalar.__name__}: must be at most {big:.3g}")
         self._gravity = g
 
-    def stable_dt(self, courant: float = 0.3, hourglass: float | None = None) -> float:
+    def stable_dt(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None) -> float:
         """Explicit limit over all materials, from the current parameters
         (``parameter_values``): the wave limit ``C dx / c_P`` of docs/method.md §8, and the
         viscous limit ``(C / 12) rho0 h^2 / eta`` of the explicit viscous force.
@@ -1225,7 +1243,13 @@ class Model:
         x ``2 / sqrt(k)``.) It bounds the field's own oscillation; a field strong enough to set
         the step also crushes any body of more than a particle across (strain about ``k L^2 /
         (8 c_P^2)`` over a width ``L``), and the crushed material's stiffness is not the rest
-        state's: docs/method.md §8."""
+        state's: docs/method.md §8.
+
+        ``fit``: the fit a ``Solver(model, fit=fit)`` is asked for (None: the model's, as
+        ``hourglass``; ``Solver.check_dt`` passes its own). Where the step runs the
+        curvature-corrected fit with the incremental composition for any material
+        (``corrected_incremental``), the wave limit is ``CORRECTED_INCREMENTAL_STEP`` (0.5) of
+        the above: under compression that fit stiffens a mode past the step (docs/method.md §8)."""
         courant = checks.courant(courant)
         self._check_force_fields()
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
@@ -1233,16 +1257,16 @@ class Model:
         # are the same.
         rows = self._read_parameters()
         key = (rows.tobytes(), tuple(self.materials), tuple(self.force_fields),
-               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass)
+               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass, fit)
         cached = self._stable_dt
         if cached is not None and cached[0] == key:
             return cached[1]
         self._check_parameter_values(rows)
-        dt = self._stable_dt_now(courant, hourglass, rows)
+        dt = self._stable_dt_now(courant, hourglass, rows, fit=fit)
         self._stable_dt = (key, dt)
         return dt
 
-    def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None) -> list[float]:
+    def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None) -> list[float]:
         """Each world's ``stable_dt`` alone: its own materials and the fields acting on its
         bodies, as its separate model's (the hourglass strength is the model's, as
         ``worlds_auto_differ`` warns). ``stable_dt``, the default step of ``simulate`` and a
@@ -1253,7 +1277,7 @@ class Model:
         self._check_force_fields()
         rows = self._read_parameters()
         self._check_parameter_values(rows)
-        return [self._stable_dt_now(courant, hourglass, rows, w) for w in range(self.world_count)]
+        return [self._stable_dt_now(courant, hourglass, rows, w, fit) for w in range(self.world_count)]
 
     def _check_force_fields(self) -> None:
         """The force fields as they are now hold what ``finalize`` asks of them: each a
@@ -1421,7 +1445,8 @@ class Model:
         fields = f"field {which[0]}" if len(which) == 1 else "fields " + ", ".join(str(i) for i in which)
         return f"compression {fields} (on {on})"
 
-    def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray, world: int | None = None) -> float:
+    def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray, world: int | None = None,
+                       fit: str | None = None) -> float:
         # ``world``: that world's materials and fields alone (``world_stable_dts``); None: all.
         full = self._parameter_values(rows)
         mats = slice(None) if world is None else self.world_materials(world)
@@ -1429,6 +1454,8 @@ class Model:
         p = {k: np.asarray(v)[mats] for k, v in full.items()}
         rho = np.array([m.density for m in self.materials[mats]], dtype=np.float64)
         dt = courant * self.spacing / float(np.max(c))
+        if self.corrected_incremental(fit):
+            dt *= CORRECTED_INCREMENTAL_STEP
         dt_c, strength = self._hourglass_limit(courant, hourglass, p, rho)
         dt_f, k, _ = self._field_limit(courant, world)
         dt_r, _ = self._repulsion_limit(courant, p, mats)

@@ -1085,7 +1085,7 @@ class Rollout:
         why, p = hit
         m = self.model
         body = m.bodies[int(m.particle_body_np[p])].name
-        stable = m.stable_dt(hourglass=self.solver.hourglass)
+        stable = self.solver.stable_dt()
         advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "
                   "materials' makes the stable step smaller)" if self.dt > stable else
                   "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
@@ -1113,7 +1113,7 @@ class Rollout:
                 "made with taped=True to find the first step")
         when = (f"after step {step} of {self.steps}" if step - last_finite <= 1 else
                 f"after step {step} of {self.steps} (finite after step {last_finite}; {kept})")
-        stable = m.stable_dt(hourglass=self.solver.hourglass)
+        stable = self.solver.stable_dt()
         # Within the stable step a smaller dt is no cure: the cause is the start (a speed or
         # stretch past the precision's range) or the parameters, and the advice sent users to dt.
         advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "

@@ -855,7 +855,8 @@ def check_fps(name: str, fps) -> float:
 
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
-                     hourglass: float | None = None, flag=None, limit: float | None = None) -> tuple[int, float]:
+                     hourglass: float | None = None, flag=None, limit: float | None = None,
+                     fit: str | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
     Give at most one of ``substeps`` and ``dt``. With neither, ``dt`` is the model's
@@ -864,7 +865,8 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     (to 1e-6 relative). ``flag(name)``: how a refusal names ``fps``, ``dt`` or ``substeps``
     (the CLI's ``--dt`` where the value is the option's). ``limit``: a shorter bound than the
     model's own stable step where neither is given (``warp-esph fit``'s stiffest start,
-    ``fit.starts_stable_steps``).
+    ``fit.starts_stable_steps``). ``fit``: the solver's asked fit (``Model.stable_dt``'s; None:
+    the model's).
     """
     flag = flag or (lambda name: name)
     fps = check_fps(flag("fps"), fps)
@@ -876,7 +878,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         return n, frame_dt / n
     if dt is None:
         courant = 0.3  # stable_dt's own
-        stable = model.stable_dt(courant, hourglass=hourglass)
+        stable = model.stable_dt(courant, hourglass=hourglass, fit=fit)
         if limit is not None:
             stable = min(stable, limit)
         ratio, n = _steps_a_frame(frame_dt, stable)
@@ -1002,7 +1004,8 @@ def check_step_count(frames: int, substeps: int) -> None:
 
 
 def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3,
-                      hourglass: float | None = None, until: float | None = None) -> tuple[int, float]:
+                      hourglass: float | None = None, until: float | None = None,
+                      fit: str | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
 
     The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
@@ -1022,7 +1025,7 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     fps = checks.positive("fps", fps)
     courant = checks.courant(courant)
     frame_dt = 1.0 / fps
-    stable = model.stable_dt(courant, hourglass=hourglass)
+    stable = model.stable_dt(courant, hourglass=hourglass, fit=fit)
     c = float(np.max(model.wave_speeds()))
     v = state.v.numpy().astype(np.float64)
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
@@ -1569,15 +1572,16 @@ def simulate(
         fps = checks.positive("fps", fps)
         # The stable step follows the control the solver runs (a given solver's own).
         hourglass = solver.hourglass if isinstance(solver, Solver) else None
+        fit = solver.asked_fit if isinstance(solver, Solver) else None
         adaptive = isinstance(dt, str)
         if adaptive:
             if dt != AUTO:
                 raise ValueError(f"dt = {checks.shorten(dt)!r} is not allowed: must be a number of seconds or {AUTO!r}")
             if substeps is not None:
                 raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
-            n_sub, dt = 1, model.stable_dt(hourglass=hourglass)
+            n_sub, dt = 1, model.stable_dt(hourglass=hourglass, fit=fit)
         else:
-            n_sub, dt = resolve_timestep(model, fps, substeps, dt, hourglass=hourglass)
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt, hourglass=hourglass, fit=fit)
             check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
@@ -1676,7 +1680,8 @@ def simulate(
                         # solver.hourglass (or the materials an automatic solver chooses it from);
                         # the strength read at the start had stepped a control set to 1000 from
                         # 0.05 at 4 x its stable step, which blew up.
-                        n_sub, dt = adaptive_timestep(model, current, fps, hourglass=solver.next_hourglass())
+                        n_sub, dt = adaptive_timestep(model, current, fps, hourglass=solver.next_hourglass(),
+                                                      fit=solver.asked_fit)
                     except ValueError as e:  # the start was checked: a speed the step cannot follow came in the run
                         p = int(np.argmax((current.v.numpy().astype(np.float64) ** 2).sum(axis=1)))
                         body = model.bodies[int(model.particle_body_np[p])].name

@@ -19,7 +19,7 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..model import FITS, Model, State, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
+from ..model import CORRECTED_INCREMENTAL_STEP, FITS, Model, State, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
 from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
@@ -837,7 +837,7 @@ class Solver:
         search's displacement check, which reads its bounds back every step anyway (with a
         skin, after the first step): an earlier step blew up, and this one carries it on."""
         self._warned_non_finite = True
-        stable = self.model.stable_dt(hourglass=self.hourglass)
+        stable = self.stable_dt()
         warnings.warn(
             f"Solver.step: state_in holds a non-finite position: an earlier step blew up, and the steps from it carry "
             f"NaN on; dt = {dt:g} s, Model.stable_dt() = {stable:.3g} s"
@@ -939,6 +939,18 @@ class Solver:
         """Zero the counts ``guard_counts`` reports."""
         self.scratch.counters.zero_()
 
+    @property
+    def asked_fit(self) -> str | None:
+        """The fit this solver was asked for (``Solver(fit=)``; None: the model's), which
+        ``Model.stable_dt(fit=)`` reads as a solver's ``solver_choice`` does."""
+        return self._asked[0]
+
+    def stable_dt(self, courant: float = 0.3) -> float:
+        """``Model.stable_dt`` of the step this solver runs: with its hourglass strength and the
+        fit it was asked for (the curvature-corrected fit on the incremental composition keeps
+        half the wave limit, ``model.CORRECTED_INCREMENTAL_STEP``)."""
+        return self.model.stable_dt(courant, hourglass=self.hourglass, fit=self.asked_fit)
+
     def check_dt(self, dt) -> float:
         """``dt`` as a float, refused (ValueError) unless positive, representable in the
         model's precision and short enough for it to resolve a step's fall (``resolvable_dt``);
@@ -947,7 +959,7 @@ class Solver:
         again for that value only where new parameters put it ``STEP_REWARN`` times further
         past its limit than when it last warned. ``step`` calls it."""
         dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt))
-        stable = self.model.stable_dt(hourglass=self.hourglass)
+        stable = self.stable_dt()
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
             self._warned_dt[dt] = past
@@ -955,6 +967,8 @@ class Solver:
                 f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
                 f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
                 f"0.025 rho0 h^2 / viscosity"
+                + (f", the wave limit x {CORRECTED_INCREMENTAL_STEP:g} for the curvature-corrected fit on the incremental "
+                   f"composition" if self.model.corrected_incremental(self.asked_fit) else "")
                 + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
                 + (f", and that of {self.model._field_words(field[2])} at net strength k = {field[1]:g} 1/s^2, "
                    f"2 / (1.5 sqrt(k))" if (field := self.model._field_limit(0.3))[1] > 0.0 else "")
