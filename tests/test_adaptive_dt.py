@@ -340,6 +340,53 @@ def test_stable_dt_includes_the_hourglass_control_and_holds():
         model.stable_dt(hourglass=-1)
 
 
+def test_stable_dt_halves_the_wave_limit_where_the_step_runs_the_corrected_incremental_fit():
+    """Where the step runs the curvature-corrected fit with the incremental composition
+    (``Model.corrected_incremental``), ``Model.stable_dt(fit=)`` keeps half the wave limit
+    (``CORRECTED_INCREMENTAL_STEP``: the breathing cube and the box on the imaged ground that
+    ran away / gained at the full one, tests/test_validation_suite.py and
+    tests/test_static_colliders.py). The rest model (``fit="auto"`` on this elastic block), the
+    linear fit and a comparison model keep the full limit; the answer kept between calls
+    follows ``fit``; a solver's check, ``Solver.stable_dt``, ``resolve_timestep`` and
+    ``simulate`` with a given solver follow the fit it was asked for."""
+    import warnings
+
+    from warp_esph.model import CORRECTED_INCREMENTAL_STEP
+
+    model, state = _shaken_block(4)
+    plain = model.stable_dt(hourglass=0.0, fit="linear")
+    assert CORRECTED_INCREMENTAL_STEP == 0.5
+    assert not model.corrected_incremental() and model.corrected_incremental("curvature_corrected")
+    assert model.stable_dt(hourglass=0.0) == plain  # the rest model
+    corrected = model.stable_dt(hourglass=0.0, fit="curvature_corrected")
+    assert corrected == 0.5 * plain and model.stable_dt(hourglass=0.0) == plain
+    assert model.stable_dt(fit="curvature_corrected") < corrected  # the control's springs add
+    assert model.world_stable_dts(hourglass=0.0, fit="curvature_corrected") == [corrected]
+    assert resolve_timestep(model, 1.0 / (10 * plain), fit="curvature_corrected")[1] <= corrected
+    solver = we.Solver(model, fit="curvature_corrected", hourglass=0.0)
+    assert solver.asked_fit == "curvature_corrected" and solver.stable_dt() == corrected
+    with pytest.warns(RuntimeWarning, match="the wave limit x 0.5 for the curvature-corrected fit"):
+        solver.check_dt(0.6 * plain)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        we.Solver(model, hourglass=0.0).check_dt(0.6 * plain)  # the rest model: within its limit
+        out = simulate(model, 1, fps=1.0 / (10 * plain), solver=solver, progress=False, state=state)
+    assert np.isfinite(out.x.numpy()).all()
+    # Floor images keep an elastic body on the incremental composition: the default halves.
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 2 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_stiffness=0.0))
+    b.add_ground(0.0, images=True)
+    imaged = b.finalize()
+    assert imaged.corrected_incremental() and imaged.stable_dt(hourglass=0.0) == 0.5 * plain
+    # A comparison model runs its total fit against the rest neighbourhood, not F <- dF F.
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * DX,) * 3, we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_stiffness=0.0,
+                                                                   deformation="rest"))
+    rest = b.finalize()
+    assert not rest.corrected_incremental("curvature_corrected")
+    assert rest.stable_dt(hourglass=0.0, fit="curvature_corrected") == plain
+
+
 def _dots(strength, **field):
     """Three particles far apart (0.2 m: no neighbours, so no material force) under a
     compression field of ``strength`` (1/s^2), without gravity: each particle is the field's

@@ -93,7 +93,7 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     the solver's inverted count when the run began (an earlier run's are not this one's);
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
     smaller step is the cure."""
-    stable = model.stable_dt(hourglass=hourglass)
+    stable = model.stable_dt(hourglass=hourglass, fit=None if solver is None else solver.asked_fit)
     inverted = rest_inversions(solver, state) - since if solver is not None and rest_inversions(solver, state) else 0
     if inverted > 0 and (step is None or step <= stable * (1.0 + 1e-6)):
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else

@@ -840,7 +840,7 @@ def _run_sample(scene, task: _Task) -> dict:
         # divergence keeps the advice's one fact, the stable step, to read the row's dt against.
         why = e.reason
         if e.advice and e.advice == f"; {divergence_advice(model, solver.hourglass)}":
-            why += f"; the sample's stable step is {model.stable_dt(hourglass=solver.hourglass):.3g} s"
+            why += f"; the sample's stable step is {solver.stable_dt():.3g} s"
         elif e.advice and rest_inversions(solver) and e.advice == f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
             # Its fact without the caller's options ('a smaller dt=', 'fit=').
             why += f"; the rest-configuration model's fit inverted in {rest_inversions(solver)} particle-steps"
