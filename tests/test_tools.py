@@ -1,6 +1,7 @@
 """Tools and boundary conditions (``warp_esph/tools.py``): pinned sets, moving colliders,
 reaction forces, and their gradients against float64 central differences."""
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -227,6 +228,18 @@ def _clamp_carries_the_weight(s, m, st):
     assert torque[2] == pytest.approx(weight * arm, rel=0.02)
 
 
+def _full_wave_step(fit):
+    """The cantilevers below run at the full wave limit ``Model.stable_dt(fit="linear")``
+    gives, where their numbers were measured: with the corrected fit on the incremental
+    composition that is 2 x its stable step (``CORRECTED_INCREMENTAL_STEP``, for the mode
+    a compressed interior takes, docs/method.md §8), which the step warns of. These beams
+    bend at small strain (the clamp's, from beam theory: 0.24 %), far from the compression
+    (strain 0.12-0.15) that mode needs, and settle there as their docstrings measured."""
+    if fit != "curvature_corrected":
+        return contextlib.nullcontext()
+    return pytest.warns(RuntimeWarning, match="the wave limit x 0.5 for the curvature-corrected fit")
+
+
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
 def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(fit):
     """Clamped at x < 0 (3 particle columns held: deeper than the support radius, so the
@@ -249,7 +262,8 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(f
     # measured 1.087 / 1.057 at 900 steps, 1.060 / 1.057 at 1400 (poly6 / biweight fit
     # weight), the clamp's force off the weight by 1.4e-2 / 8.1e-3 of it at 900 steps and by
     # 3e-4 / 2.0e-3 at 1400 (the linear fit at 900: 1.262 / 1.345, 7.0e-3 / 3.6e-3).
-    st = _run(s, m, 900 if fit == "linear" else 1400, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
+    with _full_wave_step(fit):
+        st = _run(s, m, 900 if fit == "linear" else 1400, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
     sag = st.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()
     assert x0[m.tools.pins[0].indices, 0].max() == pytest.approx(-dx / 2)  # the clamp line
     ratio = -sag / _cantilever_theory(m, tip, L, t, E, nu, rho)
@@ -286,7 +300,8 @@ def test_cantilever_on_the_corrected_fit_without_the_control_by_fit_weight(fit_w
     m, tip = _clamped_beam(dx, L, t, E=E, nu=nu, rho=rho, fit_weight=fit_weight)
     x0 = m.particle_x0
     s = we.Solver(m, fit="curvature_corrected", hourglass=0.0)
-    st = _run(s, m, 2000 if fit_weight == "poly6" else 3000, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
+    with _full_wave_step("curvature_corrected"):
+        st = _run(s, m, 2000 if fit_weight == "poly6" else 3000, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
     u = st.x.numpy() - x0
     ratio = -u[tip, 1].mean() / _cantilever_theory(m, tip, L, t, E, nu, rho)
     # The checkerboard's amplitude: each core particle's offset from the mean of its six face
@@ -348,7 +363,8 @@ def test_kinetic_damping_stops_the_held_cantilever_without_pumping_its_edge_mode
             top = max(top, 0.5 * float((mass * st.v.numpy().astype(np.float64) ** 2).sum()))
         return st, top
 
-    st = _run(s, m, 500, dt, relax_after=0.0, state=st)
+    with _full_wave_step("curvature_corrected"):
+        st = _run(s, m, 500, dt, relax_after=0.0, state=st)
     st, e1 = energy(st)
     st = _run(s, m, 500, dt, relax_after=0.0, state=st)
     st, e2 = energy(st)
