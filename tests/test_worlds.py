@@ -947,6 +947,29 @@ def test_the_default_step_warning_pairs_each_softer_world_with_its_own_count():
     assert len(said) == 1 and f"(world 0: {steps[0]} steps a frame, world 2: {steps[2]});" in said[0], said
 
 
+def test_the_worlds_step_check_counts_with_the_solvers_fit():
+    """Two identical worlds under a solver asked for the curvature-corrected fit on the
+    incremental composition, whose stable step is half the wave limit (``Model.stable_dt(fit=)``):
+    the default step is that half, and each world alone runs the same count. The worlds' check
+    counted with the model's linear fit (the full limit) and told each world it runs half the
+    count alone."""
+    from warp_esph.builder import finalize_worlds
+    from warp_esph.simulate import resolve_timestep
+
+    def box():
+        b = we.SceneBuilder(spacing=0.02, fit="linear")
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough").replace(mu=2e6, lam=3e6), name="paste")
+        return b
+
+    model = finalize_worlds([box(), box()], dtype=wp.float64)
+    half = model.stable_dt(fit="curvature_corrected")
+    assert half == 0.5 * model.stable_dt() and model.world_stable_dts(fit="curvature_corrected") == [half, half]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        n, dt = resolve_timestep(model, 30.0, fit="curvature_corrected")
+    assert dt <= half and n == math.ceil(1.0 / 30.0 / half * (1.0 - 1e-12))
+
+
 def test_an_elastic_world_beside_a_ghost_floor_is_told_its_fit_is_the_models_not_round_off():
     """A ghost floor enters the linear fit only, so ``fit="auto"`` runs it for every world, where
     an all-elastic world without one alone runs the curvature-corrected fit and the hourglass
