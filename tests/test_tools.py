@@ -229,12 +229,12 @@ def _clamp_carries_the_weight(s, m, st):
 
 
 def _full_wave_step(fit):
-    """The cantilevers below run at the full wave limit ``Model.stable_dt(fit="linear")``
-    gives, where their numbers were measured: with the corrected fit on the incremental
-    composition that is 2 x its stable step (``CORRECTED_INCREMENTAL_STEP``, for the mode
-    a compressed interior takes, docs/method.md §8), which the step warns of. These beams
-    bend at small strain (the clamp's, from beam theory: 0.24 %), far from the compression
-    (strain 0.12-0.15) that mode needs, and settle there as their docstrings measured."""
+    """The held cantilever's damping test below runs at the full wave limit
+    ``Model.stable_dt(fit="linear")`` gives, where the pumping it guards against was found
+    (``omega dt`` 0.46): with the corrected fit on the incremental composition that is 2 x its
+    stable step (``CORRECTED_INCREMENTAL_STEP``, for the mode a compressed interior takes,
+    docs/method.md §8), which the step warns of. The beam moves at small strain, far from the
+    compression (strain 0.12-0.15) that mode needs."""
     if fit != "curvature_corrected":
         return contextlib.nullcontext()
     return pytest.warns(RuntimeWarning, match="the wave limit x 0.5 for the curvature-corrected fit")
@@ -261,9 +261,10 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(f
     # The corrected fit settles later (docs/physics.md, "After the change"): with the control,
     # measured 1.087 / 1.057 at 900 steps, 1.060 / 1.057 at 1400 (poly6 / biweight fit
     # weight), the clamp's force off the weight by 1.4e-2 / 8.1e-3 of it at 900 steps and by
-    # 3e-4 / 2.0e-3 at 1400 (the linear fit at 900: 1.262 / 1.345, 7.0e-3 / 3.6e-3).
-    with _full_wave_step(fit):
-        st = _run(s, m, 900 if fit == "linear" else 1400, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
+    # 3e-4 / 2.0e-3 at 1400 (the linear fit at 900: 1.262 / 1.345, 7.0e-3 / 3.6e-3). Those
+    # steps were the full wave limit's; this fit's stable step is half of it (docs/method.md
+    # §8), so it runs 2800 for the same time: 1.055 (biweight; 1.057 at the full limit).
+    st = _run(s, m, 900 if fit == "linear" else 2800, s.stable_dt(), relax_after=0.0)
     sag = st.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()
     assert x0[m.tools.pins[0].indices, 0].max() == pytest.approx(-dx / 2)  # the clamp line
     ratio = -sag / _cantilever_theory(m, tip, L, t, E, nu, rho)
@@ -295,13 +296,14 @@ def test_cantilever_on_the_corrected_fit_without_the_control_by_fit_weight(fit_w
     removes it (the test above). Read at rest: 2000 / 3000 steps (poly6 at 1400: 1.0725, the
     clamp 0.9 % over the weight, still settling since ``come_to_rest`` (benchmarks/validation.py)
     stops the beam where zeroing the velocities left it the step's ``dt a / 2``; 1.0656 and
-    4e-4 at 2000)."""
+    4e-4 at 2000). Those are steps of the full wave limit, twice this fit's stable step
+    (docs/method.md §8): run at the stable step for the same times, 4000 / 6000 steps, it reads
+    1.0647 / 1.1246, checkerboard 3.85e-3 / 8.05e-2 dx (1.0656 / 1.1266 at the full limit)."""
     E, nu, rho, dx, L, t = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05
     m, tip = _clamped_beam(dx, L, t, E=E, nu=nu, rho=rho, fit_weight=fit_weight)
     x0 = m.particle_x0
     s = we.Solver(m, fit="curvature_corrected", hourglass=0.0)
-    with _full_wave_step("curvature_corrected"):
-        st = _run(s, m, 2000 if fit_weight == "poly6" else 3000, m.stable_dt(hourglass=s.hourglass), relax_after=0.0)
+    st = _run(s, m, 4000 if fit_weight == "poly6" else 6000, s.stable_dt(), relax_after=0.0)
     u = st.x.numpy() - x0
     ratio = -u[tip, 1].mean() / _cantilever_theory(m, tip, L, t, E, nu, rho)
     # The checkerboard's amplitude: each core particle's offset from the mean of its six face
