@@ -1249,7 +1249,10 @@ class Model:
         ``hourglass``; ``Solver.check_dt`` passes its own). Where the step runs the
         curvature-corrected fit with the incremental composition for any material
         (``corrected_incremental``), the wave limit is ``CORRECTED_INCREMENTAL_STEP`` (0.5) of
-        the above: under compression that fit stiffens a mode past the step (docs/method.md §8)."""
+        the above: under compression that fit stiffens a mode past the step (docs/method.md §8).
+        From the parameters alone: a flowed body made elastic under ``fit="auto"`` keeps that fit
+        on the incremental composition (``sim.solver.keeps_incremental``) and is given the full
+        wave limit here; step it at ``stable_dt(fit="curvature_corrected")``."""
         courant = checks.courant(courant)
         self._check_force_fields()
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
