@@ -1117,6 +1117,27 @@ def test_a_fixed_stable_step_set_by_the_hourglass_control_names_it():
     assert model.stable_dt(hourglass=0.0) * 30.0 * 1e6 > 4.0
 
 
+def test_a_fixed_stable_step_of_the_corrected_incremental_fit_is_not_blamed_on_a_weaker_control():
+    """On the curvature-corrected fit with the incremental composition the wave limit is half
+    ``C dx / c_P`` (``Model.stable_dt(fit=)``). A control whose limit lies between the half and
+    the whole (``c = 75``: 1.1e-7 s against 7.7e-8 / 1.55e-7 s) does not set the step, yet the
+    refusal compared it with the whole and said 'the hourglass control sets it', advising a
+    smaller strength, which leaves the step as it is."""
+    from warp_esph.sim.solver import Solver  # noqa: PLC0415
+    from warp_esph.simulate import STABLE_ADVICE, StepRefusal, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.001, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.004, 0.004, 0.004), we.Material(mu=1e9, lam=1e9))
+    model = b.finalize()
+    solver = Solver(model, fit="curvature_corrected", hourglass=75.0)
+    control = model._hourglass_limit(0.3, 75.0)[0]
+    half = model.stable_dt(hourglass=0.0, fit="curvature_corrected")
+    assert half < control < 2.0 * half and solver.stable_dt() < half
+    with pytest.raises(StepRefusal, match=r"; the stiffest material \(p-wave speed") as info:
+        simulate(model, 1, fps=10.0, progress=False, solver=solver)
+    assert info.value.advice == STABLE_ADVICE and "hourglass" not in info.value.reason
+
+
 def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
     """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
     refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";

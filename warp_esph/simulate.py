@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from . import checks, tools
-from .model import Model, State
+from .model import CORRECTED_INCREMENTAL_STEP, Model, State
 from .sim.neighbors import NeighborOverflow
 from .sim.solver import Solver
 
@@ -93,7 +93,8 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     the solver's inverted count when the run began (an earlier run's are not this one's);
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
     smaller step is the cure."""
-    stable = model.stable_dt(hourglass=hourglass, fit=None if solver is None else solver.asked_fit)
+    asked = None if solver is None else solver.asked_fit
+    stable = model.stable_dt(hourglass=hourglass, fit=asked)
     inverted = rest_inversions(solver, state) - since if solver is not None and rest_inversions(solver, state) else 0
     if inverted > 0 and (step is None or step <= stable * (1.0 + 1e-6)):
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else
@@ -102,13 +103,13 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
                 f"through itself, whose strain may be stiffer than the stable limit ({stable:.3g} s) assumes; try a "
                 f"smaller {dt}, a stiffer material, or {fit}, the incremental composition, which follows the "
                 f"neighbours as a body parts")
-    if _repulsion_cause(model, 0.3, hourglass) is not None:
+    if _repulsion_cause(model, 0.3, hourglass, asked) is not None:
         # Checked before the fields: where the repulsion's limit is the shorter, a weaker field
         # (or a softer material) leaves the step as it is.
         which = model._repulsion_limit(0.3)[1]
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._repulsion_words(which)} at contact) "
                 f"or a smaller pair_repulsion or pressure_stiffness")
-    if _field_cause(model, 0.3, hourglass) is not None:
+    if _field_cause(model, 0.3, hourglass, asked) is not None:
         _, k, which = model._field_limit(0.3)
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "
                 f"k = {k:g} 1/s^2; a body it crushes is stiffer than that limit allows for, docs/method.md §8) or a weaker field")
@@ -890,10 +891,10 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             needs = (f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} "
                      f"m/s) or the most viscous one needs it")
             advice = STABLE_ADVICE
-            control = _hourglass_cause(model, courant, hourglass)
-            field = _field_cause(model, courant, hourglass)
+            control = _hourglass_cause(model, courant, hourglass, fit)
+            field = _field_cause(model, courant, hourglass, fit)
             viscous = _viscous_limit(model, courant)
-            repulsion = _repulsion_cause(model, courant, hourglass)
+            repulsion = _repulsion_cause(model, courant, hourglass, fit)
             if not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
                 if repulsion is not None:
                     # A stiff pair repulsion shortened it: the stiffest material's wave speed was
@@ -1063,20 +1064,20 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         advice = ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         if dt == stable:
             which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
-            control = _hourglass_cause(model, courant, hourglass)
+            control = _hourglass_cause(model, courant, hourglass, fit)
             if control is not None:
                 # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
                 # the wave limit): c_P alone was cited, and a softer material advised, where a
                 # smaller strength lengthens the step the most.
                 which = f"its stable step, {dt:.3g} s ({control})"
                 advice = ADAPTIVE_HOURGLASS_ADVICE
-            field = _field_cause(model, courant, hourglass)
+            field = _field_cause(model, courant, hourglass, fit)
             if field is not None:
                 # A field's spring shortened it: the wave speed was cited, and a softer material
                 # or a larger spacing advised, which leave its limit as it is.
                 which = f"its stable step, {dt:.3g} s ({field})"
                 advice = ADAPTIVE_FIELD_ADVICE
-            repulsion = _repulsion_cause(model, courant, hourglass)
+            repulsion = _repulsion_cause(model, courant, hourglass, fit)
             if repulsion is not None:
                 which = f"its stable step, {dt:.3g} s ({repulsion})"
                 advice = ADAPTIVE_REPULSION_ADVICE
@@ -1098,55 +1099,65 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     return n, frame_dt / n
 
 
-def _hourglass_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
-    """Where the hourglass control's limit (``Model._hourglass_limit``, strength ``hourglass``;
-    None: the model's) is at most the wave limit ``C dx / c_P``, so that it is what shortens
-    ``stable_dt``: the refusals' words for it, naming both limits; else None."""
-    control, strength = model._hourglass_limit(courant, hourglass)
+def _wave_limit(model: Model, courant: float, fit: str | None) -> tuple[float, str, float]:
+    """``(wave, words, c_P)``: ``stable_dt``'s wave limit for the fit ``fit`` (None: the model's)
+    and how the refusals write it: ``C dx / c_P``, x ``CORRECTED_INCREMENTAL_STEP`` where the step
+    runs the corrected incremental fit. Against the whole one, a control between it and the half
+    was said to set the step, and a smaller strength advised, which leaves it as it is."""
     c = float(np.max(model.wave_speeds()))
     wave = courant * model.spacing / c
+    if model.corrected_incremental(fit):
+        return CORRECTED_INCREMENTAL_STEP * wave, f"{CORRECTED_INCREMENTAL_STEP:g} C dx / c_P", c
+    return wave, "C dx / c_P", c
+
+
+def _hourglass_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
+    """Where the hourglass control's limit (``Model._hourglass_limit``, strength ``hourglass``;
+    None: the model's) is at most the wave limit (``_wave_limit``, for the fit ``fit``), so that
+    it is what shortens ``stable_dt``: the refusals' words for it, naming both limits; else None."""
+    control, strength = model._hourglass_limit(courant, hourglass)
+    wave, words, c = _wave_limit(model, courant, fit)
     if not control <= wave:
         return None
     return (f"the hourglass control's limit at strength c = {strength:g}, {control:.3g} s, with the wave limit "
-            f"C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
+            f"{words} = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
-def _field_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
+def _field_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
     """Where the force fields' limit (``Model._field_limit``) is at most both the wave limit
-    ``C dx / c_P`` and the hourglass control's (strength ``hourglass``; None: the model's), and
-    the viscous limit is not shorter than ``stable_dt``, so that the field is what shortens it:
-    the refusals' words for it, naming the fields, their net strength and both limits; else None."""
+    (``_wave_limit``, for the fit ``fit``) and the hourglass control's (strength ``hourglass``;
+    None: the model's), and the viscous limit is not shorter than ``stable_dt``, so that the
+    field is what shortens it: the refusals' words for it, naming the fields, their net strength
+    and both limits; else None."""
     limit, k, which = model._field_limit(courant)
-    c = float(np.max(model.wave_speeds()))
-    wave = courant * model.spacing / c
+    wave, words, c = _wave_limit(model, courant, fit)
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0]):
         return None
     viscous = _viscous_limit(model, courant)
-    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass) * (1.0 + 1e-9):
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit) * (1.0 + 1e-9):
         # The viscous limit set the step: a divergence was put on the field, and a weaker one
         # advised, which leaves the step as it is.
         return None
     return (f"the limit of {model._field_words(which)} at net strength "
-            f"k = {k:g} 1/s^2, (C / 0.3) 2 / (1.5 sqrt(k)) = {limit:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, "
+            f"k = {k:g} 1/s^2, (C / 0.3) 2 / (1.5 sqrt(k)) = {limit:.3g} s, with the wave limit {words} = {wave:.3g} s, "
             f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
-def _repulsion_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
+def _repulsion_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
     """Where the pair repulsion's limit (``Model._repulsion_limit``) is at most the wave limit
-    ``C dx / c_P``, the hourglass control's (strength ``hourglass``; None: the model's) and the
-    force fields', and the viscous limit is not shorter than ``stable_dt``, so that it is what
-    shortens it: the refusals' words for it, naming the materials, their strengths and both
-    limits; else None."""
+    (``_wave_limit``, for the fit ``fit``), the hourglass control's (strength ``hourglass``;
+    None: the model's) and the force fields', and the viscous limit is not shorter than
+    ``stable_dt``, so that it is what shortens it: the refusals' words for it, naming the
+    materials, their strengths and both limits; else None."""
     limit, which = model._repulsion_limit(courant)
-    c = float(np.max(model.wave_speeds()))
-    wave = courant * model.spacing / c
+    wave, words, c = _wave_limit(model, courant, fit)
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0] and limit <= model._field_limit(courant)[0]):
         return None
     viscous = _viscous_limit(model, courant)
-    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass) * (1.0 + 1e-9):
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit) * (1.0 + 1e-9):
         return None  # the viscous limit set the step (as _field_cause)
     return (f"the limit of {model._repulsion_words(which)} at contact, (C / 0.3) 2 / (1.5 omega) = {limit:.3g} s, "
-            f"with the wave limit C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
+            f"with the wave limit {words} = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
 def _viscous_limit(model: Model, courant: float):
