@@ -1138,6 +1138,22 @@ def test_a_fixed_stable_step_of_the_corrected_incremental_fit_is_not_blamed_on_a
     assert info.value.advice == STABLE_ADVICE and "hourglass" not in info.value.reason
 
 
+def test_a_step_too_long_to_resolve_names_the_solvers_stable_step():
+    """``Solver.check_dt``'s refusal of a step whose fall the precision cannot hold names the
+    stable step to use instead: it gave the model's (``Model.stable_dt()``, this linear model's
+    full wave limit), twice the step of a solver asked for the curvature-corrected fit on the
+    incremental composition (docs/method.md §8)."""
+    from warp_esph.sim.solver import Solver  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02, fit="linear")
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.08, 0.08), we.Material(mu=1e5, lam=1e5))
+    model = b.finalize()
+    solver = Solver(model, fit="curvature_corrected", hourglass=0.0)
+    assert solver.stable_dt() == 0.5 * model.stable_dt()
+    with pytest.raises(ValueError, match=rf"for a stable run at most Model\.stable_dt\(\) = {solver.stable_dt():.3g} s\)$"):
+        solver.check_dt(1.0e4)
+
+
 def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
     """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
     refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";

@@ -104,7 +104,8 @@ def representable_dt(scalar, dt) -> float:
     return dt
 
 
-def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Model.stable_dt() =") -> float:
+def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Model.stable_dt() =",
+                  fit: str | None = None, hourglass: float | None = None) -> float:
     """``dt``, refused (ValueError) where one step's fall under gravity, ``|g| dt^2``, is so
     long that the model's precision holds a position after it to no better than a spacing
     (``eps |g| dt^2 > spacing``). A collider then takes the particle back from a height whose
@@ -112,7 +113,8 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
     result: one float64 step of 1e30 s put every particle of a dough box at exactly (0, 0, 0)
     at rest, finite and inside every divergence bound. The bound reads no parameter, so a fit
     meets it at its start or never. ``name``, ``stable``: how the refusal names ``dt`` and the
-    stable step (the CLI's ``--dt``)."""
+    stable step (the CLI's ``--dt``); ``fit``, ``hourglass``: the solver's, whose stable step it gives
+    (``Solver.stable_dt``; None: the model's)."""
     g = _length(tuple(model.gravity))
     eps = _float_info(model.scalar)[2]
     fall = g * dt * dt
@@ -126,7 +128,7 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
             f"{name} = {checks.shorten(dt)!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
             f"{model.scalar.__name__} resolves at the spacing {model.spacing:.3g} m (spacing / eps = {model.spacing / eps:.3g} m), "
             f"so the positions after it would be round-off; must be at most {longest:.3g} s (and for a stable run at most "
-            f"{stable} {model.stable_dt():.3g} s)")
+            f"{stable} {model.stable_dt(hourglass=hourglass, fit=fit):.3g} s)")
     return dt
 
 
@@ -958,7 +960,8 @@ class Solver:
         hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``, and
         again for that value only where new parameters put it ``STEP_REWARN`` times further
         past its limit than when it last warned. ``step`` calls it."""
-        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt))
+        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit,
+                           hourglass=self.hourglass)
         stable = self.stable_dt()
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
