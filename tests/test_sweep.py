@@ -2437,3 +2437,29 @@ def test_a_swept_parameter_selects_a_scene_files_material_by_its_name(tmp_path, 
                                          r"material index, a body name \(a, b\) or a material name of the scene file "
                                          r"\(soft, clay\)$"):
         _assignments(scene, [parse_param("hard.mu=1e4")], option_flag)
+
+
+def test_a_blow_up_quotes_the_stable_step_of_the_solver_that_ran():
+    """``energy_growth``'s message names the stable step of the solver that ran the steps
+    (``Solver.stable_dt``: its fit and hourglass strength), which ``Rollout`` and ``sweep``
+    pass: an elastic model whose default is the linear fit, run with
+    ``Solver(fit="curvature_corrected")`` on the incremental composition, has half the wave
+    limit as its step (``Model.CORRECTED_INCREMENTAL_STEP``); the model's own ``stable_dt()`` quoted
+    twice the step the solver holds to."""
+    from warp_esph import Solver
+    from warp_esph.simulate import energy_growth
+
+    b = SceneBuilder(spacing=0.1, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.from_young(1.0e5, 0.3, density=1000.0), name="block")
+    b.add_ground(0.0, images=True)
+    model = b.finalize()
+    model.fit = "linear"
+    solver = Solver(model, fit="curvature_corrected", hourglass=0.05)
+    assert model.corrected_incremental("curvature_corrected") and not model.corrected_incremental()
+    x0 = model.particle_x0
+    fast = np.tile([model.wave_speeds(model.parameter_values()).max(), 0.0, 0.0], (model.particle_count, 1))
+    hit = energy_growth(model, x0, model.particle_v0, x0, fast, solver=solver)
+    assert hit is not None and f"stable limit {solver.stable_dt():.3g} s" in hit[0], hit
+    assert solver.stable_dt() < 0.6 * model.stable_dt(hourglass=0.05)
+    plain = energy_growth(model, x0, model.particle_v0, x0, fast)
+    assert f"stable limit {model.stable_dt():.3g} s" in plain[0]

@@ -1063,7 +1063,8 @@ class Rollout:
         # a fit's trial and a torch result at 1e35 J, where a sweep failed the same run.
         init = self._initial
         return energy_growth(self.model, init.x.numpy(), init.v.numpy(), x, v, t0=float(init.time), dt=self.dt,
-                             steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0), work=work)
+                             steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0), work=work,
+                             solver=self.solver)
 
     def _work_done(self, checked=None) -> float | None:
         """The work (J) the tools and pinned sets did in the latest forward on the worlds of the

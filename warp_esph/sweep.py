@@ -804,7 +804,7 @@ def _run_sample(scene, task: _Task) -> dict:
                 steps = task.frames * substeps
                 grew = energy_growth(model, model.particle_x0, model.particle_v0, state.x.numpy(), state.v.numpy(),
                                      t0=float(state.time) - steps * dt, dt=dt, steps=steps,
-                                     work=solver.tool_work_done)
+                                     work=solver.tool_work_done, solver=solver)
                 why = None if grew is None else grew[0]
             if why is not None:
                 # The guard counts alone: the blown-up state's summary (a particle at 1.4e17 m) and
