@@ -96,6 +96,14 @@ def _we():
     return wp, we
 
 
+class _FirstStep(Exception):
+    """Raised by a ``_solver`` solver's first step under ``first_step``: ``(solver, state, dt)``."""
+
+
+#: Set by ``first_step`` alone: a case stops at its first step, before taking it.
+_first_step_only = False
+
+
 def _solver(model, **kwargs):
     """``warp_esph.Solver(model, **kwargs)`` that also counts, over its steps, the particle-steps
     whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``), on the
@@ -123,6 +131,8 @@ def _solver(model, **kwargs):
             return int(self.full_row_total.numpy()[0])
 
         def step(self, state_in, state_out, dt):
+            if _first_step_only:
+                raise _FirstStep(self, state_in, dt)
             super().step(state_in, state_out, dt)
             # Every step, not once per sample: a row is full for a few steps of a collision or
             # a stretch, between samples.
@@ -2170,6 +2180,34 @@ def run_one(name: str, kwargs: dict) -> dict:
         out["preset_force"] = dict(_stability_materials())[label].elastic_force
         return out
     return globals()[name](**kwargs)
+
+
+def first_step(name: str, kwargs: dict) -> dict:
+    """What the run ``run_one(name, kwargs)`` steps, read at its first step, which is not taken
+    (the scene is built, nothing runs): the solver's ``record`` from that state
+    (``resolved_fit``, ``rest_model``), ``corrected_incremental`` (the curvature-corrected fit on
+    the incremental composition, ``Model.corrected_incremental``), the ``dt`` the case passes,
+    the solver's ``stable_dt`` and ``full_dt``, the stable step with the whole wave limit (the
+    rule before ``CORRECTED_INCREMENTAL_STEP``): a case whose ``dt`` scales ``stable_dt`` ran
+    ``full_dt / stable_dt`` x its step before, and a row it measured then may change."""
+    global _first_step_only
+    _first_step_only = True
+    try:
+        run_one(name, kwargs)
+    except _FirstStep as e:
+        solver, state, dt = e.args
+    else:
+        raise RuntimeError(f"{name}({kwargs}) returned without taking a step")
+    finally:
+        _first_step_only = False
+    model = solver.model
+    record = solver.record(state)
+    # The wave limit is kept whole for every fit but the corrected one on the incremental
+    # composition; the hourglass, field and contact limits do not read the fit.
+    full = model.stable_dt(hourglass=solver.hourglass, fit="linear")
+    return {"case": name, "kwargs": dict(kwargs), "resolved_fit": record["resolved_fit"],
+            "rest_model": record["rest_model"], "corrected_incremental": model.corrected_incremental(solver.asked_fit),
+            "dt": float(dt), "stable_dt": solver.stable_dt(), "full_dt": full}
 
 
 PROG = "python -m benchmarks.validation"
