@@ -1025,7 +1025,11 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     frame, ``ToolSet.fastest``: a tool gives the particles it meets its speed) and ``|g| / fps`` bounds
     what gravity adds to it within the frame; and ``dt`` is at most ``Model.stable_dt`` (its
     viscous limit, with the limits of the force fields and of the hourglass control of strength
-    ``hourglass``; None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
+    ``hourglass``; None: the model's; of the fit ``fit``, half the wave limit where the step runs
+    the corrected fit on the incremental composition). The speed term is not halved there: it
+    is the shorter only where ``v_max + |g| / fps > c_P``, below that half already, and halving
+    it changed no energy reading (docs/physics.md, "The biweight's incremental composition
+    (measured)"). A body at rest gets ``stable_dt`` (to the gravity term); one in
     flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
     ``until``: take the tools' speeds up to that time instead of over the next frame (a run
     checks its whole span before its first step).
