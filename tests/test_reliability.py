@@ -2870,3 +2870,47 @@ def test_a_deep_copy_of_a_state_holds_its_own_arrays_and_steps_as_the_state():
     assert np.array_equal(stepped.x.numpy(), out.x.numpy()) and stepped.written_by == out.written_by
     twin.x.fill_(0.0)
     assert np.array_equal(s.x.numpy(), model.particle_x0.astype(s.x.numpy().dtype))
+
+
+def test_pickling_a_state_model_or_solver_is_refused_in_one_line_naming_what_to_use():
+    """``pickle.dumps(state)`` (a model's, a solver's) raised pickle's ``AttributeError: Can't
+    pickle local object 'CDLL.__init__.<locals>._FuncPtr'`` from deep in Warp's device, naming
+    neither the object nor a way out, and ``copy.deepcopy(model)`` ctypes' ValueError. Each is
+    now a ``TypeError`` naming the object and what carries it instead (a checkpoint, the
+    builder), and the shallow copies the solver makes of a state still work. The builder the
+    refusal points to pickles, and finalizes again into the same scene."""
+    import copy
+    import pickle
+
+    from warp_esph.checkpoint import load_state, model_fingerprint
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize()
+    state, solver = model.state(), we.Solver(model)
+    for obj, said in ((state, r"^a warp_esph\.State cannot be pickled: .*save_state\(path, model, state, "
+                               r"step=, frame=\) and read it back with load_state\(path, model\)"),
+                      (model, r"^a warp_esph\.Model cannot be pickled or deep-copied: .*SceneBuilder"),
+                      (solver, r"^a warp_esph\.Solver cannot be pickled or deep-copied: .*Solver\(model")):
+        with pytest.raises(TypeError, match=said) as e:
+            pickle.dumps(obj)
+        assert "\n" not in str(e.value)
+        with pytest.raises(TypeError, match=said):
+            pickle.dumps({"inside": [obj]})  # as multiprocessing sends it
+    with pytest.raises(TypeError, match=r"^a warp_esph\.Model cannot be pickled or deep-copied"):
+        copy.deepcopy(model)
+    shallow = copy.copy(state)
+    assert shallow.x is state.x and shallow._model is model
+    assert copy.deepcopy(state)._model is model  # still supported
+    again = pickle.loads(pickle.dumps(b)).finalize()
+    assert model_fingerprint(again) == model_fingerprint(model)
+    out = model.state()
+    solver.step(state, out, 1e-4)
+    path = save_state(os.path.join(os.environ.get("TMPDIR", "/tmp"), f"pickle_{os.getpid()}.npz"), model, out,
+                      step=1, frame=0)
+    try:
+        loaded, _ = load_state(path, again)
+        assert np.array_equal(loaded.x.numpy(), out.x.numpy())
+    finally:
+        os.remove(path)

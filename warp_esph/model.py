@@ -258,11 +258,33 @@ class Body:
     ghost_slip: bool = False
 
 
-class State:
+class Unpicklable:
+    """Refuses pickle (and ``copy.deepcopy`` where the class has no ``__deepcopy__``) in one
+    line naming what carries the object instead (``UNPICKLABLE``): pickle's own error came
+    from deep inside Warp's device (``Can't pickle local object 'CDLL.__init__.<locals>._FuncPtr'``),
+    naming neither the object nor a way out. A shallow ``copy.copy`` stays what it was."""
+
+    UNPICKLABLE = ""
+
+    def __reduce_ex__(self, protocol):
+        copies = "" if hasattr(type(self), "__deepcopy__") else " or deep-copied"
+        raise TypeError(f"a warp_esph.{type(self).__name__} cannot be pickled{copies}: {self.UNPICKLABLE}")
+
+    def __copy__(self):
+        twin = object.__new__(type(self))
+        twin.__dict__.update(self.__dict__)
+        return twin
+
+
+class State(Unpicklable):
     """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (docs/method.md: the only
     deformation state stored) and hardening accumulator ``alpha`` of every particle; with
     ``add_ground(images=True)`` also ``F_image`` and ``alpha_image``, the elastic F and the
     hardening of each particle's floor image."""
+
+    UNPICKLABLE = ("it holds Warp arrays on its device and the Model that made it; write it to a checkpoint with "
+                   "warp_esph.checkpoint.save_state(path, model, state, step=, frame=) and read it back with "
+                   "load_state(path, model) (copy.deepcopy(state) copies it within this process)")
 
     def __init__(self, model: "Model", requires_grad: bool):
         n, K, dev = model.particle_count, model.max_neighbors, model.device
@@ -465,8 +487,11 @@ class State:
 IMAGE_MIN_DEPTH = 0.5
 
 
-class Model:
+class Model(Unpicklable):
     """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
+
+    UNPICKLABLE = ("it holds Warp arrays on its device; pickle the SceneBuilder that made it (or keep its scene "
+                   "file) and finalize it again, which makes the same scene (its checkpoints resume there)")
 
     def __init__(
         self,

@@ -19,7 +19,7 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..model import CORRECTED_INCREMENTAL_STEP, FITS, Model, State, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
+from ..model import CORRECTED_INCREMENTAL_STEP, FITS, Model, State, Unpicklable, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
 from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
@@ -211,7 +211,7 @@ def _fixed_when_made(name: str, doc: str, read: str | None = None) -> property:
     return property(get, lambda self, value: self._refuse_remade(name, value), doc=doc)
 
 
-class Solver:
+class Solver(Unpicklable):
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
     ``min_neighbors`` and ``max_condition`` are the guards of paper §4 on the
@@ -317,6 +317,9 @@ class Solver:
     0.77 x its 1-D plastic shortening but spreads the S = 0.2 pile to -20.5 % of its 1-D
     height (from -6.1 %), still flowing at 8 s (docs/physics.md, the same bullet).
     """
+
+    UNPICKLABLE = ("it holds its Model's Warp arrays and kernels; make another with Solver(model, ...) of this one's "
+                   "settings (warp_esph.checkpoint.solver_settings(solver) lists them)")
 
     def __init__(
         self,
