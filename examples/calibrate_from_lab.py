@@ -54,6 +54,7 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 from warp_esph import tools
+from warp_esph.checks import bare_path
 from warp_esph.fit import OPTIMIZERS, Experiment, fit
 from warp_esph.losses import ReactionForceLoss, SlumpLoss, read_tools_csv
 from warp_esph.tools import ReactionLog
@@ -289,7 +290,7 @@ def main(argv=None) -> int:
     # Here, not in fit(): a typo there was a traceback after both lab runs.
     if OPTIMIZER not in OPTIMIZERS:
         ap.error(f"LAB_OPTIMIZER = {OPTIMIZER!r} is not allowed: must be one of {', '.join(map(repr, OPTIMIZERS))}")
-    if args.out and os.path.exists(args.out) and not os.path.isdir(args.out):
+    if args.out and os.path.exists(bare_path(args.out)) and not os.path.isdir(args.out):  # "taken/" does not exist where "taken" is a file
         ap.error(f"argument --out: {args.out!r} is a file, not a folder")
     we.init_warp()  # log_level WARNING, no native note about a missing CUDA driver on a CPU machine
     s = SETUPS[args.size]

@@ -45,6 +45,7 @@ try:
 except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
+from warp_esph.checks import bare_path
 from warp_esph.fit import LR_OPTIMIZERS, fit, save_target, write_fitted_usd
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import Rollout
@@ -292,7 +293,7 @@ def main(argv=None) -> int:
                     help="precision of the fitted model (float32: about half the time per evaluation)")
     a = ap.parse_args(argv)
     scale = 1.0 if a.full else a.scale
-    if os.path.exists(a.out) and not os.path.isdir(a.out):
+    if os.path.exists(bare_path(a.out)) and not os.path.isdir(a.out):  # "taken/" does not exist where "taken" is a file
         ap.error(f"argument --out: {a.out!r} is a file, not a folder")
     we.init_warp()  # log_level WARNING, no native CUDA-driver note on a CPU machine
     try:

@@ -2193,6 +2193,36 @@ def test_every_command_refuses_an_output_whose_parent_folder_is_missing(tmp_path
     capsys.readouterr()
 
 
+def test_every_command_refuses_a_folder_output_given_with_a_slash_where_a_file_is(tmp_path, capsys):
+    """``-o taken/`` where ``taken`` is a file passed the check (a path with a trailing slash
+    does not exist where its stem is a file): render and export said '[Errno 17] File exists:
+    'taken/'', a sweep ran every sample and a fit the whole fit before the same error, exit 4
+    and their results lost. Each is now refused before any work, as ``-o taken`` is."""
+    usd = _unsimulated_usd(tmp_path)
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    for slash in ("/", "//"):
+        where = str(taken) + slash
+        commands = {
+            "render": ["render", str(usd), "-o", where],
+            "export": ["export", str(usd), "-o", where],
+            "sweep": ["sweep", str(tmp_path / "s.toml"), "--param", "yield_stress=100", "--workers", "1",
+                      "--no-progress", "-o", where],
+            "fit": ["fit", str(tmp_path / "s.toml"), "--target", str(usd), "--no-progress", "--iterations", "1",
+                    "--output-dir", where],
+        }
+        for name, argv in commands.items():
+            assert main(argv) == 2, name
+            option = "--output-dir" if name == "fit" else "--output"
+            assert_one_line_error(capsys.readouterr().err, f"{option} = {where!r} is not allowed: it is a file; "
+                                  "a folder is written there")
+            assert taken.read_text() == "mine"
+    from warp_esph.sweep import SweepTable, write_outputs  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match=r"^folder = .*taken/' is not allowed: it is a file; the sweep's tables"):
+        write_outputs(SweepTable([], [], []), str(taken) + "/")
+
+
 def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
     from warp_esph.fit import MAX_ITERATIONS, check_options  # noqa: PLC0415
 

@@ -2914,3 +2914,23 @@ def test_pickling_a_state_model_or_solver_is_refused_in_one_line_naming_what_to_
         assert np.array_equal(loaded.x.numpy(), out.x.numpy())
     finally:
         os.remove(path)
+
+
+def test_the_examples_refuse_an_out_folder_given_with_a_slash_where_a_file_is(tmp_path, capsys, monkeypatch, load_example):
+    """``--out taken/`` where ``taken`` is a file passed the examples' check ('taken/' does not
+    exist there): fit_dough_star ran its target run and calibrate_from_lab both lab runs before
+    os.makedirs' FileExistsError traceback. Each is one line of usage error, before any run."""
+    a_file = tmp_path / "taken"
+    a_file.write_text("")
+    monkeypatch.delenv("LAB_OPTIMIZER", raising=False)
+    for name, argv in (("fit_dough_star", []), ("calibrate_from_lab", ["--size", "ci"])):
+        ex = load_example(name)
+        ran = []
+        for work in ("measure", "record"):
+            if hasattr(ex, work):
+                monkeypatch.setattr(ex, work, lambda *a, **k: ran.append(a))
+        with pytest.raises(SystemExit) as info:
+            ex.main([*argv, "--out", str(a_file) + "/"])
+        last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
+        assert info.value.code == 2 and ran == [], name
+        assert last == f"argument --out: {str(a_file) + '/'!r} is a file, not a folder", name

@@ -1000,6 +1000,11 @@ def replaced_atomically(path):
         raise
 
 
+def bare_path(p: str) -> str:
+    """``p`` without the separators it ends in (``'taken/'``: ``'taken'``; ``'/'`` stays)."""
+    return p.rstrip(os.sep + (os.altsep or "")) or p
+
+
 def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the
@@ -1028,9 +1033,12 @@ def output_place(what: str, path, folder: bool = False) -> str:
     if len(name) > longest:
         raise ValueError(f"{what} = {shown_path(p)} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
                          "this folder's file names leave room for")
-    if os.path.exists(p) and os.path.isdir(p) != folder:
+    # 'taken/' does not exist where 'taken' is a file (ENOTDIR), and passed: the sweep or fit
+    # ran to its end, then os.makedirs failed with a bare '[Errno 17] File exists'.
+    bare = bare_path(p)
+    if os.path.exists(bare) and os.path.isdir(bare) != folder:
         # A device or a named pipe said as what it is: '/dev/null' was 'a file'.
-        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {(special_file(p) or 'a file') if folder else 'a folder'}; "
+        raise ValueError(f"{what} = {shown_path(p)} is not allowed: it is {(special_file(bare) or 'a file') if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
     if not folder:
         refuse_special(what, p)

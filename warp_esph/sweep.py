@@ -1947,7 +1947,7 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
     written or skipped. ``folder`` is made where it is not there; a file there is refused
     (``ValueError``: it was a bare ``FileExistsError`` from ``os.makedirs``)."""
     folder = os.fspath(folder)
-    if os.path.exists(folder) and not os.path.isdir(folder):
+    if os.path.exists(checks.bare_path(folder)) and not os.path.isdir(folder):
         raise ValueError(f"folder = {checks.shown_path(folder)} is not allowed: it is a file; the sweep's tables ({', '.join(OUTPUT_FILES)}) "
                          "are written into a folder, one that is there or one that is made")
     os.makedirs(folder, exist_ok=True)
