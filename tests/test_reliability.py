@@ -2934,3 +2934,47 @@ def test_the_examples_refuse_an_out_folder_given_with_a_slash_where_a_file_is(tm
         last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
         assert info.value.code == 2 and ran == [], name
         assert last == f"argument --out: {str(a_file) + '/'!r} is a file, not a folder", name
+
+
+def test_the_package_s_exceptions_survive_pickle_as_a_process_pool_sends_them():
+    """A ``SimulationError`` raised in a worker process (``simulate`` run under
+    ``concurrent.futures.ProcessPoolExecutor``) reached the parent as ``BrokenProcessPool: A
+    process in the process pool was terminated abruptly``, every pending run lost (a
+    ``multiprocessing.Pool`` hangs): pickle rebuilds an exception as ``cls(*args)``, and each
+    exception taking keyword-only or more arguments than its message failed there
+    (``missing 2 required keyword-only arguments: 'step' and 'particle'``). Each comes back as
+    itself: its type, its message and its fields."""
+    import pickle
+
+    from warp_esph.checks import OutputWriteError
+    from warp_esph.export import ExportWriteError
+    from warp_esph.fit import BoundsError, ParamScaleRefused, StartRefused
+    from warp_esph.rollout import DivergedRollout, NonFiniteRollout, RolloutMemoryError
+    from warp_esph.scenes import ScaleRefused
+    from warp_esph.sim.neighbors import NeighborOverflow
+    from warp_esph.simulate import SimulationError, StepRefusal
+    from warp_esph.usd import OutputInUse
+
+    full = OSError(28, "No space left on device", "f.vtu")
+    raised = [
+        SimulationError("the simulation diverged after step 3", step=3, particle=1, body="b", frame=0, advice="; try dt="),
+        NonFiniteRollout("non-finite", step=2, particle=0, body="b", last_finite=1),
+        DivergedRollout("diverged", step=2, particle=None),
+        RolloutMemoryError("too big", reason="r", device="cpu", steps=10, segment=None, least=2, least_gib=1.5,
+                           least_fits=True),
+        NeighborOverflow("crushed", particles=[3, 4], need=700),
+        BoundsError("mu", -1.0, 2.0, "must be > 0"),
+        ParamScaleRefused("mu", 0.0, "must be > 0"),
+        StartRefused([], "refused", "refused (--dtype float64)"),
+        ScaleRefused(0.01, "at this scale", "at least 0.1"),
+        OutputInUse("/tmp/a.usdc", "another writer holds it"),
+        StepRefusal("the step is too long", "; give dt=", "too long"),
+        OutputWriteError("cannot write f.vtu: full", full),
+        ExportWriteError(full, ["a.vtu"], 3, "out"),
+    ]
+    for e in raised:
+        back = pickle.loads(pickle.dumps(e))
+        assert type(back) is type(e) and str(back) == str(e) and back.args == e.args, type(e).__name__
+        assert repr(sorted(vars(back).items())) == repr(sorted(vars(e).items())), type(e).__name__
+    assert pickle.loads(pickle.dumps(raised[0])).step == 3
+    assert pickle.loads(pickle.dumps(raised[-1])).errno == 28

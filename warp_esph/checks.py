@@ -820,7 +820,26 @@ def _name_max(folder: str) -> int:
     return n if n > 0 else 255
 
 
-class OutputWriteError(OSError):
+class Rebuilt:
+    """A base of an exception made of more than its message: pickle rebuilds an exception as
+    ``cls(*args)``, which such an ``__init__`` refuses (``missing 2 required keyword-only
+    arguments``), so one raised in a worker process (``concurrent.futures``,
+    ``multiprocessing``) broke the pool (``BrokenProcessPool``; ``multiprocessing.Pool``
+    hangs). It is rebuilt from its ``args`` and fields without ``__init__``."""
+
+    def __reduce__(self):
+        return _rebuilt, (type(self), self.args), self.__dict__
+
+
+def _rebuilt(cls, args):
+    e = cls.__new__(cls, *args)
+    if isinstance(e, OSError):  # errno and strerror live in OSError's own slots, set by its __init__
+        OSError.__init__(e, *args)
+    e.args = args
+    return e
+
+
+class OutputWriteError(Rebuilt, OSError):
     """A command's output that could not be written once its work was done or under way (a full
     disk): the CLI exits 4 with its text, which names the file and what is kept (``cause``: the
     write's own error)."""

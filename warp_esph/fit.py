@@ -1237,7 +1237,7 @@ def bounds_said(name: str, lo: float, hi: float, flag=lambda name: name) -> str:
     return f"{flag('bounds')}[{name!r}] = ({lo:g}, {hi:g})"
 
 
-class BoundsError(ValueError):
+class BoundsError(checks.Rebuilt, ValueError):
     """Bounds of a fitted parameter that the fit refuses once the model is known (``lo`` of a
     log-space parameter at or below 0; an end the material refuses). ``said(flag)``: the
     message naming them as ``flag`` names options (the command line's ``--bounds NAME=LO:HI``),
@@ -1256,7 +1256,7 @@ class BoundsError(ValueError):
         return f"{given} is not allowed: {reason}"
 
 
-class ParamScaleRefused(ValueError):
+class ParamScaleRefused(checks.Rebuilt, ValueError):
     """A given scale of a parameter fitted as its logarithm, refused once the model gives its
     start. ``said(flag, typed)``: named as ``flag`` names options (the command line's
     ``--param-scales NAME=S``, ``typed`` the entry as written). Not ``scenes.ScaleRefused``,
@@ -1272,7 +1272,7 @@ class ParamScaleRefused(ValueError):
         return f"{given} is not allowed: {self.reason}"
 
 
-class StartRefused(ValueError):
+class StartRefused(checks.Rebuilt, ValueError):
     """The guess, held to the bounds, refused by a material (each end allowed alone, but two
     ends together past a precision's range). ``held``: ``(name, lo, hi, side)`` of each
     parameter whose guess the bounds moved, and that guess (None: several materials'), the

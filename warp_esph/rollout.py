@@ -285,7 +285,7 @@ def tape_step_overhead(model: Model, fit: str | None = None, hourglass: float | 
     return total
 
 
-class RolloutMemoryError(ValueError):
+class RolloutMemoryError(checks.Rebuilt, ValueError):
     """A rollout refused because it could not fit in memory (``_check_rollout_memory``). Its
     message names ``steps`` and ``checkpoint_every``, a Python caller's; a caller with other
     names for them (``fit``'s ``checkpoint_every="auto"``, ``warp-esph fit``'s options) words

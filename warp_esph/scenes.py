@@ -36,7 +36,7 @@ def _scale(scale) -> float:
     return checks.positive("scale", scale)
 
 
-class ScaleRefused(ValueError):
+class ScaleRefused(checks.Rebuilt, ValueError):
     """A scene's refusal of a scale at which it builds but cannot show what it is for (too
     few particles for its bodies' deformation): ``scale`` is not allowed ``why``; give one
     ``allowed``. ``load_scaled_scene`` passes it on naming the option or setting that gave

@@ -155,7 +155,7 @@ ADAPTIVE_REPULSION_ADVICE = ("; use a smaller pair repulsion (Material.pair_repu
 ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
 
 
-class SimulationError(RuntimeError):
+class SimulationError(checks.Rebuilt, RuntimeError):
     """The simulation produced a non-finite position or velocity, or blew up while staying
     finite (``DivergenceMonitor``), or a ``tools.Scripted`` motion moved a tool more than a
     spacing in a step (``ToolSet.check_scripted_step``), or the neighbour search found a row

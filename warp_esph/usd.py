@@ -214,7 +214,7 @@ def _set_primvar(attr, values: np.ndarray, t) -> None:
     attr.Set(cls.FromNumpy(values), t)
 
 
-class OutputInUse(ValueError):
+class OutputInUse(checks.Rebuilt, ValueError):
     """A file another ``UsdWriter`` (of this or another process) is writing now: ``reason``
     says so, for a caller that names the file by its own option (the CLI's ``--output``)."""
 

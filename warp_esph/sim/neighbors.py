@@ -53,6 +53,7 @@ import types
 import numpy as np
 import warp as wp
 
+from .. import checks
 from .._types import type_set
 from . import deformation, guards, materials, pressure, smoothing
 from .replay import Launches
@@ -580,7 +581,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     )
 
 
-class NeighborOverflow(RuntimeError):
+class NeighborOverflow(checks.Rebuilt, RuntimeError):
     """A candidate row past ``MAX_CANDIDATES``: a body crushed together, or a blow-up whose
     stretch widened the search radius over the whole body. ``particles``: the indices of
     those past it (a model of worlds: the worlds that blew up, ``fit`` failing their starts
