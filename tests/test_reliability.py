@@ -2978,3 +2978,33 @@ def test_the_package_s_exceptions_survive_pickle_as_a_process_pool_sends_them():
         assert repr(sorted(vars(back).items())) == repr(sorted(vars(e).items())), type(e).__name__
     assert pickle.loads(pickle.dumps(raised[0])).step == 3
     assert pickle.loads(pickle.dumps(raised[-1])).errno == 28
+
+
+def test_a_state_array_replaced_by_numpy_or_torch_values_is_refused_as_what_it_is():
+    """``state.x = positions`` (a numpy array, which has ``shape``, ``dtype`` and, since
+    numpy 2, ``device``) passed the check for a Warp array and was refused as a state of
+    another model: 'state_in does not belong to this model: x has shape (8, 3), the model
+    needs (8,) ...; make states with model.state()', and one of shape (8,) as 'a state of a
+    model of another precision?'. It is refused as what it is, naming the field and how to
+    set its values."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize()
+    solver, out = we.Solver(model), model.state()
+    n = model.particle_count
+    values = [model.particle_x0, np.zeros(n, dtype=np.float32)]
+    torch = pytest.importorskip("torch")
+    values.append(torch.zeros(n, 3))
+    for given in values:
+        s = model.state()
+        s.x = given
+        with pytest.raises(ValueError, match=rf"^state_in\.x = .* is not allowed: it is a {type(given).__module__.split('.')[0]}\."
+                                             rf"{type(given).__name__}, not a Warp array; must be the Warp array of shape "
+                                             rf"\({n},\) and dtype vec3f the state was made with \(write values into it with "
+                                             r"state_in\.x\.assign\(\.\.\.\)\)$"):
+            solver.step(s, out, 1e-4)
+    s = model.state()
+    s.x.assign(model.particle_x0)  # the way the message gives
+    solver.step(s, out, 1e-4)
+    assert np.isfinite(out.x.numpy()).all()

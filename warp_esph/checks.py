@@ -535,8 +535,15 @@ def same_state(model, name: str, state) -> None:
         arr = getattr(state, field, None)
         where = f"{name}.{field}"
         got_shape = getattr(arr, "shape", None)
-        if got_shape is None or not hasattr(arr, "device") or not hasattr(arr, "dtype"):
-            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: must be a Warp array of shape {shape}")
+        if arr is None:
+            raise ValueError(f"{where} = None is not allowed: must be a Warp array of shape {shape}")
+        if not isinstance(arr, wp.array):
+            # Not by its attributes: a numpy array has shape, dtype and (numpy 2) device, and
+            # 'state.x = positions' was refused as a state of another model.
+            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: it is a {type(arr).__module__.split('.')[0]}."
+                             f"{type(arr).__qualname__}, not a Warp array; must be the Warp array of shape {shape} and dtype "
+                             f"{getattr(dtype, '__name__', dtype)} the state was made with (write values into it with "
+                             f"{where}.assign(...))")
         if tuple(got_shape) != shape:
             raise ValueError(
                 f"{name} does not belong to this model: {field} has shape {tuple(got_shape)}, the model needs {shape} "
