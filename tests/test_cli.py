@@ -2223,6 +2223,27 @@ def test_every_command_refuses_a_folder_output_given_with_a_slash_where_a_file_i
         write_outputs(SweepTable([], [], []), str(taken) + "/")
 
 
+def test_run_given_a_usd_file_or_a_checkpoint_says_what_it_is_and_which_command_reads_it(tmp_path, capsys):
+    """``run out.usdc`` (a run's output given where the scene goes) said 'invalid TOML: not
+    UTF-8 text (byte 16)', ``run out.usda`` 'invalid TOML: Invalid statement (at line 1, column
+    1)' and ``run out.usdc.checkpoint.npz`` likewise, naming neither what the file is nor the
+    command that reads it (``render`` says it of a scene file the other way round)."""
+    usd = _unsimulated_usd(tmp_path)
+    text = tmp_path / "a.usda"
+    text.write_text('#usda 1.0\n(\n    upAxis = "Y"\n)\n')
+    checkpoint = tmp_path / "a.usdc.checkpoint.npz"
+    np.savez(checkpoint, x=np.zeros(3))
+    before = {p: p.read_bytes() for p in (usd, text, checkpoint)}
+    for given, said in ((usd, "it is a USD file, a run's output: 'warp-esph render' draws it, 'warp-esph export' exports it, "
+                              "'warp-esph fit SCENE --target' fits to it; a scene file is TOML (docs/scene_format.md)"),
+                        (text, "it is a USD file, a run's output"),
+                        (checkpoint, "it is a .npz file, a checkpoint's or a fit target's: 'warp-esph run --resume' resumes a "
+                                     "checkpoint; a scene file is TOML (docs/scene_format.md)")):
+        assert main(["run", str(given), "--no-progress"]) == 2
+        assert_one_line_error(capsys.readouterr().err, f"{given.name}: invalid TOML: ", said)
+    assert {p: p.read_bytes() for p in before} == before
+
+
 def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
     from warp_esph.fit import MAX_ITERATIONS, check_options  # noqa: PLC0415
 

@@ -563,6 +563,19 @@ def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
     builder.origins[("pin", builder.pins[-1].name)] = where
 
 
+def _what_it_is(path) -> str:
+    """What a file that is no TOML is, by its name, and the command that reads it: a run's
+    output or a checkpoint given where the scene goes was only 'not UTF-8 text (byte 16)'."""
+    suffix = os.path.splitext(path)[1].lower()
+    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
+        return ("; it is a USD file, a run's output: 'warp-esph render' draws it, 'warp-esph export' exports it, "
+                "'warp-esph fit SCENE --target' fits to it; a scene file is TOML (docs/scene_format.md)")
+    if suffix == ".npz":
+        return ("; it is a .npz file, a checkpoint's or a fit target's: 'warp-esph run --resume' resumes a checkpoint; "
+                "a scene file is TOML (docs/scene_format.md)")
+    return ""
+
+
 def load_scene_file(path, scale: float = 1.0) -> Scene:
     """Read a TOML scene file (format: ``docs/scene_format.md``).
 
@@ -591,9 +604,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         # A number no float holds (1e-400, 1e400) read as a TypedNumber, refused in _check_table.
         data = tomllib.loads(raw.decode(codec) if utf16 else raw[mark:].decode("utf-8"), parse_float=checks.read_number)
     except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: {e}") from None
+        raise ValueError(f"{file}: invalid TOML: {e}{_what_it_is(path)}") from None
     except UnicodeDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: not {'UTF-16' if utf16 else 'UTF-8'} text (byte {mark + e.start})") from None
+        raise ValueError(f"{file}: invalid TOML: not {'UTF-16' if utf16 else 'UTF-8'} text (byte {mark + e.start})"
+                         f"{_what_it_is(path)}") from None
     except RecursionError:
         raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
