@@ -3008,3 +3008,30 @@ def test_a_state_array_replaced_by_numpy_or_torch_values_is_refused_as_what_it_i
     s.x.assign(model.particle_x0)  # the way the message gives
     solver.step(s, out, 1e-4)
     assert np.isfinite(out.x.numpy()).all()
+
+
+def test_torch_save_of_a_rollout_module_is_refused_naming_the_state_dict_which_round_trips():
+    """``torch.save(module)`` of a ``RolloutModule`` said pickle's ``Can't pickle local object
+    '_module_class.<locals>.RolloutModule'``. It is one line naming the way that works,
+    ``torch.save(module.state_dict())`` loaded into a module made anew, which this checks."""
+    import io
+
+    torch = pytest.importorskip("torch")
+    from warp_esph.torch import RolloutModule
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    rollout = Rollout(b.finalize(dtype=wp.float64, requires_grad=True), steps=2, dt=1e-4)
+    module = RolloutModule(rollout, ["mu", "yield_stress"])
+    with torch.no_grad():
+        module.mu.add_(0.5)
+    with pytest.raises(TypeError, match=r"^a warp_esph\.torch\.RolloutModule cannot be pickled or deep-copied: .*"
+                                        r"torch\.save\(module\.state_dict\(\)\).*load_state_dict"):
+        torch.save(module, io.BytesIO())
+    buf = io.BytesIO()
+    torch.save(module.state_dict(), buf)
+    buf.seek(0)
+    again = RolloutModule(rollout, ["mu", "yield_stress"])
+    again.load_state_dict(torch.load(buf))
+    assert torch.equal(again.mu, module.mu) and torch.equal(again.yield_stress, module.yield_stress)

@@ -265,10 +265,13 @@ class Unpicklable:
     naming neither the object nor a way out. A shallow ``copy.copy`` stays what it was."""
 
     UNPICKLABLE = ""
+    #: The name it is refused by (None: ``warp_esph.<class name>``).
+    UNPICKLABLE_NAME = None
 
     def __reduce_ex__(self, protocol):
         copies = "" if hasattr(type(self), "__deepcopy__") else " or deep-copied"
-        raise TypeError(f"a warp_esph.{type(self).__name__} cannot be pickled{copies}: {self.UNPICKLABLE}")
+        name = self.UNPICKLABLE_NAME or f"warp_esph.{type(self).__name__}"
+        raise TypeError(f"a {name} cannot be pickled{copies}: {self.UNPICKLABLE}")
 
     def __copy__(self):
         twin = object.__new__(type(self))

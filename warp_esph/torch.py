@@ -52,6 +52,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import checks
+from .model import Unpicklable
 from .rollout import PARAMETERS, TOOL_GRADIENTS, Rollout, check_initial, initial_shapes
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
@@ -407,15 +408,21 @@ def _module_class():
         return _MODULE
     torch = require_torch()
 
-    class RolloutModule(torch.nn.Module):
+    class RolloutModule(Unpicklable, torch.nn.Module):
         """A ``torch.nn.Module`` with chosen material parameters as trainable ``nn.Parameter``.
 
         ``RolloutModule(rollout, ["yield_stress", "flow_rate"])``: each parameter is
         stored as ``log(value)`` (``log_space=True``, for positive parameters) with one
         entry per material, initialised from the model. ``module(x0=None, v0=None)``
         returns the positions at the rollout's frames; ``module.values()`` the current
-        parameter values.
+        parameter values. ``torch.save(module)`` is refused (it holds the rollout's model);
+        ``torch.save(module.state_dict())`` keeps the parameters.
         """
+
+        UNPICKLABLE_NAME = "warp_esph.torch.RolloutModule"
+        UNPICKLABLE = ("it holds a Rollout of a Model's Warp arrays; save its parameters with "
+                       "torch.save(module.state_dict()) and load them with module.load_state_dict(torch.load(...)) "
+                       "into a RolloutModule made anew of the same scene and parameters")
 
         def __init__(self, rollout: Rollout, params=("yield_stress", "flow_rate"), log_space: bool = True):
             super().__init__()
