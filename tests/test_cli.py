@@ -2244,6 +2244,31 @@ def test_run_given_a_usd_file_or_a_checkpoint_says_what_it_is_and_which_command_
     assert {p: p.read_bytes() for p in before} == before
 
 
+def test_a_kernel_cache_folder_warp_cannot_make_is_one_line_naming_warp_cache_path(tmp_path):
+    """``WARP_CACHE_PATH`` naming a file, or a folder whose parent is missing, was one line
+    naming neither the variable nor what is allowed (``warp-esph: error: [Errno 20] Not a
+    directory: '.../cache/1.19.0'``), and ``init_warp()`` Warp's ``NotADirectoryError``
+    traceback from inside ``wp.init``. Each now names the variable, its value and what it
+    must be, before any scene is read."""
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    a_file = tmp_path / "cache"
+    a_file.write_text("")
+    for given in (a_file, a_file / "sub"):
+        env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), WARP_CACHE_PATH=str(given))
+        said = (f"WARP_CACHE_PATH = {str(given)!r} is not allowed: Warp keeps its compiled kernels in a folder there, "
+                "and cannot make ")
+        p = subprocess.run([sys.executable, "-m", "warp_esph", "run", "s.toml", "--no-progress"], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 2, p.stderr
+        assert_one_line_error(p.stderr, said, "give a folder that is there or can be made, or unset WARP_CACHE_PATH")
+        assert not (tmp_path / "tiny.usdc").exists()
+        p = subprocess.run([sys.executable, "-c", "import warp_esph as we\ntry:\n    we.init_warp()\n"
+                            "except ValueError as e:\n    print(e)"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 0 and p.stdout.startswith(said) and "Traceback" not in p.stderr, p.stderr
+    assert a_file.read_text() == ""
+
+
 def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
     from warp_esph.fit import MAX_ITERATIONS, check_options  # noqa: PLC0415
 

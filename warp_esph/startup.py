@@ -71,6 +71,24 @@ def unread_stream(stream):
     return stream if stream is None or isinstance(stream, UnreadStream) else UnreadStream(stream)
 
 
+def _cache_refusal(e: OSError, cache) -> str | None:
+    """The refusal of a kernel cache folder ``wp.init`` could not make (``e``; None where
+    ``e`` is of something else): Warp's own ``[Errno 20] Not a directory: '.../1.19.0'``
+    named neither ``WARP_CACHE_PATH`` nor what it must be."""
+    from . import checks  # noqa: PLC0415
+
+    if not (e.filename and cache and os.fspath(cache).startswith(os.fspath(e.filename))):
+        return None
+    why = e.strerror or str(e)
+    given = os.environ.get("WARP_CACHE_PATH")
+    if given:
+        return (f"WARP_CACHE_PATH = {checks.shown_path(given)} is not allowed: Warp keeps its compiled kernels in a folder "
+                f"there, and cannot make {checks.shown_path(cache)} ({why}); give a folder that is there or can be made, "
+                "or unset WARP_CACHE_PATH")
+    return (f"Warp's kernel cache {checks.shown_path(cache)} cannot be made ({why}); set WARP_CACHE_PATH to a folder "
+            "that is there or can be made")
+
+
 def init_warp(device: str | None = None, log_level: int | None = None, echo: bool = True) -> list[str]:
     """Initialise Warp without its start-up lines; return the native notes it printed.
 
@@ -104,7 +122,13 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
 
     if getattr(context, "runtime", None) is not None:
         return []
-    notes = _native_notes(wp.init)
+    try:
+        notes = _native_notes(wp.init)
+    except OSError as e:
+        refusal = _cache_refusal(e, wp.config.kernel_cache_dir)
+        if refusal is None:
+            raise
+        raise ValueError(refusal) from None
     wants_gpu = device is not None and str(device).startswith("cuda")
     if echo:
         for note in notes:
