@@ -227,6 +227,18 @@ def flowed_by_hardening(alpha) -> bool:
     return bool(np.any(np.asarray(alpha) > 0.0))
 
 
+def keeps_incremental(state: "State") -> bool:
+    """Whether a step from ``state`` keeps the incremental composition whatever the parameters
+    allow: an incremental step wrote it (``State.rest_model`` False) and its body has flowed
+    (``State.has_flowed``), so its rest neighbourhoods no longer describe it and it is never
+    handed over to the rest model (``Solver._runs_rest``). Not a function of the parameters:
+    ``Solver.runs_rest`` is ``rest_model and not keeps_incremental(state)``, and a record made
+    later at other values (fit.json's ``solver``) combines the two alike; ``Model.stable_dt(state=)``
+    halves the step of such a state (``corrected_incremental``). Reads ``alpha`` back only where
+    ``rest_model`` is False and ``flowed`` is not True (``State.has_flowed``)."""
+    return state.rest_model is False and state.has_flowed()
+
+
 def check_contact_ramp(name: str, value) -> float:
     """A contact ramp: a number in [0, ``MAX_CONTACT_RAMP``] (0: the instant law; 1: the continuous one)."""
     v = checks.non_negative(name, value)
@@ -857,13 +869,22 @@ class Model(Unpicklable):
         return (asked == "auto" and self.scene_allows_rest
                 and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
 
-    def corrected_incremental(self, fit: str | None = None) -> bool:
+    def corrected_incremental(self, fit: str | None = None, state: "State | None" = None) -> bool:
         """Whether a ``Solver(model, fit=fit)`` (None: the model's fit) runs the
-        curvature-corrected fit with the incremental composition for some material now: the fit
-        ``solver_choice`` resolves to is corrected, the parameters do not choose the rest model
-        (``auto_runs_rest``) and some material's ``deformation`` is ``"incremental"``. Then
+        curvature-corrected fit with the incremental composition for some material now, in a
+        step from ``state`` (None: a new state): the fit ``solver_choice`` resolves to is
+        corrected, some material's ``deformation`` is ``"incremental"``, and the parameters do
+        not choose the rest model (``auto_runs_rest``) or ``state`` keeps the incremental
+        composition all the same (``keeps_incremental``: a flowed body made elastic). Then
         ``stable_dt`` keeps ``CORRECTED_INCREMENTAL_STEP`` of the wave limit."""
-        return (self.solver_choice(fit)[0] == "curvature_corrected" and not self.auto_runs_rest(fit)
+        if state is not None:
+            checks.same_state(self, "state", state)
+        return self._corrected_incremental(fit, state is not None and self.auto_runs_rest(fit) and keeps_incremental(state))
+
+    def _corrected_incremental(self, fit: str | None, kept: bool) -> bool:
+        # ``kept``: the step's start keeps the incremental composition where the parameters
+        # choose the rest model (``auto_runs_rest``, which implies the corrected fit).
+        return (self.solver_choice(fit)[0] == "curvature_corrected" and (kept or not self.auto_runs_rest(fit))
                 and any(m.deformation == "incremental" for m in self.materials))
 
     @property
@@ -1226,7 +1247,8 @@ class Model(Unpicklable):
             raise ValueError(f"gravity = {checks.shorten(value)!r} is not allowed in {self.scalar.__name__}: must be at most {big:.3g}")
         self._gravity = g
 
-    def stable_dt(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None) -> float:
+    def stable_dt(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None,
+                  state: "State | None" = None) -> float:
         """Explicit limit over all materials, from the current parameters
         (``parameter_values``): the wave limit ``C dx / c_P`` of docs/method.md §8, and the
         viscous limit ``(C / 12) rho0 h^2 / eta`` of the explicit viscous force.
@@ -1278,22 +1300,28 @@ class Model(Unpicklable):
         curvature-corrected fit with the incremental composition for any material
         (``corrected_incremental``), the wave limit is ``CORRECTED_INCREMENTAL_STEP`` (0.5) of
         the above: under compression that fit stiffens a mode past the step (docs/method.md §8).
-        From the parameters alone: a flowed body made elastic under ``fit="auto"`` keeps that fit
-        on the incremental composition (``sim.solver.keeps_incremental``) and is given the full
-        wave limit here; step it at ``stable_dt(fit="curvature_corrected")``."""
+        ``state``: the state the step starts from (None: a new state). A flowed body made elastic
+        under ``fit="auto"`` keeps that fit on the incremental composition
+        (``keeps_incremental``), where the parameters alone choose the rest model: from such a
+        state the step is the half too (``Solver.check_dt`` passes the step's ``state_in``)."""
         courant = checks.courant(courant)
         self._check_force_fields()
+        if state is not None:
+            checks.same_state(self, "state", state)
+        # Asked only where the parameters choose the rest model: only there can the state change
+        # the path, and only there does the step read alpha back itself (Solver._runs_rest).
+        kept = state is not None and self.auto_runs_rest(fit) and keeps_incremental(state)
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.
         rows = self._read_parameters()
         key = (rows.tobytes(), tuple(self.materials), tuple(self.force_fields),
-               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass, fit)
+               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass, fit, kept)
         cached = self._stable_dt
         if cached is not None and cached[0] == key:
             return cached[1]
         self._check_parameter_values(rows)
-        dt = self._stable_dt_now(courant, hourglass, rows, fit=fit)
+        dt = self._stable_dt_now(courant, hourglass, rows, fit=fit, kept=kept)
         self._stable_dt = (key, dt)
         return dt
 
@@ -1477,15 +1505,26 @@ class Model(Unpicklable):
         return f"compression {fields} (on {on})"
 
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray, world: int | None = None,
-                       fit: str | None = None) -> float:
+                       fit: str | None = None, kept: bool = False) -> float:
         # ``world``: that world's materials and fields alone (``world_stable_dts``); None: all.
+        # ``kept``: the start keeps the incremental composition (``keeps_incremental``). The
+        # path (fit, control, rest model) is the one ``rows`` choose: a fit's trial values
+        # (``fit._Values.stable_step``) were judged by the values the arrays held.
+        held = self._held_parameters
+        self._held_parameters = rows
+        try:
+            return self._stable_dt_of(courant, hourglass, rows, world, fit, kept)
+        finally:
+            self._held_parameters = held
+
+    def _stable_dt_of(self, courant, hourglass, rows, world, fit, kept) -> float:
         full = self._parameter_values(rows)
         mats = slice(None) if world is None else self.world_materials(world)
         c = np.asarray(self.wave_speeds(full))[mats]
         p = {k: np.asarray(v)[mats] for k, v in full.items()}
         rho = np.array([m.density for m in self.materials[mats]], dtype=np.float64)
         dt = courant * self.spacing / float(np.max(c))
-        if self.corrected_incremental(fit):
+        if self._corrected_incremental(fit, kept):
             dt *= CORRECTED_INCREMENTAL_STEP
         dt_c, strength = self._hourglass_limit(courant, hourglass, p, rho)
         dt_f, k, _ = self._field_limit(courant, world)

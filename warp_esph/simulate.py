@@ -94,7 +94,7 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
     smaller step is the cure."""
     asked = None if solver is None else solver.asked_fit
-    stable = model.stable_dt(hourglass=hourglass, fit=asked)
+    stable = model.stable_dt(hourglass=hourglass, fit=asked, state=state)
     inverted = rest_inversions(solver, state) - since if solver is not None and rest_inversions(solver, state) else 0
     if inverted > 0 and (step is None or step <= stable * (1.0 + 1e-6)):
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else
@@ -864,7 +864,7 @@ def check_fps(name: str, fps) -> float:
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
                      hourglass: float | None = None, flag=None, limit: float | None = None,
-                     fit: str | None = None) -> tuple[int, float]:
+                     fit: str | None = None, state: State | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
     Give at most one of ``substeps`` and ``dt``. With neither, ``dt`` is the model's
@@ -874,7 +874,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     (the CLI's ``--dt`` where the value is the option's). ``limit``: a shorter bound than the
     model's own stable step where neither is given (``warp-esph fit``'s stiffest start,
     ``fit.starts_stable_steps``). ``fit``: the solver's asked fit (``Model.stable_dt``'s; None:
-    the model's).
+    the model's); ``state``: the run's start (``Model.stable_dt``'s; None: a new state).
     """
     flag = flag or (lambda name: name)
     fps = check_fps(flag("fps"), fps)
@@ -886,7 +886,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         return n, frame_dt / n
     if dt is None:
         courant = 0.3  # stable_dt's own
-        stable = model.stable_dt(courant, hourglass=hourglass, fit=fit)
+        stable = model.stable_dt(courant, hourglass=hourglass, fit=fit, state=state)
         if limit is not None:
             stable = min(stable, limit)
         ratio, n = _steps_a_frame(frame_dt, stable)
@@ -1037,7 +1037,7 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     fps = checks.positive("fps", fps)
     courant = checks.courant(courant)
     frame_dt = 1.0 / fps
-    stable = model.stable_dt(courant, hourglass=hourglass, fit=fit)
+    stable = model.stable_dt(courant, hourglass=hourglass, fit=fit, state=state)
     c = float(np.max(model.wave_speeds()))
     v = state.v.numpy().astype(np.float64)
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
@@ -1601,9 +1601,10 @@ def simulate(
                 raise ValueError(f"dt = {checks.shorten(dt)!r} is not allowed: must be a number of seconds or {AUTO!r}")
             if substeps is not None:
                 raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
-            n_sub, dt = 1, model.stable_dt(hourglass=hourglass, fit=fit)
+            # From the start given: a flowed body made elastic keeps the corrected incremental fit.
+            n_sub, dt = 1, model.stable_dt(hourglass=hourglass, fit=fit, state=state)
         else:
-            n_sub, dt = resolve_timestep(model, fps, substeps, dt, hourglass=hourglass, fit=fit)
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt, hourglass=hourglass, fit=fit, state=state)
             check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
@@ -1622,7 +1623,7 @@ def simulate(
             solver = Solver(model)
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
-        solver.check_dt(dt)  # warns once here, before the progress bar, if dt is above the stable limit
+        solver.check_dt(dt, state)  # warns once here, before the progress bar, if dt is above the stable limit
         record = getattr(writer, "record_solver", None)
         # A writer's record_solver(solver) of the earlier protocol (told the solver at the
         # start only) met a TypeError at the first frame once the frame was passed.

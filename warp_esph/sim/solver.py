@@ -19,7 +19,8 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..model import CORRECTED_INCREMENTAL_STEP, FITS, Model, State, Unpicklable, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
+from ..model import (CORRECTED_INCREMENTAL_STEP, FITS, Model, State, Unpicklable, flowed_by_hardening,  # noqa: F401 (FITS: re-exported)
+                     keeps_incremental)
 from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
@@ -59,17 +60,6 @@ PHASES = ("neighbors", "density", "constitutive", "forces", "pressure", "fused",
 
 
 _NO_PHASE = contextlib.nullcontext()
-
-
-def keeps_incremental(state: State) -> bool:
-    """Whether a step from ``state`` keeps the incremental composition whatever the parameters
-    allow: an incremental step wrote it (``State.rest_model`` False) and its body has flowed
-    (``State.has_flowed``), so its rest neighbourhoods no longer describe it and it is never
-    handed over to the rest model (``Solver._runs_rest``). Not a function of the parameters:
-    ``Solver.runs_rest`` is ``rest_model and not keeps_incremental(state)``, and a record made
-    later at other values (fit.json's ``solver``) combines the two alike. Reads ``alpha`` back
-    only where ``rest_model`` is False and ``flowed`` is not True (``State.has_flowed``)."""
-    return state.rest_model is False and state.has_flowed()
 
 
 def tape_recording() -> bool:
@@ -842,7 +832,7 @@ class Solver(Unpicklable):
         search's displacement check, which reads its bounds back every step anyway (with a
         skin, after the first step): an earlier step blew up, and this one carries it on."""
         self._warned_non_finite = True
-        stable = self.stable_dt()
+        stable = self.stable_dt(state=state_in)
         warnings.warn(
             f"Solver.step: state_in holds a non-finite position: an earlier step blew up, and the steps from it carry "
             f"NaN on; dt = {dt:g} s, Model.stable_dt() = {stable:.3g} s"
@@ -950,22 +940,25 @@ class Solver(Unpicklable):
         ``Model.stable_dt(fit=)`` reads as a solver's ``solver_choice`` does."""
         return self._asked[0]
 
-    def stable_dt(self, courant: float = 0.3) -> float:
-        """``Model.stable_dt`` of the step this solver runs: with its hourglass strength and the
-        fit it was asked for (the curvature-corrected fit on the incremental composition keeps
-        half the wave limit, ``model.CORRECTED_INCREMENTAL_STEP``)."""
-        return self.model.stable_dt(courant, hourglass=self.hourglass, fit=self.asked_fit)
+    def stable_dt(self, courant: float = 0.3, state: State | None = None) -> float:
+        """``Model.stable_dt`` of the step this solver runs from ``state`` (None: a new state):
+        with its hourglass strength and the fit it was asked for (the curvature-corrected fit on
+        the incremental composition keeps half the wave limit, ``model.CORRECTED_INCREMENTAL_STEP``,
+        also from a flowed state that keeps that composition where the parameters choose the
+        rest model, ``keeps_incremental``)."""
+        return self.model.stable_dt(courant, hourglass=self.hourglass, fit=self.asked_fit, state=state)
 
-    def check_dt(self, dt) -> float:
+    def check_dt(self, dt, state: State | None = None) -> float:
         """``dt`` as a float, refused (ValueError) unless positive, representable in the
         model's precision and short enough for it to resolve a step's fall (``resolvable_dt``);
-        warns once per value above ``Model.stable_dt`` (with the
-        hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``, and
-        again for that value only where new parameters put it ``STEP_REWARN`` times further
-        past its limit than when it last warned. ``step`` calls it."""
+        warns once per value above ``stable_dt(state=state)`` (with the hourglass strength this
+        solver runs; ``state``: the step's start, None: a new state) by more than rounding,
+        ``STEP_ROUNDING``, and again for that value only where new parameters put it
+        ``STEP_REWARN`` times further past its limit than when it last warned. ``step`` calls it
+        with its ``state_in``."""
         dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit,
                            hourglass=self.hourglass)
-        stable = self.stable_dt()
+        stable = self.stable_dt(state=state)
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
             self._warned_dt[dt] = past
@@ -974,7 +967,7 @@ class Solver(Unpicklable):
                 f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
                 f"0.025 rho0 h^2 / viscosity"
                 + (f", the wave limit x {CORRECTED_INCREMENTAL_STEP:g} for the curvature-corrected fit on the incremental "
-                   f"composition" if self.model.corrected_incremental(self.asked_fit) else "")
+                   f"composition" if self.model.corrected_incremental(self.asked_fit, state) else "")
                 + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
                 + (f", and that of {self.model._field_words(field[2])} at net strength k = {field[1]:g} 1/s^2, "
                    f"2 / (1.5 sqrt(k))" if (field := self.model._field_limit(0.3))[1] > 0.0 else "")
@@ -1037,7 +1030,7 @@ class Solver(Unpicklable):
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
-            dt = self.check_dt(dt)
+            dt = self.check_dt(dt, state_in)
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
             # carry the loss's slope in both from 0, where a fit may start them, which a skipped

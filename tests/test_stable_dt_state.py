@@ -1,0 +1,102 @@
+"""The stable step sees the state the step starts from: a flowed body made elastic
+(``flow_rate`` set to 0) under ``fit="auto"`` keeps the curvature-corrected fit on the
+incremental composition (``keeps_incremental``), whose step is ``CORRECTED_INCREMENTAL_STEP``
+of the wave limit, where its parameters alone choose the rest model and the full limit
+(docs/method.md §8). Measured before: the large breathing 6^3 cube so started ran away at the
+full limit (float64 7030 x its energy at 6.7 periods) and kept 1.23 x over 10 periods at half."""
+
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph import fit as fit_module
+from warp_esph.sim.solver import keeps_incremental
+from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
+
+HALF = "the wave limit x 0.5 for the curvature-corrected fit on the incremental composition"
+
+
+def _slumped_block(steps=40):
+    """The block of ``test_a_slumped_body_made_elastic_stays_at_rest`` (4x4x6, yield 30 Pa,
+    ``flow_rate`` 200) after ``steps`` steps on the ground it stands on, then made elastic: its
+    model, the solver that stepped it and its state, which has flowed."""
+    mat = we.Material(density=1000.0, mu=3e3, lam=4e3, yield_stress=30.0, flow_rate=200.0)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.12, 0.08), mat)
+    b.add_ground(-0.06, friction=0.5)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    a, c = model.state(), model.state()
+    for _ in range(steps):
+        solver.step(a, c, dt)
+        a, c = c, a
+    assert a.has_flowed()
+    # Flowing, the state changes nothing: the linear fit, the full limit.
+    assert model.stable_dt(state=a) == model.stable_dt() == dt
+    model.flow_rate.assign(np.array([0.0]))
+    return model, solver, a
+
+
+def test_a_flowed_body_made_elastic_is_given_half_the_wave_limit_from_its_state():
+    model, solver, flowed = _slumped_block()
+    assert keeps_incremental(flowed) and model.auto_runs_rest()
+    full = model.stable_dt()  # the parameters alone: the rest model
+    half = model.stable_dt(hourglass=0.05, fit="curvature_corrected")
+    assert half < 0.51 * full
+    assert model.stable_dt(state=flowed) == half
+    assert model.corrected_incremental(state=flowed) and not model.corrected_incremental()
+    # A new state is handed to the rest model: its step is the full limit, as before.
+    fresh = model.state()
+    assert model.stable_dt(state=fresh) == full
+    # The step's own check reads its state_in: at the full limit it warns from the flowed state,
+    # not from a new one.
+    out = model.state()
+    with pytest.warns(RuntimeWarning, match=HALF):
+        solver.step(flowed, out, full)
+    assert out.rest_model is False and model.stable_dt(state=out) == half
+    # The solver's, with the control it now runs (its step chose it from the parameters).
+    assert solver.stable_dt(state=flowed) == half and solver.stable_dt(state=fresh) == full
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        we.Solver(model).step(fresh, model.state(), full)
+
+
+def test_simulate_steps_a_flowed_start_made_elastic_at_half_the_wave_limit():
+    """``simulate``'s default and adaptive steps, and its start check, read the start given."""
+    model, _, flowed = _slumped_block()
+    half = model.stable_dt(hourglass=0.05, fit="curvature_corrected")
+    fps = 30.0
+    n, dt = resolve_timestep(model, fps, state=flowed)
+    assert dt <= half and n == int(np.ceil(1.0 / fps / half * (1.0 - 1e-12)))
+    assert resolve_timestep(model, fps)[1] > 1.9 * dt  # from a new state: the rest model's step
+    assert adaptive_timestep(model, flowed, fps)[1] <= half
+    solver = we.Solver(model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # within the stable step: no warning
+        end = simulate(model, 1, fps=fps, solver=solver, state=flowed, progress=False)
+    assert solver.step_count == n and end.rest_model is False
+
+
+def test_a_fits_stable_step_follows_the_path_of_the_trial_values():
+    """``_Values.stable_step`` judged the path (fit, control, rest model) by the values the
+    model's arrays hold, not the trial values: on the imaged ground (the corrected fit runs the
+    incremental composition) an elastic trial point of a plastic model was given the linear
+    fit's full limit without the control, and a plastic trial point of an elastic model half."""
+    def block(flow_rate):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, yield_stress=300.0, flow_rate=flow_rate))
+        b.add_ground(0.0, images=True)
+        return b.finalize(dtype=wp.float64)
+
+    plastic, elastic = block(10.0), block(0.0)
+    assert plastic.stable_dt() > 1.9 * elastic.stable_dt()
+    for model, trial, other in ((plastic, 0.0, elastic), (elastic, 10.0, plastic)):
+        before = model.stable_dt()
+        values = fit_module._Values(model, [0], "the experiment")
+        values.setup_tie(["flow_rate"], None)
+        assert values.stable_step({"flow_rate": np.array([trial])}) == other.stable_dt()
+        assert model.stable_dt() == before  # nothing written, nothing kept
