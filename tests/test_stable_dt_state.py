@@ -13,6 +13,8 @@ import warp as wp
 
 import warp_esph as we
 from warp_esph import fit as fit_module
+from warp_esph.fit import fit
+from warp_esph.losses import PositionLoss
 from warp_esph.sim.solver import keeps_incremental
 from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
 
@@ -79,6 +81,29 @@ def test_simulate_steps_a_flowed_start_made_elastic_at_half_the_wave_limit():
         warnings.simplefilter("error")  # within the stable step: no warning
         end = simulate(model, 1, fps=fps, solver=solver, state=flowed, progress=False)
     assert solver.step_count == n and end.rest_model is False
+
+
+def test_a_fits_step_from_a_flowed_start_is_the_corrected_incremental_fits():
+    """A fit's chosen step (``dt=None``) and its ``step_limit`` read its rollout's start: from a
+    flowed start of an elastic body (``initial_state`` an incremental step wrote, ``alpha`` >
+    0), which its rollouts run on the corrected incremental fit, half the wave limit."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    flowed = model.state()
+    flowed.alpha.fill_(0.01)
+    flowed.rest_model = False  # written by an incremental step
+    loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
+    args = dict(steps=2, iterations=0, progress=False, diagnostics=False)
+    full = model.stable_dt()
+    half = model.stable_dt(hourglass=0.05, fit="curvature_corrected")
+    r = fit(model, loss, ["mu"], initial={"initial_state": flowed}, **args)
+    assert r.step_limit["dt"] == pytest.approx(half, rel=1e-12) and r.step_limit["stable_dt"] == pytest.approx(half, rel=1e-12)
+    assert fit(model, loss, ["mu"], **args).step_limit["dt"] == pytest.approx(full, rel=1e-12)
+    # At the full limit given, the rollouts run past it, and the fit says so.
+    with pytest.warns(RuntimeWarning, match=HALF):
+        r = fit(model, loss, ["mu"], initial={"initial_state": flowed}, dt=full, **args)
+    assert r.step_limit["dt_over_stable"] == pytest.approx(full / half, rel=1e-9) and r.step_limit_said()
 
 
 def test_a_fits_stable_step_follows_the_path_of_the_trial_values():

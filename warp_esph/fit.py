@@ -776,16 +776,25 @@ class _Values:
         return None
 
     def stable_step(self, p, rows=None) -> float:
-        """``Model.stable_dt()`` were the materials to hold the fitted values ``p`` (the tied
-        pressure stiffness included), from the values alone: nothing is written to the model.
-        ``rows``: the model's parameter rows as read now (``Model._read_parameters``)."""
+        """``Model.stable_dt(state=)`` of the run's start were the materials to hold the fitted
+        values ``p`` (the tied pressure stiffness included), from the values alone: nothing is
+        written to the model. The path is the one ``p`` chooses (under ``fit="auto"``, values
+        that make the body elastic run the corrected fit, on the rest model or, from a start
+        that keeps the incremental composition, ``_start_kept``, on that at half the wave limit),
+        not the one of the values the arrays hold. ``rows``: the model's parameter rows as read
+        now (``Model._read_parameters``)."""
         m = self.model
         rows = (m._read_parameters() if rows is None else rows).astype(np.float64)
         full = self.written(p)
         for i, name in enumerate(m.MATERIAL_FIELDS):
             if name in full:
                 rows[i] = full[name]
-        return m._stable_dt_now(0.3, None, rows)
+        return m._stable_dt_now(0.3, None, rows, kept=self._start_kept())
+
+    def _start_kept(self) -> bool:
+        """Whether the start keeps the incremental composition (``sim.solver.keeps_incremental``):
+        without a rollout, a new state's, which does not."""
+        return False
 
 
 def _step_limit(runs, history) -> dict | None:
@@ -1143,6 +1152,14 @@ class _Run(_Values):
         self.dt = dt
         self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment,
                                taped=self.taped)
+
+    _flowed = None  # flowed_start, read once for the stable steps (_start_kept)
+
+    def _start_kept(self) -> bool:
+        # The start is the fit's own throughout (initial, starts): one read-back, not one a point.
+        if self._flowed is None:
+            self._flowed = self.flowed_start()
+        return self._flowed
 
     def flowed_start(self) -> bool:
         """Whether the rollout's start keeps the incremental composition whatever the values
