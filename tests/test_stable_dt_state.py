@@ -17,6 +17,7 @@ from warp_esph.fit import fit
 from warp_esph.losses import PositionLoss
 from warp_esph.sim.solver import keeps_incremental
 from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
+from test_elastic_force import _elastic_block_and_a_flowed_start
 
 HALF = "the wave limit x 0.5 for the curvature-corrected fit on the incremental composition"
 
@@ -87,12 +88,7 @@ def test_a_fits_step_from_a_flowed_start_is_the_corrected_incremental_fits():
     """A fit's chosen step (``dt=None``) and its ``step_limit`` read its rollout's start: from a
     flowed start of an elastic body (``initial_state`` an incremental step wrote, ``alpha`` >
     0), which its rollouts run on the corrected incremental fit, half the wave limit."""
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3))
-    model = b.finalize(dtype=wp.float64, requires_grad=True)
-    flowed = model.state()
-    flowed.alpha.fill_(0.01)
-    flowed.rest_model = False  # written by an incremental step
+    model, flowed = _elastic_block_and_a_flowed_start(requires_grad=True)
     loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
     args = dict(steps=2, iterations=0, progress=False, diagnostics=False)
     full = model.stable_dt()
