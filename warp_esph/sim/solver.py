@@ -941,12 +941,14 @@ class Solver(Unpicklable):
         return self._asked[0]
 
     def stable_dt(self, courant: float = 0.3, state: State | None = None) -> float:
-        """``Model.stable_dt`` of the step this solver runs from ``state`` (None: a new state):
-        with its hourglass strength and the fit it was asked for (the curvature-corrected fit on
-        the incremental composition keeps half the wave limit, ``model.CORRECTED_INCREMENTAL_STEP``,
-        also from a flowed state that keeps that composition where the parameters choose the
-        rest model, ``keeps_incremental``)."""
-        return self.model.stable_dt(courant, hourglass=self.hourglass, fit=self.asked_fit, state=state)
+        """``Model.stable_dt`` of the step this solver runs next from ``state`` (None: a new
+        state): with the hourglass strength that step runs (``next_hourglass``) and the fit it
+        was asked for (the curvature-corrected fit on the incremental composition keeps half the
+        wave limit, ``model.CORRECTED_INCREMENTAL_STEP``, also from a flowed state that keeps
+        that composition where the parameters choose the rest model, ``keeps_incremental``)."""
+        # next_hourglass, not hourglass: between a parameter write and the next step an automatic
+        # solver's hourglass is still the last step's (0 for a flowing body, 0.05 once elastic).
+        return self.model.stable_dt(courant, hourglass=self.next_hourglass(), fit=self.asked_fit, state=state)
 
     def check_dt(self, dt, state: State | None = None) -> float:
         """``dt`` as a float, refused (ValueError) unless positive, representable in the
