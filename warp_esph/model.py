@@ -1308,21 +1308,24 @@ class Model(Unpicklable):
         self._check_force_fields()
         if state is not None:
             checks.same_state(self, "state", state)
-        # Asked only where the parameters choose the rest model: only there can the state change
-        # the path, and only there does the step read alpha back itself (Solver._runs_rest).
-        kept = state is not None and self.auto_runs_rest(fit) and keeps_incremental(state)
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
-        # are the same.
+        # are the same, with whether they choose the rest model (asked anew, it cost a step
+        # 4 us).
         rows = self._read_parameters()
         key = (rows.tobytes(), tuple(self.materials), tuple(self.force_fields),
-               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass, fit, kept)
+               self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass, fit)
         cached = self._stable_dt
-        if cached is not None and cached[0] == key:
-            return cached[1]
-        self._check_parameter_values(rows)
-        dt = self._stable_dt_now(courant, hourglass, rows, fit=fit, kept=kept)
-        self._stable_dt = (key, dt)
+        if cached is None or cached[0] != key:
+            self._check_parameter_values(rows)
+            cached = self._stable_dt = (key, self.auto_runs_rest(fit), {})
+        _, rest, dts = cached
+        # Read only where the parameters choose the rest model: only there can the state change
+        # the path, and only there does the step read alpha back itself (Solver._runs_rest).
+        kept = rest and state is not None and keeps_incremental(state)
+        dt = dts.get(kept)
+        if dt is None:
+            dt = dts[kept] = self._stable_dt_now(courant, hourglass, rows, fit=fit, kept=kept)
         return dt
 
     def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None) -> list[float]:

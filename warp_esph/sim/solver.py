@@ -956,11 +956,15 @@ class Solver(Unpicklable):
         warns once per value above ``stable_dt(state=state)`` (with the hourglass strength this
         solver runs; ``state``: the step's start, None: a new state) by more than rounding,
         ``STEP_ROUNDING``, and again for that value only where new parameters put it
-        ``STEP_REWARN`` times further past its limit than when it last warned. ``step`` calls it
-        with its ``state_in``."""
-        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit,
-                           hourglass=self.hourglass)
-        stable = self.stable_dt(state=state)
+        ``STEP_REWARN`` times further past its limit than when it last warned. ``step`` checks its
+        ``state_in`` so."""
+        return self._check_dt(dt, state, self.next_hourglass(), 4)
+
+    def _check_dt(self, dt, state: State | None, c: float, stacklevel: int) -> float:
+        # ``c``: the control the step runs; the step passes the one it has just chosen, which
+        # next_hourglass would ask the parameters for again (3 us a step).
+        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit, hourglass=c)
+        stable = self.model.stable_dt(hourglass=c, fit=self.asked_fit, state=state)
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
             self._warned_dt[dt] = past
@@ -970,14 +974,14 @@ class Solver(Unpicklable):
                 f"0.025 rho0 h^2 / viscosity"
                 + (f", the wave limit x {CORRECTED_INCREMENTAL_STEP:g} for the curvature-corrected fit on the incremental "
                    f"composition" if self.model.corrected_incremental(self.asked_fit, state) else "")
-                + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
+                + (f", and that of the hourglass control at c = {c:g}" if c > 0.0 else "")
                 + (f", and that of {self.model._field_words(field[2])} at net strength k = {field[1]:g} 1/s^2, "
                    f"2 / (1.5 sqrt(k))" if (field := self.model._field_limit(0.3))[1] > 0.0 else "")
                 + (f", and that of {self.model._repulsion_words(pair[1])} at contact, 2 / (1.5 omega)"
                    if (pair := self.model._repulsion_limit(0.3))[1] else "")
                 + "); the run may blow up",
                 RuntimeWarning,
-                stacklevel=3,
+                stacklevel=stacklevel,
             )
         return dt
 
@@ -1032,7 +1036,7 @@ class Solver(Unpicklable):
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
-            dt = self.check_dt(dt, state_in)
+            dt = self._check_dt(dt, state_in, self.hourglass, 3)
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
             # carry the loss's slope in both from 0, where a fit may start them, which a skipped
