@@ -3035,3 +3035,30 @@ def test_torch_save_of_a_rollout_module_is_refused_naming_the_state_dict_which_r
     again = RolloutModule(rollout, ["mu", "yield_stress"])
     again.load_state_dict(torch.load(buf))
     assert torch.equal(again.mu, module.mu) and torch.equal(again.yield_stress, module.yield_stress)
+
+
+def test_fit_s_collapsed_trial_and_the_run_s_beside_write_error_survive_pickle():
+    """``Experiment.forward`` raises ``fit.Collapsed`` where the neighbour search overflows, and
+    the command's run ``cli._BesideWriteError`` where a checkpoint or force log cannot be
+    written; pickle rebuilt each as ``cls(*args)``: ``Collapsed(message)`` read the message's
+    ``.particles`` (``AttributeError: 'str' object has no attribute 'particles'``) and
+    ``_BesideWriteError(errno, strerror)`` missed its ``cause``, so one raised in a worker
+    process broke the pool as the other exceptions did before ``checks.Rebuilt``. Each comes
+    back as itself, its fields (the ``NeighborOverflow`` it holds) kept."""
+    import pickle
+
+    from warp_esph.cli import _BesideWriteError
+    from warp_esph.fit import Collapsed
+    from warp_esph.sim.neighbors import NeighborOverflow
+
+    full = OSError(28, "No space left on device", "c.npz")
+    for e in (Collapsed(NeighborOverflow("crushed", particles=[3, 4], need=700), first=2),
+              _BesideWriteError("the checkpoint", "c.npz", full)):
+        back = pickle.loads(pickle.dumps(e))
+        assert type(back) is type(e) and str(back) == str(e) and back.args == e.args, type(e).__name__
+        assert sorted(vars(back)) == sorted(vars(e)), type(e).__name__
+    collapsed = pickle.loads(pickle.dumps(Collapsed(NeighborOverflow("crushed", particles=[3, 4], need=700), first=2)))
+    assert np.array_equal(collapsed.particles, [3, 4]) and type(collapsed.error) is NeighborOverflow and collapsed.error.need == 700
+    assert "(particle 1)" in str(collapsed)
+    beside = pickle.loads(pickle.dumps(_BesideWriteError("the checkpoint", "c.npz", full)))
+    assert (beside.what, beside.path, beside.errno, beside.cause.filename) == ("the checkpoint", "c.npz", 28, "c.npz")

@@ -1068,6 +1068,12 @@ class _BesideWriteError(OSError):
         super().__init__(cause.errno, cause.strerror or str(cause))
         self.what, self.path, self.cause = what, path, cause
 
+    def __reduce__(self):
+        # checks.Rebuilt's, read here: this module starts without Warp, which checks imports.
+        from .checks import Rebuilt  # noqa: PLC0415
+
+        return Rebuilt.__reduce__(self)
+
 
 def _log_kinds(model) -> list[str]:
     kinds = [] if model.tools is None else ["tool poses"]

@@ -1361,7 +1361,7 @@ class Diverged(FloatingPointError):
     values); a NaN one was recorded as NaN with no word of where the run went non-finite."""
 
 
-class Collapsed(Diverged):
+class Collapsed(checks.Rebuilt, Diverged):
     """A rollout whose neighbour search stopped it (``NeighborOverflow``: a particle with more
     than ``MAX_CANDIDATES`` candidates, a body crushed together or a blow-up whose stretch
     widened the search over it): a failed trial, as a divergence. ``particles``: those past
