@@ -2596,3 +2596,26 @@ def test_sweep_refuses_a_frame_too_long_to_step_as_run_does(tmp_path, capsys):
                  str(tmp_path / "sw"), "--fps", "5e-324"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("warp-esph: error: --fps = 5e-324 is not allowed: it is too small to step"), err
+
+
+def test_a_kernel_cache_folder_set_in_warp_s_config_is_refused_by_that_name(tmp_path):
+    """``wp.config.kernel_cache_dir``, Warp's own way to place its cache, is taken over
+    ``WARP_CACHE_PATH``; set to a folder Warp cannot make, ``init_warp()`` blamed the variable
+    (``WARP_CACHE_PATH = '/a/good/folder' is not allowed ... or unset WARP_CACHE_PATH``) or, unset,
+    advised setting it, which changed nothing. It names the setting that was given."""
+    import warp as wp  # noqa: PLC0415
+
+    a_file = tmp_path / "cache"
+    a_file.write_text("")
+    good = tmp_path / "good"
+    for env in (dict(os.environ, WARP_CACHE_PATH=str(good)), {k: v for k, v in os.environ.items() if k != "WARP_CACHE_PATH"}):
+        env["PYTHONPATH"] = REPO + os.pathsep + os.environ.get("PYTHONPATH", "")
+        p = subprocess.run([sys.executable, "-c", "import warp as wp\nimport warp_esph as we\n"
+                            f"wp.config.kernel_cache_dir = {str(a_file / 'k')!r}\ntry:\n    we.init_warp()\n"
+                            "except ValueError as e:\n    print(e)"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           timeout=120)
+        said = (f"wp.config.kernel_cache_dir = {str(a_file / 'k')!r} is not allowed: Warp keeps its compiled kernels in a "
+                f"folder there (before WARP_CACHE_PATH), and cannot make {str(a_file / 'k' / wp.config.version)!r} (Not a "
+                "directory); give a folder that is there or can be made, or leave it None\n")
+        assert p.returncode == 0 and p.stdout == said and "Traceback" not in p.stderr, (p.stdout, p.stderr)
+    assert a_file.read_text() == "" and not good.exists()

@@ -71,15 +71,21 @@ def unread_stream(stream):
     return stream if stream is None or isinstance(stream, UnreadStream) else UnreadStream(stream)
 
 
-def _cache_refusal(e: OSError, cache) -> str | None:
+def _cache_refusal(e: OSError, cache, configured=None) -> str | None:
     """The refusal of a kernel cache folder ``wp.init`` could not make (``e``; None where
     ``e`` is of something else): Warp's own ``[Errno 20] Not a directory: '.../1.19.0'``
-    named neither ``WARP_CACHE_PATH`` nor what it must be."""
+    named neither ``WARP_CACHE_PATH`` nor what it must be. ``configured``: the
+    ``wp.config.kernel_cache_dir`` set before ``wp.init``, which Warp takes over the variable."""
     from . import checks  # noqa: PLC0415
 
     if not (e.filename and cache and os.fspath(cache).startswith(os.fspath(e.filename))):
         return None
     why = e.strerror or str(e)
+    if configured is not None:
+        # Not the variable: it was fine, and the advice to change it changed nothing.
+        return (f"wp.config.kernel_cache_dir = {checks.shown_path(configured)} is not allowed: Warp keeps its compiled "
+                f"kernels in a folder there (before WARP_CACHE_PATH), and cannot make {checks.shown_path(cache)} ({why}); "
+                "give a folder that is there or can be made, or leave it None")
     given = os.environ.get("WARP_CACHE_PATH")
     if given:
         return (f"WARP_CACHE_PATH = {checks.shown_path(given)} is not allowed: Warp keeps its compiled kernels in a folder "
@@ -122,10 +128,11 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
 
     if getattr(context, "runtime", None) is not None:
         return []
+    configured = wp.config.kernel_cache_dir
     try:
         notes = _native_notes(wp.init)
     except OSError as e:
-        refusal = _cache_refusal(e, wp.config.kernel_cache_dir)
+        refusal = _cache_refusal(e, wp.config.kernel_cache_dir, configured)
         if refusal is None:
             raise
         raise ValueError(refusal) from None
