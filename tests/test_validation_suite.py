@@ -305,6 +305,17 @@ def test_no_validation_row_runs_the_corrected_incremental_fit_so_none_was_measur
     assert cube["corrected_incremental"] and not cube["rest_model"], cube
     # Half, but for the control's own limit, which joins the sum 1 / dt^2 (measured 0.50027).
     assert cube["dt"] == cube["stable_dt"] == pytest.approx(0.5 * cube["full_dt"], rel=1e-3), cube
+    # The stop it sets is lifted, also where a case fails before its first step: left on, every
+    # later case of the process stopped at its first step (the breathing cube's solver here).
+    with pytest.raises(TypeError):
+        validation.first_step("energy_drift", {"no_such_option": 1})
+    wp, we = validation._we()
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize()
+    a, out = model.state(), model.state()
+    validation._solver(model).step(a, out, 1e-4)
+    assert out.time == pytest.approx(1e-4)
 
 
 def test_the_control_energy_energy_drift_adds_is_the_potential_of_the_control_force():
