@@ -3062,3 +3062,24 @@ def test_fit_s_collapsed_trial_and_the_run_s_beside_write_error_survive_pickle()
     assert "(particle 1)" in str(collapsed)
     beside = pickle.loads(pickle.dumps(_BesideWriteError("the checkpoint", "c.npz", full)))
     assert (beside.what, beside.path, beside.errno, beside.cause.filename) == ("the checkpoint", "c.npz", 28, "c.npz")
+
+
+def test_a_rollout_memory_refusal_of_a_fit_survives_pickle_without_its_experiment():
+    """``fit`` raises ``RolloutMemoryError`` with ``experiment``, the ``fit.Experiment`` it
+    refused, which holds its Model: pickled, as a worker process sends it back, it raised the
+    Model's refusal, so a fit run under ``ProcessPoolExecutor`` reached the parent as
+    ``TypeError: a warp_esph.Model cannot be pickled ...``, the memory refusal's words lost.
+    It comes back as itself, ``experiment`` None (this process's object), its other fields kept."""
+    import pickle
+
+    from warp_esph.rollout import RolloutMemoryError
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize()
+    e = RolloutMemoryError("the rollout would need about 7.2 GiB", reason="r", device="cpu", steps=10, segment=None,
+                           least=2, least_gib=1.5, least_fits=True, experiment=model, worlds=3)
+    back = pickle.loads(pickle.dumps(e))
+    assert type(back) is RolloutMemoryError and str(back) == str(e) and back.experiment is None
+    assert {k: v for k, v in vars(back).items() if k != "experiment"} == {k: v for k, v in vars(e).items() if k != "experiment"}
+    assert e.experiment is model  # the raised one keeps it

@@ -832,10 +832,15 @@ class Rebuilt:
     ``cls(*args)``, which such an ``__init__`` refuses (``missing 2 required keyword-only
     arguments``), so one raised in a worker process (``concurrent.futures``,
     ``multiprocessing``) broke the pool (``BrokenProcessPool``; ``multiprocessing.Pool``
-    hangs). It is rebuilt from its ``args`` and fields without ``__init__``."""
+    hangs). It is rebuilt from its ``args`` and fields without ``__init__``; a field named in
+    ``LOCAL`` comes back None."""
+
+    #: Fields holding this process's objects (a Model's Warp arrays), which pickle refuses: the
+    #: refusal replaced the exception in the parent (a fit's memory refusal read as the Model's).
+    LOCAL: tuple[str, ...] = ()
 
     def __reduce__(self):
-        return _rebuilt, (type(self), self.args), self.__dict__
+        return _rebuilt, (type(self), self.args), {k: None if k in self.LOCAL else v for k, v in self.__dict__.items()}
 
 
 def _rebuilt(cls, args):

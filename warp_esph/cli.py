@@ -1069,10 +1069,10 @@ class _BesideWriteError(OSError):
         self.what, self.path, self.cause = what, path, cause
 
     def __reduce__(self):
-        # checks.Rebuilt's, read here: this module starts without Warp, which checks imports.
-        from .checks import Rebuilt  # noqa: PLC0415
+        # As checks.Rebuilt's, not its base: this module starts without Warp, which checks imports.
+        from .checks import _rebuilt  # noqa: PLC0415
 
-        return Rebuilt.__reduce__(self)
+        return _rebuilt, (type(self), self.args), self.__dict__
 
 
 def _log_kinds(model) -> list[str]:

@@ -293,8 +293,10 @@ class RolloutMemoryError(checks.Rebuilt, ValueError):
     than its 1 GiB'), ``device``, ``steps``, ``segment`` (the refused one, None: a full
     tape), ``least`` (the segment that needs the least memory), ``least_gib`` (what that
     would need) and ``least_fits``. ``experiment``: the ``fit.Experiment`` refused, where a
-    fit refused it (else None); ``worlds``: the copies of its scene a fit's ``worlds=True``
-    ran it as (else None)."""
+    fit refused it (else None; None where pickled, as a worker process sends it back);
+    ``worlds``: the copies of its scene a fit's ``worlds=True`` ran it as (else None)."""
+
+    LOCAL = ("experiment",)
 
     def __init__(self, message: str, *, reason: str, device: str, steps: int, segment: int | None, least: int,
                  least_gib: float, least_fits: bool, experiment=None, worlds: int | None = None, taped: bool = True):
