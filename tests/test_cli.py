@@ -2619,3 +2619,15 @@ def test_a_kernel_cache_folder_set_in_warp_s_config_is_refused_by_that_name(tmp_
                 "directory); give a folder that is there or can be made, or leave it None\n")
         assert p.returncode == 0 and p.stdout == said and "Traceback" not in p.stderr, (p.stdout, p.stderr)
     assert a_file.read_text() == "" and not good.exists()
+    # Mended as the refusal says, init_warp() again in the same process starts Warp there: the
+    # failed start had left Warp's setting at the folder it could not make, taken over the
+    # variable ('wp.config.kernel_cache_dir = .../cache/1.19.0 is not allowed').
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), WARP_CACHE_PATH=str(a_file))
+    p = subprocess.run([sys.executable, "-c", "import os\nimport warp as wp\nimport warp_esph as we\ntry:\n    we.init_warp()\n"
+                        "except ValueError as e:\n    print(e)\n"
+                        f"os.environ['WARP_CACHE_PATH'] = {str(good)!r}\nwe.init_warp()\nprint(wp.config.kernel_cache_dir)"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    refused, started = p.stdout.splitlines()
+    assert refused.startswith(f"WARP_CACHE_PATH = {str(a_file)!r} is not allowed")
+    assert started == str(good / wp.config.version) and (good / wp.config.version).is_dir()

@@ -133,6 +133,9 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
         notes = _native_notes(wp.init)
     except OSError as e:
         refusal = _cache_refusal(e, wp.config.kernel_cache_dir, configured)
+        # Warp set it to the folder it could not make: left so, it took it over a mended
+        # WARP_CACHE_PATH, and init_warp() again in this process failed the same way.
+        wp.config.kernel_cache_dir = configured
         if refusal is None:
             raise
         raise ValueError(refusal) from None
