@@ -3005,6 +3005,10 @@ def test_a_state_array_replaced_by_numpy_or_torch_values_is_refused_as_what_it_i
                                              r"state_in\.x\.assign\(\.\.\.\)\)$"):
             solver.step(s, out, 1e-4)
     s = model.state()
+    s.x = model.particle_x0.tolist()
+    with pytest.raises(ValueError, match=r"^state_in\.x = \[\[.* is not allowed: it is a list, not a Warp array; "):
+        solver.step(s, out, 1e-4)  # a list by its name, not 'builtins.list'
+    s = model.state()
     s.x.assign(model.particle_x0)  # the way the message gives
     solver.step(s, out, 1e-4)
     assert np.isfinite(out.x.numpy()).all()

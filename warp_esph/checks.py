@@ -540,8 +540,10 @@ def same_state(model, name: str, state) -> None:
         if not isinstance(arr, wp.array):
             # Not by its attributes: a numpy array has shape, dtype and (numpy 2) device, and
             # 'state.x = positions' was refused as a state of another model.
-            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: it is a {type(arr).__module__.split('.')[0]}."
-                             f"{type(arr).__qualname__}, not a Warp array; must be the Warp array of shape {shape} and dtype "
+            home = type(arr).__module__.split(".")[0]
+            kind = type(arr).__qualname__ if home == "builtins" else f"{home}.{type(arr).__qualname__}"  # not 'builtins.list'
+            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: it is a {kind}, not a Warp array; must be the Warp "
+                             f"array of shape {shape} and dtype "
                              f"{getattr(dtype, '__name__', dtype)} the state was made with (write values into it with "
                              f"{where}.assign(...))")
         if tuple(got_shape) != shape:
