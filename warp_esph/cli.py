@@ -542,7 +542,7 @@ def _cmd_run(args) -> int:
 
     every = None if args.checkpoint_every is None else checks.positive_int("--checkpoint-every", args.checkpoint_every)
     options = _solver_options(args)
-    start_frame, state = 0, None
+    start_frame, state, stable_step = 0, None, False
     if args.resume is not None:
         # The run record of the checkpoint decides everything the results depend on: a scene,
         # step, rate or scale given beside it would be ignored, so it is refused.
@@ -562,6 +562,11 @@ def _cmd_run(args) -> int:
         _check_run_record(args.resume, run)
         args.scene, scale, args.dtype = _moved_with(args.resume, run["scene"]), run["scale"], run["dtype"]
         args.fps, args.dt, args.surface = run["fps"], run["dt"], run.get("surface", False)
+        # A run that took the stable step (no dt given) takes it again, from the checkpoint's
+        # state: one whose body flowed and was made elastic since keeps the corrected incremental
+        # fit, at half the step it recorded (Model.stable_dt(state=)); with the same parameters
+        # it is the step recorded.
+        stable_step = run.get("dt_stable", False)
         args.output = _moved_with(args.resume, run["output"], output=True)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
@@ -574,7 +579,8 @@ def _cmd_run(args) -> int:
     scene = load_scaled_scene(args.scene, scale)
     _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps
-    dt = args.dt if args.dt is not None else scene.dt
+    dt = None if stable_step else args.dt if args.dt is not None else scene.dt
+    stable_step = dt is None
     output = args.output or f"{scene.name}.usdc"
     if args.resume is None:
         # (a resumed run appends to its own output, which its scene did not read)
@@ -600,8 +606,8 @@ def _cmd_run(args) -> int:
 
     try:
         try:
-            substeps, dt_shown = (resolve_timestep(model, fps, flag=flag) if adaptive else
-                                  resolve_timestep(model, fps, dt=dt, flag=flag))
+            substeps, dt_shown = (resolve_timestep(model, fps, flag=flag, state=state) if adaptive else
+                                  resolve_timestep(model, fps, dt=dt, flag=flag, state=state))
         except StepRefusal as e:
             # Its advice is Python's ('give dt= or substeps='): the command has --dt and --fps.
             raise ValueError(e.reason + _run_advice().get(e.advice, e.advice)) from None
@@ -642,7 +648,7 @@ def _cmd_run(args) -> int:
         if named == "dt" and args.resume is None and str(args.scene).lower().endswith(".toml"):
             named = f"{checks.shown_path(args.scene, False)}: [scene] dt"
         resolvable_dt(model, float(dt_typed), named, "the stable step")
-    solver.check_dt(dt_shown)  # the stability warning, once, before the run
+    solver.check_dt(dt_shown, state)  # the stability warning, once, before the run (from a resumed run's state)
     try:
         # Before the writer replaces an earlier run's file; simulate does not repeat them.
         start = state if state is not None else model.state(requires_grad=False)
@@ -748,6 +754,7 @@ def _cmd_run(args) -> int:
             if args.preview and os.path.isfile(writer.path + ".png"):
                 os.remove(writer.path + ".png")
         run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
+                      "dt_stable": stable_step,
                       "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                       "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
                       "hourglass": model.hourglass, "fit_weight": model.fit_weight,
@@ -1114,6 +1121,7 @@ def _check_run_record(path, run: dict) -> None:
         checks.positive_int("frames", run["frames"])
         checks.choice("dtype", run["dtype"], ("float32", "float64"))
         checks.boolean("surface", run.get("surface", False))
+        checks.boolean("dt_stable", run.get("dt_stable", False))
         if run.get("checkpoint_every") is not None:
             checks.positive_int("checkpoint_every", run["checkpoint_every"])
         if "fit" in run:
