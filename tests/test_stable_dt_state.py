@@ -199,3 +199,23 @@ def test_a_cli_run_resumed_from_a_flowed_checkpoint_made_elastic_takes_half_the_
         np.savez(ckpt, **arrays)
         assert main(["run", "--resume", str(ckpt), "--frames", "6", "--no-progress"]) == 2
         assert "dt_stable = 1" in capsys.readouterr().err
+
+
+def test_a_rollout_blown_up_from_a_flowed_start_made_elastic_quotes_half_the_wave_limit():
+    """``NonFiniteRollout``'s (and ``DivergedRollout``'s) stable step is its start's: from a
+    flowed body made elastic, at 0.8 x the limit of a new state, it quoted that limit, said the
+    dt was within it and blamed the start; the step ran past the half its start keeps."""
+    from warp_esph.rollout import NonFiniteRollout, Rollout
+
+    model, flowed = _elastic_block_and_a_flowed_start(requires_grad=True)
+    full, half = model.stable_dt(), model.stable_dt(state=flowed)
+    assert half == pytest.approx(0.5 * full, rel=0.02)
+    v = flowed.v.numpy()
+    v[0, 0] = np.nan  # a start that goes non-finite at once, whatever the step
+    flowed.v.assign(v)
+    rollout = Rollout(model, 2, 0.8 * full)
+    with pytest.warns(RuntimeWarning, match=HALF), pytest.raises(NonFiniteRollout) as e:
+        rollout.forward(initial_state=flowed)
+    said = str(e.value)
+    assert f"(Model.stable_dt(state=) of its start = {half:.3g} s); use a smaller dt" in said, said
+    assert "dt is within it" not in said

@@ -1088,14 +1088,25 @@ class Rollout:
         why, p = hit
         m = self.model
         body = m.bodies[int(m.particle_body_np[p])].name
-        stable = self.solver.stable_dt()
-        advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "
-                  "materials' makes the stable step smaller)" if self.dt > stable else
-                  "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
+        stable, named, advice = self._stable_advice()
         raise DivergedRollout(
             f"the rollout blew up while staying finite: {why} (particle {p} of body {body!r}, after step {self.steps} "
-            f"of {self.steps}), at dt = {self.dt:.4g} s (Model.stable_dt() = {stable:.3g} s); {advice}",
+            f"of {self.steps}), at dt = {self.dt:.4g} s ({named} = {stable:.3g} s); {advice}",
             step=self.steps, particle=p, body=body)
+
+    def _stable_advice(self) -> tuple[float, str, str]:
+        """The blow-up messages' stable step, of the latest forward's start (``_initial``), how
+        they name it and their advice. From a flowed body made elastic (``keeps_incremental``)
+        it is half the one of a new state: quoted without the start, a dt between the two was
+        said to be within it, and the start blamed."""
+        stable = self.solver.stable_dt(state=self._initial)
+        named = "Model.stable_dt()" if stable == self.solver.stable_dt() else "Model.stable_dt(state=) of its start"
+        # Within the stable step a smaller dt is no cure: the cause is the start (a speed or
+        # stretch past the precision's range) or the parameters, and the advice sent users to dt.
+        advice = (f"use a smaller dt (at most {named}) or check the parameters (a stiffness far above the "
+                  "materials' makes the stable step smaller)" if self.dt > stable else
+                  "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
+        return stable, named, advice
 
     def _check_finite(self, positions: np.ndarray):
         """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's
@@ -1116,15 +1127,10 @@ class Rollout:
                 "made with taped=True to find the first step")
         when = (f"after step {step} of {self.steps}" if step - last_finite <= 1 else
                 f"after step {step} of {self.steps} (finite after step {last_finite}; {kept})")
-        stable = self.solver.stable_dt()
-        # Within the stable step a smaller dt is no cure: the cause is the start (a speed or
-        # stretch past the precision's range) or the parameters, and the advice sent users to dt.
-        advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "
-                  "materials' makes the stable step smaller)" if self.dt > stable else
-                  "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
+        stable, named, advice = self._stable_advice()
         raise NonFiniteRollout(
             f"the rollout blew up: {where} has a non-finite position or velocity {when}, at dt = {self.dt:.4g} s "
-            f"(Model.stable_dt() = {stable:.3g} s); {advice}; forward(check=False) returns such a run as it is",
+            f"({named} = {stable:.3g} s); {advice}; forward(check=False) returns such a run as it is",
             step=step, particle=p, body=body, last_finite=last_finite)
 
     def _inputs(self) -> tuple:
