@@ -219,3 +219,37 @@ def test_a_rollout_blown_up_from_a_flowed_start_made_elastic_quotes_half_the_wav
     said = str(e.value)
     assert f"(Model.stable_dt(state=) of its start = {half:.3g} s); use a smaller dt" in said, said
     assert "dt is within it" not in said
+
+
+def test_energy_growth_quotes_the_stable_step_of_the_runs_start():
+    """``simulate.energy_growth``'s blow-up names the stable step of the run's start
+    (``state=``; ``Rollout.bounds_hit`` passes its forward's): from a flowed body made elastic,
+    half the limit it quoted, that of a new state."""
+    from warp_esph.simulate import energy_growth
+
+    model, flowed = _elastic_block_and_a_flowed_start()
+    solver = we.Solver(model)
+    full, half = solver.stable_dt(), solver.stable_dt(state=flowed)
+    assert half < 0.51 * full
+    x0 = model.particle_x0.astype(np.float64)
+    v = np.full_like(x0, float(np.max(model.wave_speeds())))  # every particle at c_P: far past the limit
+    for kw, quoted in (({"solver": solver}, full), ({"solver": solver, "state": flowed}, half), ({"state": flowed}, half)):
+        why, _ = energy_growth(model, x0, np.zeros_like(x0), x0, v, **kw)
+        assert why.endswith(f"the time step is likely above the stable limit {quoted:.3g} s"), why
+
+
+def test_a_rollouts_energy_blow_up_quotes_the_stable_step_of_its_start(monkeypatch):
+    """``Rollout.bounds_hit`` passes its forward's start to ``energy_growth`` (the monitor's
+    bounds, which quote no step, set aside here to reach it)."""
+    from warp_esph.rollout import Rollout
+    from warp_esph.simulate import DivergenceMonitor
+
+    model, flowed = _elastic_block_and_a_flowed_start(requires_grad=True)
+    half = model.stable_dt(state=flowed)
+    rollout = Rollout(model, 2, half)
+    rollout.forward(initial_state=flowed)
+    last = rollout.final_state()
+    last.v.assign(np.full(last.v.shape + (3,), float(np.max(model.wave_speeds()))))
+    monkeypatch.setattr(DivergenceMonitor, "check", lambda *args, **kwargs: None)
+    why, _ = rollout.bounds_hit()
+    assert why.endswith(f"the time step is likely above the stable limit {half:.3g} s"), why

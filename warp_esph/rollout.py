@@ -1066,7 +1066,7 @@ class Rollout:
         init = self._initial
         return energy_growth(self.model, init.x.numpy(), init.v.numpy(), x, v, t0=float(init.time), dt=self.dt,
                              steps=self.steps, particles=checked, stored=getattr(monitor, "e_elastic", 0.0), work=work,
-                             solver=self.solver)
+                             solver=self.solver, state=init)
 
     def _work_done(self, checked=None) -> float | None:
         """The work (J) the tools and pinned sets did in the latest forward on the worlds of the

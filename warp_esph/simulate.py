@@ -548,7 +548,7 @@ def _energy_floor(mass: float, wave: float) -> float:
 def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v: np.ndarray, *, t0: float = 0.0,
                   dt: float | None = None, steps: int | None = None, particles=None,
                   stored: float = 0.0, scripted_seen: dict | None = None, work: float | None = None,
-                  solver=None) -> tuple[str, int] | None:
+                  solver=None, state: State | None = None) -> tuple[str, int] | None:
     """``(why, particle)`` where a run from positions and velocities ``x0, v0`` (at time
     ``t0``) to ``x, v`` has blown up without a non-finite value, else ``None``: the one test of
     energy growth that ``simulate`` (at every frame), ``sweep``'s samples, ``fit``'s evaluations
@@ -585,13 +585,15 @@ def energy_growth(model: Model, x0: np.ndarray, v0: np.ndarray, x: np.ndarray, v
     ``steps`` are then not needed). ``particles``: a boolean mask of the particles read (one
     world of a model of worlds, the bodies not exempt), None: all. ``solver``: the ``Solver``
     that ran the steps, whose stable step (its fit and hourglass strength, ``Solver.stable_dt``)
-    the message quotes; None: ``Model.stable_dt()``, a ``Solver(model)``'s.
+    the message quotes; None: ``Model.stable_dt()``, a ``Solver(model)``'s. ``state``: the run's
+    start, whose stable step it is (``Model.stable_dt(state=)``: a flowed body made elastic keeps
+    half the wave limit); None: a new state's.
     """
     hit = _grown(model, x0, v0, x, v, t0=t0, dt=dt, steps=steps, particles=particles, stored=stored,
                  scripted_seen=scripted_seen, work=work)
     if hit is None:
         return None
-    stable = model.stable_dt() if solver is None else solver.stable_dt()
+    stable = model.stable_dt(state=state) if solver is None else solver.stable_dt(state=state)
     return (f"the simulation blew up: {hit[0]}; the time step is likely above the stable limit {stable:.3g} s",
             hit[1])
 
