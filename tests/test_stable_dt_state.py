@@ -253,3 +253,27 @@ def test_a_rollouts_energy_blow_up_quotes_the_stable_step_of_its_start(monkeypat
     monkeypatch.setattr(DivergenceMonitor, "check", lambda *args, **kwargs: None)
     why, _ = rollout.bounds_hit()
     assert why.endswith(f"the time step is likely above the stable limit {half:.3g} s"), why
+
+
+def test_the_step_refusals_from_a_flowed_start_made_elastic_weigh_the_control_against_half_the_wave_limit():
+    """``resolve_timestep``'s and ``adaptive_timestep``'s refusals (more than a million steps a
+    frame) name what sets the stable step of the start given: from a flowed body made elastic the
+    wave limit is the half, so a control whose limit lies between the half and the whole (0.75
+    of it) does not set it. They said it did, against the whole wave limit, and advised a
+    smaller strength, which lengthens the step to half the wave limit at most (0.42 x it here)."""
+    from warp_esph.simulate import StepRefusal
+
+    model, flowed = _elastic_block_and_a_flowed_start()
+    wave = 0.3 * model.spacing / float(np.max(model.wave_speeds()))
+    c = 1.0 * (model._hourglass_limit(0.3, 1.0)[0] / (0.75 * wave)) ** 2  # its limit is 1 / sqrt(c)
+    assert model._hourglass_limit(0.3, c)[0] == pytest.approx(0.75 * wave, rel=1e-9)
+    stable = model.stable_dt(hourglass=c, state=flowed)
+    assert stable == pytest.approx(wave / np.sqrt(4.0 + 1.0 / 0.75**2), rel=1e-9)
+    fps = 0.5 / (stable * 1e6)  # two million steps a frame
+    with pytest.raises(StepRefusal) as fixed:
+        resolve_timestep(model, fps, hourglass=c, state=flowed)
+    with pytest.raises(StepRefusal) as adaptive:
+        adaptive_timestep(model, flowed, fps, hourglass=c)
+    for e in (fixed, adaptive):
+        said = str(e.value)
+        assert "hourglass control" not in said and "softer material" in said, said

@@ -103,13 +103,13 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
                 f"through itself, whose strain may be stiffer than the stable limit ({stable:.3g} s) assumes; try a "
                 f"smaller {dt}, a stiffer material, or {fit}, the incremental composition, which follows the "
                 f"neighbours as a body parts")
-    if _repulsion_cause(model, 0.3, hourglass, asked) is not None:
+    if _repulsion_cause(model, 0.3, hourglass, asked, state) is not None:
         # Checked before the fields: where the repulsion's limit is the shorter, a weaker field
         # (or a softer material) leaves the step as it is.
         which = model._repulsion_limit(0.3)[1]
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._repulsion_words(which)} at contact) "
                 f"or a smaller pair_repulsion or pressure_stiffness")
-    if _field_cause(model, 0.3, hourglass, asked) is not None:
+    if _field_cause(model, 0.3, hourglass, asked, state) is not None:
         _, k, which = model._field_limit(0.3)
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "
                 f"k = {k:g} 1/s^2; a body it crushes is stiffer than that limit allows for, docs/method.md §8) or a weaker field")
@@ -897,10 +897,10 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             needs = (f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} "
                      f"m/s) or the most viscous one needs it")
             advice = STABLE_ADVICE
-            control = _hourglass_cause(model, courant, hourglass, fit)
-            field = _field_cause(model, courant, hourglass, fit)
+            control = _hourglass_cause(model, courant, hourglass, fit, state)
+            field = _field_cause(model, courant, hourglass, fit, state)
             viscous = _viscous_limit(model, courant)
-            repulsion = _repulsion_cause(model, courant, hourglass, fit)
+            repulsion = _repulsion_cause(model, courant, hourglass, fit, state)
             if not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
                 if repulsion is not None:
                     # A stiff pair repulsion shortened it: the stiffest material's wave speed was
@@ -1074,20 +1074,20 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         advice = ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         if dt == stable:
             which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
-            control = _hourglass_cause(model, courant, hourglass, fit)
+            control = _hourglass_cause(model, courant, hourglass, fit, state)
             if control is not None:
                 # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
                 # the wave limit): c_P alone was cited, and a softer material advised, where a
                 # smaller strength lengthens the step the most.
                 which = f"its stable step, {dt:.3g} s ({control})"
                 advice = ADAPTIVE_HOURGLASS_ADVICE
-            field = _field_cause(model, courant, hourglass, fit)
+            field = _field_cause(model, courant, hourglass, fit, state)
             if field is not None:
                 # A field's spring shortened it: the wave speed was cited, and a softer material
                 # or a larger spacing advised, which leave its limit as it is.
                 which = f"its stable step, {dt:.3g} s ({field})"
                 advice = ADAPTIVE_FIELD_ADVICE
-            repulsion = _repulsion_cause(model, courant, hourglass, fit)
+            repulsion = _repulsion_cause(model, courant, hourglass, fit, state)
             if repulsion is not None:
                 which = f"its stable step, {dt:.3g} s ({repulsion})"
                 advice = ADAPTIVE_REPULSION_ADVICE
@@ -1109,42 +1109,46 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     return n, frame_dt / n
 
 
-def _wave_limit(model: Model, courant: float, fit: str | None) -> tuple[float, str, float]:
+def _wave_limit(model: Model, courant: float, fit: str | None, state: State | None = None) -> tuple[float, str, float]:
     """``(wave, words, c_P)``: ``stable_dt``'s wave limit for the fit ``fit`` (None: the model's)
     and how the refusals write it: ``C dx / c_P``, x ``CORRECTED_INCREMENTAL_STEP`` where the step
-    runs the corrected incremental fit. Against the whole one, a control between it and the half
-    was said to set the step, and a smaller strength advised, which leaves it as it is."""
+    runs the corrected incremental fit (from ``state``, None: a new state; a flowed body made
+    elastic keeps it). Against the whole one, a control between it and the half was said to set
+    the step, and a smaller strength advised, which leaves it as it is."""
     c = float(np.max(model.wave_speeds()))
     wave = courant * model.spacing / c
-    if model.corrected_incremental(fit):
+    if model.corrected_incremental(fit, state):
         return CORRECTED_INCREMENTAL_STEP * wave, f"{CORRECTED_INCREMENTAL_STEP:g} C dx / c_P", c
     return wave, "C dx / c_P", c
 
 
-def _hourglass_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
+def _hourglass_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None,
+                     state: State | None = None) -> str | None:
     """Where the hourglass control's limit (``Model._hourglass_limit``, strength ``hourglass``;
-    None: the model's) is at most the wave limit (``_wave_limit``, for the fit ``fit``), so that
-    it is what shortens ``stable_dt``: the refusals' words for it, naming both limits; else None."""
+    None: the model's) is at most the wave limit (``_wave_limit``, for the fit ``fit`` from
+    ``state``), so that it is what shortens ``stable_dt``: the refusals' words for it, naming
+    both limits; else None."""
     control, strength = model._hourglass_limit(courant, hourglass)
-    wave, words, c = _wave_limit(model, courant, fit)
+    wave, words, c = _wave_limit(model, courant, fit, state)
     if not control <= wave:
         return None
     return (f"the hourglass control's limit at strength c = {strength:g}, {control:.3g} s, with the wave limit "
             f"{words} = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
-def _field_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
+def _field_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None,
+                 state: State | None = None) -> str | None:
     """Where the force fields' limit (``Model._field_limit``) is at most both the wave limit
     (``_wave_limit``, for the fit ``fit``) and the hourglass control's (strength ``hourglass``;
     None: the model's), and the viscous limit is not shorter than ``stable_dt``, so that the
     field is what shortens it: the refusals' words for it, naming the fields, their net strength
     and both limits; else None."""
     limit, k, which = model._field_limit(courant)
-    wave, words, c = _wave_limit(model, courant, fit)
+    wave, words, c = _wave_limit(model, courant, fit, state)
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0]):
         return None
     viscous = _viscous_limit(model, courant)
-    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit) * (1.0 + 1e-9):
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit, state=state) * (1.0 + 1e-9):
         # The viscous limit set the step: a divergence was put on the field, and a weaker one
         # advised, which leaves the step as it is.
         return None
@@ -1153,18 +1157,19 @@ def _field_cause(model: Model, courant: float, hourglass: float | None, fit: str
             f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
-def _repulsion_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None) -> str | None:
+def _repulsion_cause(model: Model, courant: float, hourglass: float | None, fit: str | None = None,
+                     state: State | None = None) -> str | None:
     """Where the pair repulsion's limit (``Model._repulsion_limit``) is at most the wave limit
     (``_wave_limit``, for the fit ``fit``), the hourglass control's (strength ``hourglass``;
     None: the model's) and the force fields', and the viscous limit is not shorter than
     ``stable_dt``, so that it is what shortens it: the refusals' words for it, naming the
     materials, their strengths and both limits; else None."""
     limit, which = model._repulsion_limit(courant)
-    wave, words, c = _wave_limit(model, courant, fit)
+    wave, words, c = _wave_limit(model, courant, fit, state)
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0] and limit <= model._field_limit(courant)[0]):
         return None
     viscous = _viscous_limit(model, courant)
-    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit) * (1.0 + 1e-9):
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass, fit=fit, state=state) * (1.0 + 1e-9):
         return None  # the viscous limit set the step (as _field_cause)
     return (f"the limit of {model._repulsion_words(which)} at contact, (C / 0.3) 2 / (1.5 omega) = {limit:.3g} s, "
             f"with the wave limit {words} = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
