@@ -277,3 +277,33 @@ def test_the_step_refusals_from_a_flowed_start_made_elastic_weigh_the_control_ag
     for e in (fixed, adaptive):
         said = str(e.value)
         assert "hourglass control" not in said and "softer material" in said, said
+
+
+def test_each_worlds_step_alone_reads_its_own_part_of_the_start():
+    """``world_stable_dts(state=)``: a world whose body flowed keeps the corrected incremental
+    fit alone, at half the wave limit; one that did not is handed over to the rest model, at the
+    whole. ``resolve_timestep``'s worlds warning counts them from the start given: from a start
+    where both identical elastic worlds flowed it said each ran half the count alone."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06,) * 3, mat)
+    model = b.finalize(dtype=wp.float64, worlds=2)
+    full = model.stable_dt()
+    both = model.state()
+    both.alpha.fill_(0.01)
+    both.rest_model = False
+    half = model.stable_dt(state=both)
+    assert half < 0.51 * full and model.world_stable_dts() == [full, full]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # each world alone runs the count the model runs
+        n, _ = resolve_timestep(model, 30.0, state=both)
+    assert model.world_stable_dts(state=both) == [half, half]
+    one = model.state()
+    alpha = np.zeros(model.particle_count)
+    alpha[model.world_particles(0)] = 0.01
+    one.alpha.assign(alpha)
+    one.rest_model = False
+    assert model.world_stable_dts(state=one) == [half, full]
+    alone = int(np.ceil(1.0 / 30.0 / full * (1.0 - 1e-12)))
+    with pytest.warns(RuntimeWarning, match=rf"\({n} a frame\) is the stiffest world's; alone, a world runs its own \(world 1: {alone} steps a frame\)"):
+        assert resolve_timestep(model, 30.0, state=one)[0] == n

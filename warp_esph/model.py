@@ -1328,18 +1328,29 @@ class Model(Unpicklable):
             dt = dts[kept] = self._stable_dt_now(courant, hourglass, rows, fit=fit, kept=kept)
         return dt
 
-    def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None) -> list[float]:
+    def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None, fit: str | None = None,
+                         state: "State | None" = None) -> list[float]:
         """Each world's ``stable_dt`` alone: its own materials and the fields acting on its
         bodies, as its separate model's (the hourglass strength is the model's, as
-        ``worlds_auto_differ`` warns). ``stable_dt``, the default step of ``simulate`` and a
+        ``worlds_auto_differ`` warns), from its part of ``state`` (None: a new state; a world
+        whose body flowed keeps the incremental composition, ``keeps_incremental``, and half the
+        wave limit where the parameters choose the rest model). ``stable_dt``, the default step of ``simulate`` and a
         sweep, is the least of them, the stiffest world's: a softer world runs more steps a frame
         than alone, and ends off its separate run (2.8e-4 m of a 6 cm box in 3 frames, float64,
         measured), as ``resolve_timestep`` warns."""
         courant = checks.courant(courant)
         self._check_force_fields()
+        if state is not None:
+            checks.same_state(self, "state", state)
         rows = self._read_parameters()
         self._check_parameter_values(rows)
-        return [self._stable_dt_now(courant, hourglass, rows, w, fit) for w in range(self.world_count)]
+        # Each world's own hardening: the step keeps every world on the incremental composition
+        # where one flowed (Solver._warn_worlds_kept), a world's separate run only where it did.
+        alpha = (state.alpha.numpy() if state is not None and state.rest_model is False and self.auto_runs_rest(fit)
+                 else None)
+        return [self._stable_dt_now(courant, hourglass, rows, w, fit,
+                                    kept=alpha is not None and flowed_by_hardening(alpha[self.world_particles(w)]))
+                for w in range(self.world_count)]
 
     def _check_force_fields(self) -> None:
         """The force fields as they are now hold what ``finalize`` asks of them: each a

@@ -829,14 +829,15 @@ def _steps_a_frame(frame_dt: float, stable: float) -> tuple[float, int]:
     return ratio, (max(1, math.ceil(ratio)) if ratio <= MAX_STEPS_PER_FRAME else 0)
 
 
-def _warn_worlds_step(model: Model, courant: float, hourglass, frame_dt: float, n: int, flag, fit=None) -> None:
+def _warn_worlds_step(model: Model, courant: float, hourglass, frame_dt: float, n: int, flag, fit=None,
+                      state: State | None = None) -> None:
     """Warn where the step of a model of worlds (the stiffest world's) is not what a world runs
     alone: a soft world beside a stiff one ran 14 steps a frame where alone it runs 1, and ended
     2.8e-4 m off its separate run in 3 frames (float64, measured), unsaid. ``fit``: the one ``n``
-    was counted for (``resolve_timestep``'s)."""
+    was counted for (``resolve_timestep``'s), ``state`` the start it was counted from."""
     # Counted with the model's fit, identical worlds under a solver asked for the corrected
     # incremental fit (half the step) were each told they run half the count alone.
-    alone = [_steps_a_frame(frame_dt, s)[1] for s in model.world_stable_dts(courant, hourglass, fit)]
+    alone = [_steps_a_frame(frame_dt, s)[1] for s in model.world_stable_dts(courant, hourglass, fit, state)]
     other = [w for w, k in enumerate(alone) if k != n]
     if other:
         # Each world beside its own count: listed apart ('[0, 2] ... 31, 50', the counts sorted
@@ -924,7 +925,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
                 detail=f"a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps of the stable step {stable:.3g} s, {needs}"
             )
         if model.world_count > 1 and limit is None:
-            _warn_worlds_step(model, courant, hourglass, frame_dt, n, flag, fit)
+            _warn_worlds_step(model, courant, hourglass, frame_dt, n, flag, fit, state)
         return n, frame_dt / n
     dt = checks.positive(flag("dt"), dt)
     ratio = frame_dt / dt
