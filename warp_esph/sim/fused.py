@@ -118,7 +118,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         V = mat33()
         have_svd = int(0)
         if mat.flow_rate[m] > scalar(0.0):
-            wp.svd3(F, U, s, V)
+            U, s, V = iso.svd(F)
             have_svd = 1
             flowed, g, c, pw, a_flow = guarded_flow_step(
                 s, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], a_new, dt, kind, counters
@@ -136,7 +136,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             P = fo.polynomial_stress(Fe, mu, lam, sk)
         else:
             if have_svd == 0:
-                wp.svd3(Fe, U, s, V)
+                U, s, V = iso.svd(Fe)
             if sk == COROTATED:
                 P = iso.from_principal(U, fo.corotated_principal_stress(s, mu, lam), V)
             else:

@@ -17,7 +17,9 @@ of the current list). The minimiser is ``G_i = B_i A_i^-1``, ``A_i = sum_j w_ij 
 ``B_i = sum_j w_ij x_ij X_ij^T``, and since ``dE_i/dG_i = 0`` there, the force is the
 derivative at fixed ``G_i``: ``f_j -= g_ij``, ``f_i += g_ij``, ``g_ij = c mu_i V_i w_ij
 (x_ij - G_i X_ij) / S_i``, equal and opposite. An affine motion has a zero residual: no
-force. ``E = sum_i E_i`` is a function of the positions alone (for a fixed neighbour list),
+force. The kernel forms the residual of the displacements ``u = x - X``, ``u_ij - (G_i - I)
+X_ij`` with ``G_i - I = (sum_j w_ij u_ij X_ij^T) A_i^-1``, the same in exact arithmetic, so a
+body at rest has none to the bit. ``E = sum_i E_i`` is a function of the positions alone (for a fixed neighbour list),
 so the control is conservative and its stiffness symmetric. (Its first form used the stored
 ``F_i`` in place of ``G_i``: with the linear fit, whose ``F`` is nearly that minimiser, the
 same; with the curvature-corrected fit, whose ``F`` is not, a non-symmetric stiffness, and an
@@ -71,13 +73,14 @@ def kernels(scalar) -> types.SimpleNamespace:
     def rest_fit_sums(i: int, x: wp.array(dtype=vec3), rest: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                       nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, c6: scalar):
         """``S_i = sum_j w_ij |X_ij|^2`` and the moments ``A_i = sum_j w_ij X_ij X_ij^T``,
-        ``B_i = sum_j w_ij x_ij X_ij^T`` of the best affine map over the same-body neighbours
-        (poly6 weights of the rest distances). Only the raw sums live in this loop: the
-        caller's inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
+        ``B_i = sum_j w_ij u_ij X_ij^T`` of the best affine map of the displacements ``u = x -
+        X`` over the same-body neighbours (poly6 weights of the rest distances). Only the raw
+        sums live in this loop: the caller's inverse must not see a loop accumulator
+        (docs/method.md, Warp pitfall 1)."""
         s = scalar(0.0)
         A = mat33()
         B = mat33()
-        xi = x[i]
+        ui = x[i] - rest[i]
         Xi = rest[i]
         for k in range(n):
             j = nbr[i, k]
@@ -87,7 +90,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 w = sm.w_poly6_c(r2, h, c6)
                 s += w * r2
                 A += w * wp.outer(d, d)
-                B += w * wp.outer(x[j] - xi, d)
+                B += w * wp.outer((x[j] - rest[j]) - ui, d)
         return s, A, B
 
     @wp.func
@@ -105,11 +108,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         return G, ok
 
     @wp.func
-    def hourglass_pair_force(coef: scalar, G: mat33, xb: vec3, Xb: vec3, h: scalar, c6: scalar):
-        """``g_ij = coef w(|X_ij|) (x_ij - G_i X_ij)``, ``coef = c mu_i V_i / S_i``: minus the
-        gradient of ``E_i`` with respect to ``x_j`` (at the minimising ``G_i``, where the
-        derivative through ``G_i`` vanishes)."""
-        return coef * sm.w_poly6_c(wp.dot(Xb, Xb), h, c6) * (xb - G * Xb)
+    def hourglass_pair_force(coef: scalar, G: mat33, ub: vec3, Xb: vec3, h: scalar, c6: scalar):
+        """``g_ij = coef w(|X_ij|) (u_ij - G_i X_ij)``, ``coef = c mu_i V_i / S_i``, ``u`` the
+        displacement and ``G_i`` its map (``x_ij - (I + G_i) X_ij``): minus the gradient of
+        ``E_i`` with respect to ``x_j`` (at the minimising ``G_i``, where the derivative through
+        ``G_i`` vanishes)."""
+        return coef * sm.w_poly6_c(wp.dot(Xb, Xb), h, c6) * (ub - G * Xb)
 
     @wp.kernel(module="unique")
     def hourglass_forces(
@@ -132,12 +136,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         G, ok = residual_map(s, A, B)
         if ok:
             coef = c * mat.mu[material[i]] * volume[i] / s
-            xi = x[i]
+            # Displacements, not positions: x_j - x_i and B A^-1 = I + round-off left a force of
+            # 1.2e-5 m/s^2 on a float32 body at rest (docs/physics.md, "The held cantilever's
+            # float32 late growth").
+            ui = x[i] - rest[i]
             Xi = rest[i]
             for k in range(n):
                 j = nbr[i, k]
                 if body[j] == body[i]:
-                    g = hourglass_pair_force(coef, G, x[j] - xi, rest[j] - Xi, h, c6)
+                    g = hourglass_pair_force(coef, G, (x[j] - rest[j]) - ui, rest[j] - Xi, h, c6)
                     wp.atomic_sub(f, j, g)
                     wp.atomic_add(f, i, g)
 

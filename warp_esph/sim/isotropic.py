@@ -33,19 +33,43 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
 
     @wp.func
-    def singular_values(F: mat33) -> vec3:
+    def strained(sk: scalar, v0: scalar, v1: scalar, v2: scalar, E: mat33) -> scalar:
+        """``svd``'s singular value ``sk`` of right singular vector ``v`` taken from the strain
+        ``E = F^T F - I``: ``1 + v^T E v / (1 + sk)``; an inverted one (``sk <= 0``) as given."""
+        v = vec3(v0, v1, v2)
+        return wp.where(sk > scalar(0.0), scalar(1.0) + wp.dot(v, E * v) / (scalar(1.0) + sk), sk)
+
+    @wp.func
+    def svd(F: mat33):
+        """``(U, sigma, V)`` of ``wp.svd3(F)`` with each positive ``sigma_k`` taken again from
+        ``F``'s strain, ``1 + v_k^T (F^T F - I) v_k / (1 + sigma_k)`` (``= sigma_k`` exactly),
+        the strain formed from ``F - I`` before any product. ``wp.svd3`` rotates even a
+        diagonal ``F`` and returns ``F = I``'s singular values 1 to 5 units in the last place
+        below 1 in float32, so the stress at rest was not 0 (0.076 Pa at mu = 58 kPa) and a
+        body at rest felt forces of up to 0.015 m/s^2 (docs/physics.md, "The held
+        cantilever's float32 late growth"). Here ``F = I`` gives 1 exactly, and near ``I``
+        within half a unit of float64 (docs/method.md §3). Every SVD the stress and the flow
+        read is this one."""
         U = mat33()
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
+        H = F - wp.identity(n=3, dtype=scalar)
+        E = H + wp.transpose(H) + wp.transpose(H) * H
+        s0 = strained(s[0], V[0, 0], V[1, 0], V[2, 0], E)
+        # Kept in wp.svd3's order where round-off would swap repeated values by a unit.
+        s1 = wp.min(strained(s[1], V[0, 1], V[1, 1], V[2, 1], E), s0)
+        s2 = strained(s[2], V[0, 2], V[1, 2], V[2, 2], E)
+        return U, vec3(s0, s1, wp.where(s2 > scalar(0.0), wp.min(s2, s1), s2)), V
+
+    @wp.func
+    def singular_values(F: mat33) -> vec3:
+        U, s, V = svd(F)
         return s
 
     @wp.func_grad(singular_values)
     def adj_singular_values(F: mat33, adj_ret: vec3):
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = svd(F)
         wp.adjoint[F] += U * wp.diag(adj_ret) * wp.transpose(V)
 
     @wp.func
@@ -56,10 +80,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def isotropic_map(F: mat33, g: vec3, d1: vec3) -> mat33:
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = svd(F)
         return from_principal(U, g, V)
 
     @wp.func
@@ -106,10 +127,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def isotropic_map_adjoint(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
         """The adjoints ``(adj F, adj g)`` of ``isotropic_map`` (module doc)."""
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = svd(F)
         C = wp.transpose(U) * adj_ret * V
         M = off_diagonal(C, d1, pair_skew_coefficients(g, s))
         return U * M * wp.transpose(V), vec3(C[0, 0], C[1, 1], C[2, 2])
@@ -127,10 +145,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         ``F`` to the last bit, where ``U diag(g) V^T`` rebuilds ``F`` with the SVD's error,
         units in the last place every step (docs/physics.md, the float32 creep floor). Its
         adjoint is ``isotropic_map``'s less the identity."""
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = svd(F)
         return from_principal(U, g - s, V)
 
     @wp.func_grad(isotropic_change)
@@ -140,7 +155,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         wp.adjoint[g] += ag
 
 
-    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map,
+    return types.SimpleNamespace(svd=svd, singular_values=singular_values, isotropic_map=isotropic_map,
                                  isotropic_change=isotropic_change, from_principal=from_principal,
                                  skew_coefficient=skew_coefficient, pair_skew_coefficients=pair_skew_coefficients,
                                  off_diagonal=off_diagonal)

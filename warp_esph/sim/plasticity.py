@@ -121,10 +121,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         ``U`` on both sides): the principal values the flow rule reads, in space (the frame of a
         Cauchy stress), so a stress given in space can be added to the elastic one
         (``pressure_yield_norm2``)."""
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = iso.svd(F)
         return iso.from_principal(U, s, U)
 
     @wp.func_grad(left_stretch)
@@ -132,10 +129,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         # d(V_L^2) = dF F^T + F dF^T in U's frame gives (U^T dV_L U)_ij (s_i + s_j) = R_ij s_j +
         # s_i R_ji with R = U^T dF V: finite where singular values repeat (F = I), where
         # wp.svd3's own adjoint is not (isotropic.py).
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = iso.svd(F)
         G = wp.transpose(U) * adj_ret * U
         A = mat33()
         for i in range(3):
@@ -444,6 +438,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     COROTATED = forces.COROTATED
     off_diagonal = isotropic.funcs(scalar).off_diagonal
     pair_d2 = isotropic.funcs(scalar).pair_skew_coefficients
+    svd = isotropic.funcs(scalar).svd
 
     @wp.kernel(enable_backward=False, module="unique")
     def constitutive_update_adjoint(
@@ -489,10 +484,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         K = mat.hardening[m]
         F = F_in[i]
         a0 = alpha_in[i]
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
+        U, s, V = svd(F)
         Ut = wp.transpose(U)
 
         # Forward, as flow_step (only where it flows do g, c, p differ from s, 1, 1).
