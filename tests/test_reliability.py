@@ -317,7 +317,8 @@ def _stiff_cube(mu):
 def test_monitor_reach_holds_at_any_stiffness():
     """The reach bound grew with the p-wave speed (sqrt(mu / rho)): a 6 cm float64 cube at
     mu = 1e25 Pa stepped once at half the stable step of 1e3 Pa put particles 2.5 km out of
-    the scene (1e30 Pa: 2.5e8 m), and no bound caught it. Positions that far are a blow-up at
+    the scene (1e30 Pa: 2.5e8 m), and no bound caught it (seeded then by F = I's round-off;
+    now from a start strain of 1e-15: 12.6 km, 1e30 Pa 1.3e9 m). Positions that far are a blow-up at
     any stiffness now; a fall and the recoil of the elastic energy stored at the start (which
     a stiff prestrained body really has) stay within it."""
     dt = 0.5 * _stiff_cube(1e3).stable_dt()
@@ -327,7 +328,9 @@ def test_monitor_reach_holds_at_any_stiffness():
     x0 = state.x.numpy().astype(np.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # dt far past the stable step, on purpose
-        after = Rollout(model, 1, dt, frames=[1]).forward(check=False)[0].astype(np.float64)
+        # A strain of 1e-15, the size of F = I's round-off in float64 before isotropic.svd
+        # (at F = I the step has no stress now).
+        after = Rollout(model, 1, dt, frames=[1]).forward(check=False, F0=(1.0 + 1e-15) * np.eye(3))[0].astype(np.float64)
     assert np.abs(after).max() > 1e3
     what, p = mon.check(after, np.zeros_like(after), dt)
     assert "outside the scene" in what and "at any stiffness" in what, what
