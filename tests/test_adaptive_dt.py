@@ -204,7 +204,7 @@ def _jittered_peak(model, dt, seconds, seed, max_condition=None):
     return _peak_speed(model, dt, int(round(seconds / dt)), BOX_BLOWN_UP, state=state, max_condition=max_condition)
 
 
-@pytest.mark.parametrize(("pressure_force", "blew_up"), [("spiky", 3), ("energy", 1)])
+@pytest.mark.parametrize(("pressure_force", "blew_up"), [("spiky", 3), ("energy", 4)])
 def test_undamped_fast_plastic_flow_rests_at_half_the_stable_step(pressure_force, blew_up):
     """Issue 12's target "no preset blows up at half ``stable_dt``, with or without
     viscosity" for its tightest case: the toothpaste preset without viscosity (flow rate
@@ -232,6 +232,8 @@ def test_undamped_fast_plastic_flow_rests_at_half_the_stable_step(pressure_force
     # were found under the instant contact law; under the continuous one (the default) every
     # start of the spiky force blows up with the old guard and none of starts 0-5 of the
     # energy force does (peaks 0.81-1.00 m/s), so its start is run under the instant law.
+    # Since a body at rest has no stress in float32 (isotropic.svd) its start 1 stays bounded
+    # there (0.89 m/s); starts 0-7 reach 3.9, 0.89, 2.3, 0.80, blow up, 0.80, 3.7, 4.2 m/s.
     model.contact_ramp = INSTANT_CONTACT_RAMP
     assert _jittered_peak(model, dt, 2.0, blew_up, max_condition=1.0e3) == math.inf
 
