@@ -74,6 +74,33 @@ def test_a_flowed_body_made_elastic_is_given_half_the_wave_limit_from_its_state(
         we.Solver(model).step(fresh, model.state(), full)
 
 
+def test_the_step_reads_alpha_back_once_and_only_where_the_path_hangs_on_it(monkeypatch):
+    """Each read of ``alpha`` waits for the device on a GPU. The step reads it only where the
+    parameters choose the rest model from a state an incremental step wrote that does not say it
+    flowed, and then once for both the path (``_runs_rest``) and the stable step's check: the
+    check read it a second time, and unguarded by the parameters' choice it would read it at
+    every step of a flowing body, whose states an incremental step writes without ``flowed``."""
+    from warp_esph import model as model_module
+
+    reads = []
+    real = model_module.flowed_by_hardening
+    monkeypatch.setattr(model_module, "flowed_by_hardening", lambda alpha: reads.append(1) or real(alpha))
+    model, solver, flowed = _slumped_block()
+    assert len(reads) == 1  # _slumped_block's own has_flowed(): none in its 40 flowing steps
+    assert flowed.rest_model is False and flowed.flowed is None
+    del reads[:]
+    a, b = flowed, model.state()
+    dt = model.stable_dt(state=flowed)
+    assert len(reads) == 1
+    del reads[:]
+    for _ in range(5):
+        solver.step(a, b, dt)
+        a, b = b, a
+        if b is flowed:
+            b = model.state()
+    assert len(reads) == 1 and a.flowed is True and a.rest_model is False  # the first step's one read
+
+
 def test_simulate_steps_a_flowed_start_made_elastic_at_half_the_wave_limit():
     """``simulate``'s default and adaptive steps, and its start check, read the start given."""
     model, _, flowed = _slumped_block()

@@ -227,7 +227,7 @@ def flowed_by_hardening(alpha) -> bool:
     return bool(np.any(np.asarray(alpha) > 0.0))
 
 
-def keeps_incremental(state: "State") -> bool:
+def keeps_incremental(state: "State", flowed: bool | None = None) -> bool:
     """Whether a step from ``state`` keeps the incremental composition whatever the parameters
     allow: an incremental step wrote it (``State.rest_model`` False) and its body has flowed
     (``State.has_flowed``), so its rest neighbourhoods no longer describe it and it is never
@@ -235,8 +235,9 @@ def keeps_incremental(state: "State") -> bool:
     ``Solver.runs_rest`` is ``rest_model and not keeps_incremental(state)``, and a record made
     later at other values (fit.json's ``solver``) combines the two alike; ``Model.stable_dt(state=)``
     halves the step of such a state (``corrected_incremental``). Reads ``alpha`` back only where
-    ``rest_model`` is False and ``flowed`` is not True (``State.has_flowed``)."""
-    return state.rest_model is False and state.has_flowed()
+    ``rest_model`` is False and ``flowed`` is not True (``State.has_flowed``); ``flowed``: its
+    answer where the caller has read it already (the step, for its path and its check alike)."""
+    return state.rest_model is False and (state.has_flowed() if flowed is None else flowed)
 
 
 def check_contact_ramp(name: str, value) -> float:
@@ -1304,6 +1305,11 @@ class Model(Unpicklable):
         under ``fit="auto"`` keeps that fit on the incremental composition
         (``keeps_incremental``), where the parameters alone choose the rest model: from such a
         state the step is the half too (``Solver.check_dt`` passes the step's ``state_in``)."""
+        return self._stable_dt_from(courant, hourglass, fit, state)
+
+    def _stable_dt_from(self, courant, hourglass, fit, state, flowed: bool | None = None) -> float:
+        # ``flowed``: ``state.has_flowed()`` where the step has read it for its path (a second
+        # read would wait for the device again); None: read here where the path hangs on it.
         courant = checks.courant(courant)
         self._check_force_fields()
         if state is not None:
@@ -1322,7 +1328,7 @@ class Model(Unpicklable):
         _, rest, dts = cached
         # Read only where the parameters choose the rest model: only there can the state change
         # the path, and only there does the step read alpha back itself (Solver._runs_rest).
-        kept = rest and state is not None and keeps_incremental(state)
+        kept = rest and state is not None and keeps_incremental(state, flowed)
         dt = dts.get(kept)
         if dt is None:
             dt = dts[kept] = self._stable_dt_now(courant, hourglass, rows, fit=fit, kept=kept)

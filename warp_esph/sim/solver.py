@@ -625,7 +625,7 @@ class Solver(Unpicklable):
             self._rest = None
             self.hourglass = self._hourglass
 
-    def _runs_rest(self, state_in: State, rest: bool) -> tuple[bool, bool | None]:
+    def _runs_rest(self, state_in: State, rest: bool, flowed: bool | None = None) -> tuple[bool, bool | None]:
         """``(rest_model, flowed)``: whether a step from ``state_in`` runs the rest model where
         the parameters choose it (``rest``: ``rest_model``), and whether its body has flowed
         (``State.flowed``; None: not known). A state an incremental step wrote
@@ -635,10 +635,11 @@ class Solver(Unpicklable):
         and its kinetic energy grew 200-fold), so the step keeps the incremental composition,
         with the fit and control the parameters chose. ``alpha`` is read back only there, for a
         state whose ``flowed`` is not True (``State.has_flowed``: a False may predate an
-        ``alpha`` set by hand); the states the step writes carry what it found."""
+        ``alpha`` set by hand); the states the step writes carry what it found. ``flowed``:
+        ``has_flowed()`` as the step read it for its check already (None: read here)."""
         if not (rest and state_in.rest_model is False):
             return rest, getattr(state_in, "flowed", None)
-        flowed = state_in.has_flowed()
+        flowed = state_in.has_flowed() if flowed is None else flowed
         if flowed and self.model.world_count > 1 and not self._warned_worlds_kept:
             self._warn_worlds_kept(state_in)
         return not flowed, flowed
@@ -960,11 +961,12 @@ class Solver(Unpicklable):
         ``state_in`` so."""
         return self._check_dt(dt, state, self.next_hourglass(), 4)
 
-    def _check_dt(self, dt, state: State | None, c: float, stacklevel: int) -> float:
+    def _check_dt(self, dt, state: State | None, c: float, stacklevel: int, flowed: bool | None = None) -> float:
         # ``c``: the control the step runs; the step passes the one it has just chosen, which
-        # next_hourglass would ask the parameters for again (3 us a step).
+        # next_hourglass would ask the parameters for again (3 us a step); ``flowed``: its
+        # reading of state.has_flowed() (None: not read), which a GPU would wait for again.
         dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit, hourglass=c)
-        stable = self.model.stable_dt(hourglass=c, fit=self.asked_fit, state=state)
+        stable = self.model._stable_dt_from(0.3, c, self.asked_fit, state, flowed)
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
             self._warned_dt[dt] = past
@@ -1036,7 +1038,9 @@ class Solver(Unpicklable):
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
-            dt = self._check_dt(dt, state_in, self.hourglass, 3)
+            # Read once for the check and the path (_runs_rest), only where the path hangs on it.
+            flowed = state_in.has_flowed() if chose_rest and state_in.rest_model is False else None
+            dt = self._check_dt(dt, state_in, self.hourglass, 3, flowed)
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
             # carry the loss's slope in both from 0, where a fit may start them, which a skipped
@@ -1054,7 +1058,7 @@ class Solver(Unpicklable):
             _check_ghost_floor(m, self.fit)
         # What runs is a fact of this step, carried by state_out (State.rest_model) alone: the
         # solver's attributes would describe whichever state it stepped last.
-        rest_model, flowed = self._runs_rest(state_in, chose_rest)
+        rest_model, flowed = self._runs_rest(state_in, chose_rest, flowed)
         cmp = self._cmp or rest_model
         if not rest_model and state_in.rest_model is True:
             # Handed back from the rest model (a parameter made a material flow, or a solver of
