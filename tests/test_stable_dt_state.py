@@ -74,6 +74,28 @@ def test_a_flowed_body_made_elastic_is_given_half_the_wave_limit_from_its_state(
         we.Solver(model).step(fresh, model.state(), full)
 
 
+def test_a_state_the_step_hands_to_the_rest_model_keeps_the_full_limit_whatever_its_alpha():
+    """Only a state an incremental step wrote keeps the incremental composition: a new state or
+    one the rest model wrote, its ``alpha`` set by hand, is handed to the rest model
+    (``Solver.runs_rest``), whose step is the full wave limit, and the step runs it there
+    without a warning."""
+    model, solver, _ = _slumped_block()
+    full = model.stable_dt()
+    fresh = model.state()
+    fresh.alpha.fill_(0.01)
+    assert fresh.rest_model is None and solver.runs_rest(fresh) and model.stable_dt(state=fresh) == full
+    rested = model.state()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.step(fresh, rested, full)
+        assert rested.rest_model is True
+        rested.alpha.fill_(0.01)
+        assert solver.runs_rest(rested) and model.stable_dt(state=rested) == solver.stable_dt(state=rested) == full
+        out = model.state()
+        solver.step(rested, out, full)
+    assert out.rest_model is True
+
+
 def test_the_step_reads_alpha_back_once_and_only_where_the_path_hangs_on_it(monkeypatch):
     """Each read of ``alpha`` waits for the device on a GPU. The step reads it only where the
     parameters choose the rest model from a state an incremental step wrote that does not say it
