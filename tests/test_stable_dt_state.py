@@ -243,6 +243,24 @@ def test_a_rollout_blown_up_from_a_flowed_start_made_elastic_quotes_half_the_wav
     assert "dt is within it" not in said
 
 
+def test_the_steps_non_finite_warning_names_the_stable_step_of_its_state_in():
+    """``Solver.step``'s warning of a non-finite ``state_in`` quotes the stable step of that
+    state: from a flowed body made elastic it quoted the half as ``Model.stable_dt()``, which
+    returns the whole."""
+    model, solver, flowed = _slumped_block()
+    half, full = model.stable_dt(state=flowed), model.stable_dt()
+    out, nxt = model.state(), model.state()
+    solver.step(flowed, out, half)
+    x = out.x.numpy()
+    x[0, 0] = np.nan
+    out.x.assign(x)
+    with pytest.warns(RuntimeWarning, match="non-finite position") as said:
+        solver.step(out, nxt, half)
+    text = str(said[0].message)
+    assert f"Model.stable_dt(state=) of state_in = {half:.3g} s (dt is within it" in text, text
+    assert f"Model.stable_dt() = {full:.3g}" not in text and "Model.stable_dt() =" not in text
+
+
 def test_energy_growth_quotes_the_stable_step_of_the_runs_start():
     """``simulate.energy_growth``'s blow-up names the stable step of the run's start
     (``state=``; ``Rollout.bounds_hit`` passes its forward's): from a flowed body made elastic,

@@ -834,9 +834,11 @@ class Solver(Unpicklable):
         skin, after the first step): an earlier step blew up, and this one carries it on."""
         self._warned_non_finite = True
         stable = self.stable_dt(state=state_in)
+        # Named as what it is: from a flowed body made elastic, half of what Model.stable_dt() returns.
+        named = "Model.stable_dt()" if stable == self.stable_dt() else "Model.stable_dt(state=) of state_in"
         warnings.warn(
             f"Solver.step: state_in holds a non-finite position: an earlier step blew up, and the steps from it carry "
-            f"NaN on; dt = {dt:g} s, Model.stable_dt() = {stable:.3g} s"
+            f"NaN on; dt = {dt:g} s, {named} = {stable:.3g} s"
             + (" (dt is above it: use a smaller one)" if dt > stable * (1.0 + STEP_ROUNDING) else
                " (dt is within it: check the start state and the parameters)")
             + "; step does not read the particles back, so check a run's states where it reads them "
