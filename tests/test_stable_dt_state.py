@@ -148,7 +148,11 @@ def test_a_fits_step_from_a_flowed_start_is_the_corrected_incremental_fits():
     args = dict(steps=2, iterations=0, progress=False, diagnostics=False)
     full = model.stable_dt()
     half = model.stable_dt(hourglass=0.05, fit="curvature_corrected")
-    r = fit(model, loss, ["mu"], initial={"initial_state": flowed}, **args)
+    said = []
+    r = fit(model, loss, ["mu"], initial={"initial_state": flowed}, log=said.append, **args)
+    # The log says why: the guess's own step from that start (it said the guess's was the whole).
+    assert said[0] == (f"the experiment: dt = {r.step_limit['dt']:.4g} s, the guess's stable step from the run's start "
+                       f"(Model.stable_dt(state=); a new state's is {full:.4g} s)"), said[0]
     assert r.step_limit["dt"] == pytest.approx(half, rel=1e-12) and r.step_limit["stable_dt"] == pytest.approx(half, rel=1e-12)
     assert fit(model, loss, ["mu"], **args).step_limit["dt"] == pytest.approx(full, rel=1e-12)
     # At the full limit given, the rollouts run past it, and the fit says so.

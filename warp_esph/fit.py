@@ -1709,12 +1709,17 @@ def _choose_steps(runs: list[_Run], prob: _Problem, candidates) -> list[str]:
     said = []
     for r in runs:
         rows = r.model._read_parameters()
-        least = min(r.stable_step(prob.from_z(z), rows) for z in candidates)
+        steps = [r.stable_step(prob.from_z(z), rows) for z in candidates]
+        least = min(steps)
         if least >= r.dt:
             continue
         if r.exp.dt is None:
+            # The guess's own (candidates[0]) from the run's start, not r.dt, a new state's: from a
+            # flowed body made elastic the log called the half the stiffest point's, the whole the guess's.
             said.append(f"{r.name}: dt = {least:.4g} s, the stable step of the stiffest point the fit starts from "
-                        f"(the guess's is {r.dt:.4g} s)")
+                        f"(the guess's is {steps[0]:.4g} s)" if least < steps[0] else
+                        f"{r.name}: dt = {least:.4g} s, the guess's stable step from the run's start "
+                        f"(Model.stable_dt(state=); a new state's is {r.dt:.4g} s)")
             r.retime(least)
         else:
             said.append(f"{r.name}: dt = {r.dt:.4g} s is above {least:.4g} s, the stable step of the stiffest point "
