@@ -1203,17 +1203,22 @@ def test_a_run_from_a_flowed_state_records_the_incremental_composition_from_its_
     assert Stateless.told == [(None, True, rest), (0, True, rest), (1, True, rest)]
 
 
+def _slump_block(ground: float):
+    """A 4x4x6 block (yield 30 Pa, ``flow_rate`` 200) standing on the ground at ``ground``, float64."""
+    mat = we.Material(density=1000.0, mu=3e3, lam=4e3, yield_stress=30.0, flow_rate=200.0)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.12, 0.08), mat)
+    b.add_ground(ground, friction=0.5)
+    return b.finalize(dtype=wp.float64)
+
+
 def test_a_slumped_body_made_elastic_stays_at_rest():
     """A 4x4x6 block slumped on the ground for 0.4 s (``flow_rate`` 200, yield 30 Pa), then set
     (``flow_rate = 0``, as a callback or a fit's parameter crossing zero does): handed over to
     the rest model, 15 of its 96 rest fits inverted every step (rest neighbourhoods its flow had
     left), its top rose 3.3 mm in 0.1 s and its kinetic energy grew from 1.6e-4 J to 0.13 J,
     120 x the incremental composition's 1.1e-3 J. It now keeps the incremental composition."""
-    mat = we.Material(density=1000.0, mu=3e3, lam=4e3, yield_stress=30.0, flow_rate=200.0)
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.0, 0.0), (0.08, 0.12, 0.08), mat)
-    b.add_ground(-0.07, friction=0.5)
-    model = b.finalize(dtype=wp.float64)
+    model = _slump_block(-0.07)
     solver = we.Solver(model)
     # Both runs at the step of the corrected incremental fit (half the wave limit, with the
     # control's), which the flowed body keeps after the hand-over and the second solver runs.

@@ -23,7 +23,7 @@ from warp_esph.scenes import load_scaled_scene
 from warp_esph.sim.solver import keeps_incremental
 from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
 from run_files import box_on_ground
-from test_elastic_force import _elastic_block_and_a_flowed_start
+from test_elastic_force import _elastic_block_and_a_flowed_start, _slump_block
 
 HALF = "the wave limit x 0.5 for the curvature-corrected fit on the incremental composition"
 
@@ -32,11 +32,7 @@ def _slumped_block(steps=40):
     """The block of ``test_a_slumped_body_made_elastic_stays_at_rest`` (4x4x6, yield 30 Pa,
     ``flow_rate`` 200) after ``steps`` steps on the ground it stands on, then made elastic: its
     model, the solver that stepped it and its state, which has flowed."""
-    mat = we.Material(density=1000.0, mu=3e3, lam=4e3, yield_stress=30.0, flow_rate=200.0)
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.0, 0.0), (0.08, 0.12, 0.08), mat)
-    b.add_ground(-0.06, friction=0.5)
-    model = b.finalize(dtype=wp.float64)
+    model = _slump_block(-0.06)
     solver = we.Solver(model)
     dt = model.stable_dt()
     a, c = model.state(), model.state()
