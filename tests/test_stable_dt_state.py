@@ -135,6 +135,18 @@ def test_simulate_steps_a_flowed_start_made_elastic_at_half_the_wave_limit():
     assert solver.step_count == n and end.rest_model is False
 
 
+def test_simulate_warns_of_a_dt_past_its_starts_limit_before_the_run_at_the_callers_line():
+    """``simulate`` checks ``dt`` against its start's stable step before the progress bar, the
+    warning pointing at the caller's line; left to the step's own check, it came from inside the
+    package at the first step."""
+    model, _, flowed = _slumped_block()
+    dt = 1.0 / 30.0 / 20.0  # within a new state's limit, twice the flowed start's
+    assert model.stable_dt(state=flowed) < 0.51 * dt < 0.51 * model.stable_dt()
+    with pytest.warns(RuntimeWarning, match=HALF) as said:
+        simulate(model, 1, fps=30.0, solver=we.Solver(model), state=flowed, dt=dt, progress=False)
+    assert [w.filename for w in said] == [__file__]
+
+
 def test_a_fits_step_from_a_flowed_start_is_the_corrected_incremental_fits():
     """A fit's chosen step (``dt=None``) and its ``step_limit`` read its rollout's start: from a
     flowed start of an elastic body (``initial_state`` an incremental step wrote, ``alpha`` >
