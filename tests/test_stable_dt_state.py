@@ -5,6 +5,8 @@ of the wave limit, where its parameters alone choose the rest model and the full
 (docs/method.md §8). Measured before: the large breathing 6^3 cube so started ran away at the
 full limit (float64 7030 x its energy at 6.7 periods) and kept 1.23 x over 10 periods at half."""
 
+import contextlib
+import io
 import json
 import re
 import warnings
@@ -233,6 +235,20 @@ def test_a_cli_run_resumed_from_a_flowed_checkpoint_made_elastic_takes_half_the_
         np.savez(ckpt, **arrays)
         assert main(["run", "--resume", str(ckpt), "--frames", "14", "--no-progress"]) == 2
         assert "dt_stable = 1" in capsys.readouterr().err
+        # A checkpoint written before the record kept dt_stable resumes at the dt it recorded (the
+        # full step here), and the check before the run, of the checkpoint's state, warns ahead
+        # of the run line (the step's own check warned after it).
+        meta["run"].pop("dt_stable")
+        meta["run"]["dt"] = recorded["dt"]
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        np.savez(ckpt, **arrays)
+        both = io.StringIO()
+        with contextlib.redirect_stdout(both), contextlib.redirect_stderr(both):
+            main(["run", "--resume", str(ckpt), "--frames", "13", "--no-progress"])
+        said = both.getvalue()
+        warned = said.find(f"warning: dt = {recorded['dt']:g} s is above the explicit stability limit {half:.3g} s")
+        ran = said.find(f"dt = {recorded['dt']:.4g} s (")
+        assert -1 < warned < ran, said
 
 
 def test_a_rollout_blown_up_from_a_flowed_start_made_elastic_quotes_half_the_wave_limit():
