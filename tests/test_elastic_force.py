@@ -1392,7 +1392,9 @@ def test_a_hardening_set_by_hand_after_the_step_that_wrote_flowed_false_counts(t
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (3 * SPACING,) * 3, mat)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
-    dt = 0.5 * model.stable_dt()
+    # 0.4, under the half a flowed start keeps (Model.stable_dt(state=)) at the fit's stiffer
+    # second point too (mu 1.1 x), which the fit below tries where its start's loss is 0.
+    dt = 0.4 * model.stable_dt()
     solver = we.Solver(model)
     first, rest, spare = model.state(), model.state(), model.state()
     we.Solver(model, fit="linear").step(model.state(), first, dt)
