@@ -926,3 +926,51 @@ def test_a_rejected_lbfgs_trial_runs_its_backward_only_where_its_slope_is_read(l
         assert ran_now == ran_before == len(now.history) == 2
     else:
         assert ran_now < ran_before / 2, (ran_now, ran_before)
+
+
+def _press_xyz():
+    """A 64-particle elastic cube (mu = 5 kPa) pressed by a plate moving down y at 0.1 m/s, and
+    the plate's force curve over 60 steps (windows of 10), all three components."""
+    from test_force_fit import _elastic_press  # noqa: PLC0415
+
+    from warp_esph.losses import ReactionForceLoss  # noqa: PLC0415
+
+    ends = list(range(10, 61, 10))
+    ro = Rollout(_elastic_press(5000.0), 60, 2.0e-4, frames=ends)
+    ro.forward(taped=False)
+    return _elastic_press, ends, ReactionForceLoss(np.zeros((len(ends), 3)), "plate", ends, window=10).curve(ro.observations())
+
+
+@pytest.mark.parametrize("log", ["z_up", "zero"])
+def test_a_force_log_that_does_not_point_against_the_model_is_not_said_to_have_the_opposite_sign(log):
+    """A curve at a cosine near 0 to the model's was said to point against it and to need its
+    columns negated, which changes nothing of its fit: a log of the ground's force with fx and
+    fy swapped read cosine -0.00 (and a lab's with the vertical force in fz, z up where the
+    scene's y is up, was said nothing of); a log of zeros whose round-off (1e-16 N) points
+    against the model's was said to have the opposite sign, which hid that it is 1e16 times
+    smaller than the model's curve. A sign is said now only where the target negated would
+    leave at most half the misfit; a curve along another axis than the model's is said to be so,
+    naming both."""
+    from warp_esph.diagnostics import diagnose  # noqa: PLC0415
+    from warp_esph.losses import ReactionForceLoss  # noqa: PLC0415
+
+    press, ends, truth = _press_xyz()
+    assert np.abs(truth[:, 1]).min() > 10 * np.abs(truth[:, [0, 2]]).max()  # the press is along y
+    if log == "z_up":
+        target = truth[:, [0, 2, 1]]
+    else:
+        target = np.zeros_like(truth)
+        target[:, 1] = -1e-16 * np.sign(truth[:, 1])  # round-off pointing against the press
+    loss = ReactionForceLoss(target, "plate", ends, window=10)
+    logged = []
+    result = fit(press(5000.0), loss, ["mu"], steps=60, dt=2.0e-4, optimizer="gauss-newton", iterations=0,
+                 progress=False, log=logged.append)
+    d = diagnose(press(5000.0), loss, ["mu"], steps=60, dt=2.0e-4, progress=False)
+    for said in (d.warnings, result.diagnostics.warnings, logged):
+        assert not [w for w in said if "points against" in w or "negate" in w], said
+    if log == "z_up":
+        axes = [w for w in d.warnings if "lies along z" in w]
+        assert len(axes) == 1 and "the model's along y" in axes[0], d.warnings
+        assert [m for m in logged if "lies along z" in m and m.endswith("(at the start)")], logged
+    else:
+        assert [w for w in d.warnings if "times smaller than the fitted curve" in w], d.warnings

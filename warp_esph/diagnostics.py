@@ -511,7 +511,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                 stated_groups.append((f"{which}{_term_name(leaf)}", t_rms**2 * count, count, t_sigma,
                                       getattr(leaf, "noise_unit", ""), "", "its"))
         for leaf in leaf_terms(run.loss):
-            said = leaf.opposite_sign(arrays) if hasattr(leaf, "opposite_sign") else None
+            said = leaf.opposite_sign(arrays) or leaf.other_axes(arrays) if hasattr(leaf, "opposite_sign") else None
             if said is None and hasattr(leaf, "size_mismatch"):
                 said = leaf.size_mismatch(arrays)  # a curve of the opposite sign is that already
             if said is not None:

@@ -597,15 +597,16 @@ class Experiment:
 
 
 def _opposite_signs(runs) -> list[str]:
-    """``ReactionForceLoss.opposite_sign`` of every term of ``runs`` at their last forward, said
-    as at the fit's start."""
+    """``ReactionForceLoss.opposite_sign`` (else ``other_axes``) of every term of ``runs`` at
+    their last forward, said as at the fit's start."""
     out = []
     for r in runs:
         for leaf in _leaves(r.loss):
             if not hasattr(leaf, "opposite_sign"):
                 continue
             try:
-                said = leaf.opposite_sign(r.rollout.observations(numpy=True))
+                obs = r.rollout.observations(numpy=True)
+                said = leaf.opposite_sign(obs) or leaf.other_axes(obs)
             except (KeyError, ValueError):  # no forces recorded at this evaluation
                 continue
             if said is not None:
@@ -2559,7 +2560,7 @@ def fit(
             raise _fit_interrupted(result) from None
         d = result.diagnostics
         say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
-        if not any("points against the model's" in w for w in d.warnings):
+        if not any("points against the model's" in w or "the model's along" in w for w in d.warnings):
             d.warnings.extend(state.get("signs", []))
         if iterations > 0 and not result.converged:
             d.warnings.insert(0, f"the fit did not converge ({stopped}): these errors describe the curvature at its last "

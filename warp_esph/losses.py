@@ -1628,23 +1628,51 @@ class ReactionForceLoss(Loss):
     def residuals(self, obs) -> np.ndarray:
         return (self.curve(obs) - self.targets).ravel()
 
+    #: ``opposite_sign`` speaks where the target negated leaves at most this share of the misfit.
+    OPPOSITE_SHARE = 0.5
+
     def opposite_sign(self, obs) -> str | None:
         """A sentence where the simulated curve points against the target (a negative cosine
         over the observed windows, the simulated curve's RMS at least a tenth of the target's):
         it then fits worse than no force at all. A log of the force on the tool, or of
         compression counted positive, measures the negative of the force the tool exerts on the
         material, which no material value reaches: a fit drove mu from 8000 to 7 Pa and said
-        only that it had not converged."""
+        only that it had not converged. Said only where the target negated would leave at most
+        ``OPPOSITE_SHARE`` of the misfit: a curve at a cosine near 0 (columns swapped: -0.00) or
+        one far smaller than the model's (a log of zeros whose round-off points against it) is
+        not mended by negating it, and was told to be."""
         sim = self.curve(obs)
         norm = float(np.linalg.norm(sim) * np.linalg.norm(self.targets))
         if not norm > 0.0 or np.linalg.norm(sim) < 0.1 * np.linalg.norm(self.targets):
             return None
         cosine = float(np.sum(sim * self.targets)) / norm
-        if cosine >= 0.0:
+        negated = float(np.sum((sim + self.targets) ** 2))
+        if cosine >= 0.0 or negated > self.OPPOSITE_SHARE * float(np.sum((sim - self.targets) ** 2)):
             return None
         return (f"the {self.term_name} points against the model's (cosine {cosine:.2f} over the observed windows; no "
                 "force at all would fit it better): the target is the force the tool exerts on the material, and a log "
                 "of the force on the tool, or of compression counted positive, is its negative (negate its columns)")
+
+    def other_axes(self, obs) -> str | None:
+        """A sentence where the target's force lies mostly along another axis than the simulated
+        curve's (each along its largest component by more than half its sum of squares, their
+        sizes within ``SIZE_MISMATCH``): a lab's log whose vertical force is fz (z up, where the
+        scene's y is up) or whose columns are in another order fits as a force the model never
+        exerts, and the fit drives the material soft, said only as undetermined."""
+        if len(self._axes) < 2:
+            return None
+        sim = self.curve(obs)
+        s2, t2 = np.sum(sim**2, axis=0), np.sum(self.targets**2, axis=0)
+        a, b = int(np.argmax(t2)), int(np.argmax(s2))
+        if (a == b or not t2[a] > 0.5 * t2.sum() or not s2[b] > 0.5 * s2.sum()
+                or not s2.sum() * self.SIZE_MISMATCH**2 > t2.sum() > s2.sum() / self.SIZE_MISMATCH**2):
+            return None
+        cosine = float(np.sum(sim * self.targets)) / float(np.sqrt(s2.sum() * t2.sum()))
+        k = len(self.frames)
+        return (f"the {self.term_name} lies along {self.components[a]} (RMS {np.sqrt(t2[a] / k):.3g} N), the model's along "
+                f"{self.components[b]} (RMS {np.sqrt(s2[b] / k):.3g} N; cosine {cosine:.2f} over the observed windows): "
+                "its columns fx, fy, fz are in another order, or in the lab's axes, not the scene's (the scene's y is up: "
+                "a z-up lab's fz is the scene's fy)")
 
     #: A target this many times larger or smaller (RMS) than the fitted curve is named (``size_mismatch``).
     SIZE_MISMATCH = 10.0
