@@ -2983,3 +2983,27 @@ def test_a_mask_file_the_system_refuses_in_a_folder_named_pickles_is_said_by_the
     with pytest.raises(ValueError) as e:
         load_masks(folder / "m.npz", _cameras(), 3)
     assert str(e.value) == f"mask file {folder / 'm.npz'} cannot be read: Permission denied (a damaged or foreign file?)"
+
+
+def test_a_target_given_twice_is_refused_not_counted_twice(tmp_path, capsys, dough_scene, monkeypatch):
+    """``--target run.usdc --target run.usdc`` (or ``./run.usdc`` beside it) fitted the one
+    recording as two: its 1152 observations counted as 2304, and the diagnostics reported
+    standard errors 1/sqrt(2) of the data's (yield stress 19.69 Pa where the file alone gives
+    27.85). Refused before any scene is built, naming the file and both places; the same file
+    at other frames (``--target-frames`` once per target) is not."""
+    from warp_esph.cli import main
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    monkeypatch.chdir(tmp_path)
+    common = ["--iterations", "0", "--no-progress", "--no-diagnostics", "--no-usd", "--output-dir", str(tmp_path / "o")]
+    for extra in (["--target", str(run), "--target", str(run)], ["--target", "run.usdc", "--target", "./run.usdc"],
+                  ["--target", "run.usdc", "--target", "run.usdc", "--target-frames", "2,3", "--target-frames", "2,3"]):
+        capsys.readouterr()
+        assert main(["fit", str(guess), *extra, *common]) == 2, extra
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and re.search(r"^warp-esph: error: --target = '[^']*run\.usdc' is not allowed twice \(--target "
+                                           r"#1 and #2 are one file( at the same frames)?\): its observations would count twice", err[0]), (extra, err)
+    assert not (tmp_path / "o").exists()
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", "run.usdc", "--target", "run.usdc", "--target-frames", "2",
+                 "--target-frames", "3", *common]) == 0

@@ -689,6 +689,16 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     coverages, coverage_name = _coverages(spec, args, where, len(targets), key)
     cameras = spec.get("cameras")
     fspecs = [tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None) for k in range(len(targets))]
+    # One recording given twice (the same frames of the same file) counted its observations
+    # twice: the diagnostics reported standard errors 1/sqrt(2) of the data's.
+    given = {}
+    for k, path in enumerate(targets):
+        first = given.setdefault((os.path.realpath(str(path)), None if fspecs[k] is None else str(fspecs[k])), k)
+        if first != k:
+            name = key("target")
+            raise ValueError(f"{where}{name} = {checks.shown_path(path)} is not allowed twice ({name} #{first + 1} and "
+                             f"#{k + 1} are one file{'' if fspecs[k] is None else ' at the same frames'}): its observations "
+                             "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give each file once")
 
     def read(path, fspec):
         ext = os.path.splitext(str(path))[1].lower()
