@@ -3007,3 +3007,20 @@ def test_a_target_given_twice_is_refused_not_counted_twice(tmp_path, capsys, dou
     capsys.readouterr()
     assert main(["fit", str(guess), "--target", "run.usdc", "--target", "run.usdc", "--target-frames", "2",
                  "--target-frames", "3", *common]) == 0
+
+
+def test_a_json_file_given_as_a_target_says_what_it_is_not_that_meshio_cannot_read_it(tmp_path):
+    """The ``_tools.json`` a run writes beside its force log (or a fit's ``fit.json``, a camera
+    or experiments file) given as ``--target`` was refused as a mesh meshio could not read
+    ('Could not deduce file format'), naming no target the command takes. It is said to be
+    JSON, with the force log's CSV named where the file is a run's record of one."""
+    from warp_esph.fit import load_target
+
+    (tmp_path / "run.usdc_tools.json").write_text('{"units": {"force": "N"}, "rows": []}')
+    (tmp_path / "fit.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"^target \S*run\.usdc_tools\.json is not allowed: it is a JSON file, not a "
+                                         r"measurement; a run's force log is its CSV beside it, \S*run\.usdc_tools\.csv"):
+        load_target(tmp_path / "run.usdc_tools.json")
+    with pytest.raises(ValueError, match=r"^target \S*fit\.json is not allowed: it is a JSON file, not a measurement; give "
+                                         r"the run's USD.*\(a camera file goes with --cameras, experiments with --experiments\)$"):
+        load_target(tmp_path / "fit.json")

@@ -3920,6 +3920,14 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         # 's.toml' is not allowed: meshio cannot read it (ReadError: Could not deduce ...)".
         raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a scene file (.toml), not a measurement; give the run's USD, "
                          "positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud")
+    if ext == ".json":
+        # Handed to meshio too: a run's force record beside its log was refused as a mesh that
+        # 'Could not deduce file format', naming no target the command takes.
+        log = p[:-len(".json")] + ".csv" if p.lower().endswith("_tools.json") else None
+        what = (f"a run's force log is its CSV beside it, {checks.shown_path(log, False)} (the same rows)" if log else
+                "give the run's USD, positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud (a camera "
+                "file goes with --cameras, experiments with --experiments)")
+        raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a JSON file, not a measurement; {what}")
     if body is not None and ext not in (".usd", ".usda", ".usdc"):
         # It was ignored: every position of the file was the target.
         raise ValueError(f"{body_name} = {checks.shorten(body)!r} is not allowed with the target {checks.shown_path(p, False)}: only the USD of a run holds bodies "
