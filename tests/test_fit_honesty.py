@@ -1003,3 +1003,22 @@ def test_a_target_lying_in_the_ground_is_warned_of_before_the_fit_runs_on_it(lan
         for cloud in (last, noisy):
             fit(_cube(), ChamferLoss(cloud, radius=0.06, frames=[STEPS]), ["yield_stress"], steps=STEPS, dt=dt,
                 iterations=0, progress=False, diagnostics=False)
+
+
+def test_residuals_beyond_the_bodys_own_size_are_said_to_be_no_noise(landing):
+    """A run of another scene (the block placed 0.5 m away) fitted as this one's target: the
+    dough block's fit said only that both values were undetermined, and reported an
+    observation noise of 0.289 m per coordinate, 12.9 times the block's spread. Residuals past twice the
+    particles' own spread at the start are now said to be no noise a material explains; a
+    target of the scene's own run, fitted at a guess far off, is not."""
+    from warp_esph.diagnostics import diagnose  # noqa: PLC0415
+
+    dt, target = landing
+    shifted = np.asarray(target) + np.array([0.5, 0.0, 0.0])
+    d = diagnose(_cube(), shifted, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, progress=False)
+    said = [w for w in d.warnings if "does not follow this scene" in w]
+    assert len(said) == 1 and re.search(r"^the positions' residuals \(RMS 0\.2\d* m per coordinate\) are [\d.]+ times the "
+                                        r"spread of the scene's particles at the start \(0\.01\d* m per coordinate\)", said[0]), d.warnings
+    far = diagnose(_cube(yield_stress=30.0, flow_rate=100.0), target, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES,
+                   progress=False)
+    assert not [w for w in far.warnings if "does not follow this scene" in w], far.warnings
