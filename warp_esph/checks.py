@@ -526,11 +526,10 @@ def same_state(model, name: str, state) -> None:
         want["tool_pose_dp"] = want["tool_pose_dr"] = ((2 * tools.count,), T.vec3)
         want["reaction_force"] = want["reaction_torque"] = ((tools.count * tools.world_count,), T.vec3)
     if getattr(model, "ghost_floor", None) is not None:
-        from .sim.ghost_floor import STENCIL  # noqa: PLC0415
-
-        nf = model.ghost_floor.count
-        want.update({"ghost_y": ((n,), T.vec3), "ghost_y_lo": ((n,), T.vec3), "ghost_weights": ((nf, STENCIL), T.scalar),
-                     "ghost_rows": ((nf, STENCIL), wp.int32), "ghost_count": ((nf,), wp.int32), "ghost_force": ((nf,), T.vec3)})
+        nf, rows = model.ghost_floor.count, model.ghost_floor.rows
+        want.update({"ghost_y": ((n,), T.vec3), "ghost_y_lo": ((n,), T.vec3), "ghost_weights": ((nf, rows), T.scalar),
+                     "ghost_fill": ((nf, rows), T.scalar),
+                     "ghost_rows": ((nf, rows), wp.int32), "ghost_count": ((nf,), wp.int32), "ghost_force": ((nf,), T.vec3)})
     for field, (shape, dtype) in want.items():
         arr = getattr(state, field, None)
         where = f"{name}.{field}"

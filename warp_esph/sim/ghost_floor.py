@@ -21,16 +21,27 @@ compression against the plane) is fitted next to the floor as in the interior.
 
 ``N`` (``stencil_normaliser``) is the stencil's total weight where it holds at least
 ``MIN_TOTAL + SWITCH`` (a particle's weight at ``p_k`` is 1), and switches smoothly (C1) to
-``MIN_TOTAL`` below it, so a ghost that a spreading front reaches follows its few particles
-in part and comes on gradually instead of at once.
+``MIN_TOTAL`` below it, so a no-slip ghost that a spreading front reaches follows its few
+particles in part and comes on gradually instead of at once. A slip ghost makes up the
+tangential part it does not follow, ``1 - sum W / N`` (``stencil_fill``), with a Shepard
+average of radius the support ``h`` around ``p_k`` (``f_kj = fill W_h / sum W_h``, the rows
+``State.ghost_fill``):
+
+    y_k = x_k + R sum_j s_kj u_j + P sum_j f_kj u_j,     P = diag(1, 0, 1),
+
+so a ghost in any fit follows a slide along the plane whole (the fitting particle is within
+``h`` of ``p_k``: the mirror point is nearer it than the ghost), and a body sliding on the
+slip floor is fitted no shear at its rim, where the ghosts past it held still (docs/physics.md,
+"The slip ghost floor"). The normal part, which vanishes on the plane, keeps the switch. Where
+the stencil is full the fill is 0 and the ghost is as above.
 
 The floor particles carry no energy (their ``Model.particle_volume`` is 0): only the free
 particles' energies act, each also through its ghosts. Since ``y_k`` is linear in the free
 particles' end positions, the force the energies put on ghost ``k`` goes to its stencil,
 ``f_j += s_kj M f_k`` with ``M`` the ghost's map (``-I``, or ``R`` on a slip floor; each its
-own transpose; ``hand_over``); floor particle ``k`` keeps the opposite, so every hand-over is
-a pair of equal and opposite forces and the pinned floor's reaction (``tools``) is what the
-wall puts on the material.
+own transpose; ``hand_over``), and on a slip floor ``f_j += f_kj P f_k``; floor particle
+``k`` keeps the opposite, so every hand-over is a pair of equal and opposite forces and the
+pinned floor's reaction (``tools``) is what the wall puts on the material.
 
 Every step: ``StencilSearch.update`` (after the neighbour search; the candidates from a
 hash grid, untaped integers, the weights differentiable), ``launch_hand_over`` (after the
@@ -66,13 +77,16 @@ class GhostFloor:
     """A model's ghost floors (``Model.ghost_floor``): ``floor`` the floor particles'
     indices, ``slot`` each particle's row in them (-1: not a floor particle), the wall
     plane ``y = offset`` of each floor particle, whether it is a slip floor's (``slip``, 1),
-    and the stencil radius (m)."""
+    the stencil radius (m), the slip ghosts' fill radius (m, ``stencil_fill``: the support
+    radius) and the stencil rows per floor particle."""
 
     floor: wp.array
     slot: wp.array
     offset: wp.array
     slip: wp.array
     radius: float
+    reach: float
+    rows: int
 
     @property
     def count(self) -> int:
@@ -89,9 +103,12 @@ def build(model, ranges) -> "GhostFloor | None":
     slot = np.full(model.particle_count, -1, dtype=np.int32)
     slot[idx] = np.arange(len(idx), dtype=np.int32)
     dev = model.device
+    # A slip ghost's fill reaches over a support radius, as many particles as a neighbour row.
+    rows = max(STENCIL, model.max_neighbors) if slip.any() else STENCIL
     return GhostFloor(floor=wp.array(idx, dtype=wp.int32, device=dev), slot=wp.array(slot, dtype=wp.int32, device=dev),
                       offset=wp.array(off, dtype=model.scalar, device=dev),
-                      slip=wp.array(slip, dtype=wp.int32, device=dev), radius=GHOST_RADIUS * model.spacing)
+                      slip=wp.array(slip, dtype=wp.int32, device=dev), radius=GHOST_RADIUS * model.spacing,
+                      reach=float(model.support_radius), rows=int(rows))
 
 
 @functools.cache
@@ -135,6 +152,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         return out
 
     @wp.func
+    def stencil_fill(total: scalar) -> scalar:
+        """The part of a constant motion a ghost of stencil weight ``total`` does not follow,
+        ``1 - total / N``: 0 on a full stencil, C1 through the switch, 1 on an empty one."""
+        return scalar(1.0) - total / stencil_normaliser(total)
+
+    @wp.func
     def stencil_total(t: int, x: wp.array(dtype=vec3), p: vec3, rs: scalar, cj: wp.array2d(dtype=wp.int32),
                       count: int) -> scalar:
         """The raw sum of the stencil's weights (a func of its own, so the caller's
@@ -147,16 +170,20 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def ghost_displacement(t: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                            y_lo: wp.array(dtype=vec3), cj: wp.array2d(dtype=wp.int32), gw: wp.array2d(dtype=scalar),
-                           count: int, slip: int) -> vec3:
-        """``ghost_map(sum_j s_kj u_j)``: the continuation of the material's displacement."""
+                           gf: wp.array2d(dtype=scalar), count: int, slip: int) -> vec3:
+        """``ghost_map(sum_j s_kj u_j) + P sum_j f_kj u_j``: the continuation of the
+        material's displacement (``f_kj`` 0 off a slip floor)."""
         u = vec3()
+        uf = vec3()
         for c in range(count):
             j = cj[t, c]
-            u += gw[t, c] * ((y[j] - x[j]) + (y_lo[j] - x_lo[j]))
-        return ghost_map(u, slip)
+            d = (y[j] - x[j]) + (y_lo[j] - x_lo[j])
+            u += gw[t, c] * d
+            uf += gf[t, c] * d
+        return ghost_map(u, slip) + vec3(uf[0], scalar(0.0), uf[2])
 
     return types.SimpleNamespace(mirror_point=mirror_point, ghost_map=ghost_map, stencil_weight=stencil_weight,
-                                 stencil_normaliser=stencil_normaliser, stencil_total=stencil_total,
+                                 stencil_normaliser=stencil_normaliser, stencil_fill=stencil_fill, stencil_total=stencil_total,
                                  ghost_displacement=ghost_displacement)
 
 
@@ -165,7 +192,6 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3 = T.vec3
     fn = funcs(scalar)
-    rows = wp.constant(STENCIL)
 
     @wp.kernel(enable_backward=False, module="unique")
     def grid_points(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
@@ -181,24 +207,38 @@ def kernels(scalar) -> types.SimpleNamespace:
         offset: wp.array(dtype=scalar),
         slot: wp.array(dtype=wp.int32),
         body: wp.array(dtype=wp.int32),
+        slip: wp.array(dtype=wp.int32),
         rs: scalar,
+        reach: scalar,
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
         cut_index: int,
     ):
         """The free particles of floor particle ``floor[t]``'s body within ``rs`` of its mirror
-        point (integers: the tape never sees the grid; docs/method.md, Warp pitfall 3)."""
+        point, or within ``reach`` for a slip ghost whose stencil is not full (``stencil_fill``)
+        (integers: the tape never sees the grid; docs/method.md, Warp pitfall 3)."""
         t = wp.tid()
         k = floor[t]
         p = fn.mirror_point(x[k], offset[t])
         pf = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-        q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(rs)))
+        r = rs
+        if slip[t] != 0:
+            total = scalar(0.0)
+            q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(rs)))
+            j = int(0)
+            while wp.hash_grid_query_next(q, j):
+                if slot[j] < 0 and body[j] == body[k]:
+                    total += fn.stencil_weight(x[j], p, rs)
+            if fn.stencil_fill(total) > scalar(0.0):
+                r = reach
+        rows = cj.shape[1]
+        q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(r)))
         j = int(0)
         c = int(0)
         cut = int(0)
         while wp.hash_grid_query_next(q, j):
-            if slot[j] < 0 and body[j] == body[k] and wp.length_sq(x[j] - p) < rs * rs:
+            if slot[j] < 0 and body[j] == body[k] and wp.length_sq(x[j] - p) < r * r:
                 if c < rows:
                     cj[t, c] = j
                     c += 1
@@ -213,18 +253,29 @@ def kernels(scalar) -> types.SimpleNamespace:
         x: wp.array(dtype=vec3),
         floor: wp.array(dtype=wp.int32),
         offset: wp.array(dtype=scalar),
+        slip: wp.array(dtype=wp.int32),
         rs: scalar,
+        reach: scalar,
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         gw: wp.array2d(dtype=scalar),
+        gf: wp.array2d(dtype=scalar),
     ):
-        """``s_kj`` (module docstring)."""
+        """``s_kj`` and a slip ghost's ``f_kj`` (module docstring)."""
         t = wp.tid()
         p = fn.mirror_point(x[floor[t]], offset[t])
         n = cc[t]
-        inv = scalar(1.0) / fn.stencil_normaliser(fn.stencil_total(t, x, p, rs, cj, n))
+        total = fn.stencil_total(t, x, p, rs, cj, n)
+        inv = scalar(1.0) / fn.stencil_normaliser(total)
+        fill = scalar(0.0)
+        if slip[t] != 0:
+            wide = fn.stencil_total(t, x, p, reach, cj, n)
+            if wide > scalar(0.0):
+                fill = fn.stencil_fill(total) / wide
         for c in range(n):
-            gw[t, c] = fn.stencil_weight(x[cj[t, c]], p, rs) * inv
+            xj = x[cj[t, c]]
+            gw[t, c] = fn.stencil_weight(xj, p, rs) * inv
+            gf[t, c] = fn.stencil_weight(xj, p, reach) * fill
 
     @wp.kernel(module="unique")
     def fit_positions(
@@ -237,6 +288,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         gw: wp.array2d(dtype=scalar),
+        gf: wp.array2d(dtype=scalar),
         y_fit: wp.array(dtype=vec3),
         y_fit_lo: wp.array(dtype=vec3),
     ):
@@ -247,7 +299,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             y_fit[i] = y[i]
             y_fit_lo[i] = y_lo[i]
         else:
-            y_fit[i] = x[i] + fn.ghost_displacement(t, x, y, x_lo, y_lo, cj, gw, cc[t], slip[t])
+            y_fit[i] = x[i] + fn.ghost_displacement(t, x, y, x_lo, y_lo, cj, gw, gf, cc[t], slip[t])
             y_fit_lo[i] = x_lo[i]
 
     @wp.kernel(module="unique")
@@ -264,14 +316,17 @@ def kernels(scalar) -> types.SimpleNamespace:
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         gw: wp.array2d(dtype=scalar),
+        fw: wp.array2d(dtype=scalar),
         f: wp.array(dtype=vec3),
     ):
-        """``f_j += s_kj M f_k`` and ``f_k -= s_kj M f_k``: equal and opposite."""
+        """``f_j += s_kj M f_k + f_kj P f_k`` and the opposite on ``k``: equal and opposite."""
         t = wp.tid()
-        mf = fn.ghost_map(gf[t], slip[t])
+        fk = gf[t]
+        mf = fn.ghost_map(fk, slip[t])
+        pf = vec3(fk[0], scalar(0.0), fk[2])
         kept = vec3()
         for c in range(cc[t]):
-            g = gw[t, c] * mf
+            g = gw[t, c] * mf + fw[t, c] * pf
             wp.atomic_add(f, cj[t, c], g)
             kept -= g
         wp.atomic_add(f, floor[t], kept)
@@ -286,13 +341,14 @@ def allocate_state(model, state, requires_grad: bool):
     g = model.ghost_floor
     if g is None:
         state.ghost_y = state.ghost_y_lo = state.ghost_weights = state.ghost_rows = state.ghost_count = None
-        state.ghost_force = None
+        state.ghost_fill = state.ghost_force = None
         return
     T, dev, n, nf = model.types, model.device, model.particle_count, g.count
     state.ghost_y = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.ghost_y_lo = wp.zeros(n, dtype=T.vec3, device=dev)
-    state.ghost_weights = wp.zeros((nf, STENCIL), dtype=T.scalar, device=dev, requires_grad=requires_grad)
-    state.ghost_rows = wp.zeros((nf, STENCIL), dtype=wp.int32, device=dev)
+    state.ghost_weights = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
+    state.ghost_fill = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
+    state.ghost_rows = wp.zeros((nf, g.rows), dtype=wp.int32, device=dev)
     state.ghost_count = wp.zeros(nf, dtype=wp.int32, device=dev)
     state.ghost_force = wp.zeros(nf, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
@@ -311,17 +367,19 @@ class StencilSearch:
         k = kernels(m.scalar)
         if self.grid is None:
             x0 = m.particle_x0
-            cell = g.radius
+            cell = max(g.radius, g.reach) if g.rows > STENCIL else g.radius
             dims = [int(min(128, max(1, np.ceil((x0[:, a].max() - x0[:, a].min()) / cell) + 8))) for a in range(3)]
             self.grid = wp.HashGrid(*dims, device=m.device)
         m.launches(k.grid_points, m.particle_count, [state_in.x], [self.points], device=m.device, record_tape=False)
-        self.grid.build(self.points, g.radius)
+        self.grid.build(self.points, max(g.radius, g.reach) if g.rows > STENCIL else g.radius)
         m.launches(k.stencil_candidates, g.count,
-                   [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, m.scalar(g.radius)],
+                   [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, g.slip, m.scalar(g.radius),
+                    m.scalar(g.reach)],
                    [state_out.ghost_rows, state_out.ghost_count, counters, cut_index], device=m.device, record_tape=False)
         m.launches(k.stencil_weights, g.count,
-                   [state_in.x, g.floor, g.offset, m.scalar(g.radius), state_out.ghost_rows, state_out.ghost_count],
-                   [state_out.ghost_weights], device=m.device)
+                   [state_in.x, g.floor, g.offset, g.slip, m.scalar(g.radius), m.scalar(g.reach), state_out.ghost_rows,
+                    state_out.ghost_count],
+                   [state_out.ghost_weights, state_out.ghost_fill], device=m.device)
 
 
 def launch_hand_over(model, state_out):
@@ -330,7 +388,8 @@ def launch_hand_over(model, state_out):
     g, k = model.ghost_floor, kernels(model.scalar)
     model.launches(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
     model.launches(k.hand_over, g.count, [state_out.ghost_force, g.floor, g.slip, state_out.ghost_rows,
-                                          state_out.ghost_count, state_out.ghost_weights], [state_out.force], device=model.device)
+                                          state_out.ghost_count, state_out.ghost_weights, state_out.ghost_fill], [state_out.force],
+                   device=model.device)
 
 
 def launch_fit_positions(model, state_in, state_out):
@@ -338,5 +397,5 @@ def launch_fit_positions(model, state_in, state_out):
     g, k = model.ghost_floor, kernels(model.scalar)
     model.launches(k.fit_positions, model.particle_count,
                    [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
-                    state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
+                    state_out.ghost_count, state_out.ghost_weights, state_out.ghost_fill], [state_out.ghost_y, state_out.ghost_y_lo],
                    device=model.device)
