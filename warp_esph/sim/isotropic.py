@@ -41,9 +41,10 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def svd(F: mat33):
-        """``(U, sigma, V)`` of ``wp.svd3(F)`` with each positive ``sigma_k`` taken again from
-        ``F``'s strain, ``1 + v_k^T (F^T F - I) v_k / (1 + sigma_k)`` (``= sigma_k`` exactly),
-        the strain formed from ``F - I`` before any product. ``wp.svd3`` rotates even a
+        """``(U, sigma, V)`` of ``wp.svd3(F)`` with each ``sigma_k`` taken again from ``F``'s
+        strain, ``1 + v_k^T (F^T F - I) v_k / (1 + sigma_k)`` (``= sigma_k`` exactly), the strain
+        formed from ``F - I`` before any product, where every ``sigma_k`` is within 0.4 of 1
+        (farther, ``wp.svd3``'s own: docs/method.md §3). ``wp.svd3`` rotates even a
         diagonal ``F`` and returns ``F = I``'s singular values 1 to 5 units in the last place
         below 1 in float32, so the stress at rest was not 0 (0.076 Pa at mu = 58 kPa) and a
         body at rest felt forces of up to 0.015 m/s^2 (docs/physics.md, "The held
@@ -54,13 +55,19 @@ def funcs(scalar) -> types.SimpleNamespace:
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
-        H = F - wp.identity(n=3, dtype=scalar)
-        E = H + wp.transpose(H) + wp.transpose(H) * H
-        s0 = strained(s[0], V[0, 0], V[1, 0], V[2, 0], E)
-        # Kept in wp.svd3's order where round-off would swap repeated values by a unit.
-        s1 = wp.min(strained(s[1], V[0, 1], V[1, 1], V[2, 1], E), s0)
-        s2 = strained(s[2], V[0, 2], V[1, 2], V[2, 2], E)
-        return U, vec3(s0, s1, wp.where(s2 > scalar(0.0), wp.min(s2, s1), s2)), V
+        one = scalar(1.0)
+        # Near I only: the strain's round-off grows as sigma_max^2 and the Rayleigh quotient's
+        # as svd3's error in V squared times the gap, so far from I it is worse than svd3's QR
+        # (float32, F = R diag(3, 1, 0.3) Q^T: 1.3e-3 of a sigma against 2.4e-4).
+        if wp.max(wp.max(wp.abs(s[0] - one), wp.abs(s[1] - one)), wp.abs(s[2] - one)) < scalar(0.4):
+            H = F - wp.identity(n=3, dtype=scalar)
+            E = H + wp.transpose(H) + wp.transpose(H) * H
+            s0 = strained(s[0], V[0, 0], V[1, 0], V[2, 0], E)
+            # Kept in wp.svd3's order where round-off would swap repeated values by a unit.
+            s1 = wp.min(strained(s[1], V[0, 1], V[1, 1], V[2, 1], E), s0)
+            s2 = strained(s[2], V[0, 2], V[1, 2], V[2, 2], E)
+            s = vec3(s0, s1, wp.where(s2 > scalar(0.0), wp.min(s2, s1), s2))
+        return U, s, V
 
     @wp.func
     def singular_values(F: mat33) -> vec3:
