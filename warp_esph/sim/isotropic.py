@@ -62,12 +62,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         if wp.max(wp.max(wp.abs(s[0] - one), wp.abs(s[1] - one)), wp.abs(s[2] - one)) < scalar(0.4):
             H = F - wp.identity(n=3, dtype=scalar)
             E = H + wp.transpose(H) + wp.transpose(H) * H
-            s0 = strained(s[0], V[0, 0], V[1, 0], V[2, 0], E)
-            # Kept in wp.svd3's order where round-off would swap repeated values by a unit.
-            s1 = wp.min(strained(s[1], V[0, 1], V[1, 1], V[2, 1], E), s0)
-            s2 = strained(s[2], V[0, 2], V[1, 2], V[2, 2], E)
-            s = vec3(s0, s1, wp.where(s2 > scalar(0.0), wp.min(s2, s1), s2))
-        return U, s, V
+            s = vec3(strained(s[0], V[0, 0], V[1, 0], V[2, 0], E), strained(s[1], V[0, 1], V[1, 1], V[2, 1], E),
+                     strained(s[2], V[0, 2], V[1, 2], V[2, 2], E))
+        # In order where round-off would swap repeated values by a unit (wp.svd3's own do too).
+        s1 = wp.min(s[1], s[0])
+        return U, vec3(s[0], s1, wp.where(s[2] > scalar(0.0), wp.min(s[2], s1), s[2])), V
 
     @wp.func
     def singular_values(F: mat33) -> vec3:
