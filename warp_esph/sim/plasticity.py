@@ -135,7 +135,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         for i in range(3):
             for j in range(3):
                 d = s[i] + s[j]
-                if d > scalar(0.0):
+                # Signed: an inverted value's own diagonal and its pairs have d < 0 (at d = 0,
+                # sigma_j = -sigma_i, no derivative exists).
+                if d != scalar(0.0):
                     A[i, j] = s[j] * (G[i, j] + G[j, i]) / d
         wp.adjoint[F] += U * A * wp.transpose(V)
 
