@@ -95,7 +95,8 @@ def kernels(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def residual_map(s: scalar, A: mat33, B: mat33):
-        """The affine map ``G_i = B_i A_i^-1`` that minimises ``E_i`` (module doc), and whether
+        """The affine map ``G_i = B_i A_i^-1`` that minimises ``E_i`` (module doc; of the
+        displacements, with ``rest_fit_sums``' ``B_i``: ``I + G_i`` the positions'), and whether
         it is defined: ``det A_i`` above ``MIN_DET`` of ``(S_i / 3)^3`` (a sheet or a line of
         neighbours samples a direction with zero weight; there the particle has no control)."""
         ok = s > scalar(0.0)
