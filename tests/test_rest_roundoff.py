@@ -30,6 +30,32 @@ CASES = {
 }
 
 
+_T32 = type_set(wp.float32)
+_iso32 = isotropic.funcs(wp.float32)
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def _singular_values_kernel(F: wp.array(dtype=_T32.mat33), s_out: wp.array(dtype=_T32.vec3)):
+    i = wp.tid()
+    s_out[i] = _iso32.singular_values(F[i])
+
+
+def _singular_values(F):
+    """``isotropic.singular_values`` of each float32 ``F`` (n, 3, 3)."""
+    s = wp.zeros(len(F), dtype=_T32.vec3, device="cpu")
+    wp.launch(_singular_values_kernel, len(F), [wp.array(F, dtype=_T32.mat33, device="cpu")], [s], device="cpu")
+    return s.numpy()
+
+
+def _rotated(rng, d, n):
+    """``n`` float32 ``F = R diag(d) Q^T``, ``R``, ``Q`` random rotations."""
+    def rotations():
+        q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+        q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+        return q * np.sign(np.linalg.det(q))[:, None, None]
+    return np.einsum("nij,j,nkj->nik", rotations(), np.array(d), rotations()).astype(np.float32)
+
+
 @pytest.mark.parametrize("offset", [0.0, 10.0])
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_a_float32_step_from_exact_rest_leaves_the_body_at_rest(case, offset):
@@ -80,20 +106,10 @@ def test_float32_singular_values_near_the_identity_are_within_three_units_of_flo
     1e-5, 1e-3 and 0.1) against float64's SVD of the same float32 ``F``: within 3 units in the
     last place of the largest, and ``F = I`` gives 1 exactly. Measured: at most 0.50 / 0.50 /
     2.1 units, where ``wp.svd3``'s were 8.7 / 7.1 / 8.8 units off, and 2.5 at ``F = I``."""
-    Ts = type_set(wp.float32)
-    iso = isotropic.funcs(wp.float32)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def k(F: wp.array(dtype=Ts.mat33), s_out: wp.array(dtype=Ts.vec3)):
-        i = wp.tid()
-        s_out[i] = iso.singular_values(F[i])
-
     rng = np.random.default_rng(1)
     H = np.concatenate([a * rng.normal(size=(200, 3, 3)) for a in (1e-5, 1e-3, 1e-1)])
     F = np.concatenate([np.eye(3)[None], np.eye(3) + H]).astype(np.float32)
-    s = wp.zeros(len(F), dtype=Ts.vec3, device="cpu")
-    wp.launch(k, len(F), [wp.array(F, dtype=Ts.mat33, device="cpu")], [s], device="cpu")
-    s = s.numpy()
+    s = _singular_values(F)
     exact = np.linalg.svd(F.astype(np.float64), compute_uv=False)
     np.testing.assert_array_equal(s[0], np.ones(3, dtype=np.float32))
     err = np.abs(np.sort(s, axis=1) - np.sort(exact, axis=1)).max(axis=1)
@@ -109,28 +125,14 @@ def test_float32_singular_values_far_from_the_identity_keep_svd3s_accuracy():
     random rotations each of ``d = (3, 1, 0.3)`` and ``(10, 1, 0.05)``, against float64's SVD
     of the same ``F``: each singular value within 1e-3 of itself. Measured (``wp.svd3``'s):
     at most 2.4e-4 and 2.9e-4; with the strain's form everywhere 1.3e-3 and 1.1e-2."""
-    Ts = type_set(wp.float32)
-    iso = isotropic.funcs(wp.float32)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def k(F: wp.array(dtype=Ts.mat33), s_out: wp.array(dtype=Ts.vec3)):
-        i = wp.tid()
-        s_out[i] = iso.singular_values(F[i])
-
     rng = np.random.default_rng(2)
-
-    def rotations(n):
-        q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
-        q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
-        return q * np.sign(np.linalg.det(q))[:, None, None]
 
     worst = []
     for d in ((3.0, 1.0, 0.3), (10.0, 1.0, 0.05)):
-        F = np.einsum("nij,j,nkj->nik", rotations(500), np.array(d), rotations(500)).astype(np.float32)
-        s = wp.zeros(len(F), dtype=Ts.vec3, device="cpu")
-        wp.launch(k, len(F), [wp.array(F, dtype=Ts.mat33, device="cpu")], [s], device="cpu")
+        F = _rotated(rng, d, 500)
+        s = _singular_values(F)
         exact = np.linalg.svd(F.astype(np.float64), compute_uv=False)
-        worst.append((np.abs(s.numpy() - exact) / exact).max())
+        worst.append((np.abs(s - exact) / exact).max())
     print("largest relative error, (3, 1, 0.3) and (10, 1, 0.05):", [f"{w:.1e}" for w in worst])
     assert max(worst) <= 1.0e-3
 
@@ -140,24 +142,9 @@ def test_singular_values_are_in_order_at_repeated_values_near_and_far_from_the_i
     repeat, float32, 500 random rotations each of ``diag(1.001, 1, 1)`` (the strain's values)
     and ``diag(3, 1, 1)`` and ``diag(1, 1, -1)`` (``wp.svd3``'s): ``wp.svd3`` puts the repeated
     pair a unit out of order in about a seventh of the last two (measured: 258 and 324 of 2000)."""
-    Ts = type_set(wp.float32)
-    iso = isotropic.funcs(wp.float32)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def k(F: wp.array(dtype=Ts.mat33), s_out: wp.array(dtype=Ts.vec3)):
-        i = wp.tid()
-        s_out[i] = iso.singular_values(F[i])
-
     rng = np.random.default_rng(4)
 
-    def rotations(n):
-        q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
-        q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
-        return q * np.sign(np.linalg.det(q))[:, None, None]
-
     for d in ((1.001, 1.0, 1.0), (3.0, 1.0, 1.0), (1.0, 1.0, -1.0)):
-        F = np.einsum("nij,j,nkj->nik", rotations(500), np.array(d), rotations(500)).astype(np.float32)
-        s = wp.zeros(len(F), dtype=Ts.vec3, device="cpu")
-        wp.launch(k, len(F), [wp.array(F, dtype=Ts.mat33, device="cpu")], [s], device="cpu")
-        s = s.numpy()
+        F = _rotated(rng, d, 500)
+        s = _singular_values(F)
         assert (s[:, 0] >= s[:, 1]).all() and (s[:, 1] >= s[:, 2]).all(), d
