@@ -885,8 +885,8 @@ def test_a_forward_that_blows_up_while_finite_raises_not_a_result():
     mu = rollout.get_parameters()["mu"].tolist()
     with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
         # (The speed bound trips first since the stretch, not round-off at F = I, seeds it.)
-        with pytest.raises(FloatingPointError, match=r"^the rollout blew up while staying finite: .*after step 2 of 2.*"
-                                                     r"use a smaller dt") as info:
+        with pytest.raises(FloatingPointError, match=r"^the rollout blew up while staying finite: .*\(particle \d+ of "
+                                                     r"body 'box0', after step 2 of 2\).*use a smaller dt") as info:
             rollout_positions(rollout, {"mu": torch.tensor([1e30], dtype=torch.float64)})
     assert isinstance(info.value, DivergedRollout) and info.value.step == 2
     assert rollout.get_parameters()["mu"].tolist() == mu
