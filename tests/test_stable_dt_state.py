@@ -289,6 +289,24 @@ def test_the_steps_non_finite_warning_names_the_stable_step_of_its_state_in():
     assert f"Model.stable_dt() = {full:.3g}" not in text and "Model.stable_dt() =" not in text
 
 
+def test_a_dt_past_what_the_precision_resolves_quotes_the_stable_step_of_the_state_it_starts_from():
+    """``resolvable_dt``'s refusal (one step's fall past the precision at the spacing) quotes the
+    stable step for a stable run: from a flowed body made elastic it quoted the new state's,
+    ``Model.stable_dt()``, twice the step ``check_dt`` holds that state to. ``check_dt`` and
+    ``step`` now quote their state's, named so; without a state, as before."""
+    model, solver, flowed = _slumped_block()
+    half, full = solver.stable_dt(state=flowed), solver.stable_dt()
+    assert half < 0.51 * full
+    tail = f"(and for a stable run at most Model.stable_dt(state=) = {half:.3g} s from the state it starts at)"
+    for refused in (lambda: solver.check_dt(1e30, flowed), lambda: solver.step(flowed, model.state(), 1e30)):
+        with pytest.raises(ValueError, match="dt = 1e[+]30 is not allowed: one step's fall") as e:
+            refused()
+        assert str(e.value).endswith(tail), str(e.value)
+    with pytest.raises(ValueError) as e:
+        solver.check_dt(1e30)
+    assert str(e.value).endswith(f"(and for a stable run at most Model.stable_dt() = {full:.3g} s)"), str(e.value)
+
+
 def test_energy_growth_quotes_the_stable_step_of_the_runs_start():
     """``simulate.energy_growth``'s blow-up names the stable step of the run's start
     (``state=``; ``Rollout.bounds_hit`` passes its forward's): from a flowed body made elastic,

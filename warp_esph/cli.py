@@ -647,7 +647,7 @@ def _cmd_run(args) -> int:
         named = flag("dt")
         if named == "dt" and args.resume is None and str(args.scene).lower().endswith(".toml"):
             named = f"{checks.shown_path(args.scene, False)}: [scene] dt"
-        resolvable_dt(model, float(dt_typed), named, "the stable step")
+        resolvable_dt(model, float(dt_typed), named, "the stable step", state=state)
     solver.check_dt(dt_shown, state)  # the stability warning, once, before the run (from a resumed run's state)
     try:
         # Before the writer replaces an earlier run's file; simulate does not repeat them.

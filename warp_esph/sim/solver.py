@@ -94,8 +94,8 @@ def representable_dt(scalar, dt) -> float:
     return dt
 
 
-def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Model.stable_dt() =",
-                  fit: str | None = None, hourglass: float | None = None) -> float:
+def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str | None = None,
+                  fit: str | None = None, hourglass: float | None = None, state=None, flowed: bool | None = None) -> float:
     """``dt``, refused (ValueError) where one step's fall under gravity, ``|g| dt^2``, is so
     long that the model's precision holds a position after it to no better than a spacing
     (``eps |g| dt^2 > spacing``). A collider then takes the particle back from a height whose
@@ -103,8 +103,10 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
     result: one float64 step of 1e30 s put every particle of a dough box at exactly (0, 0, 0)
     at rest, finite and inside every divergence bound. The bound reads no parameter, so a fit
     meets it at its start or never. ``name``, ``stable``: how the refusal names ``dt`` and the
-    stable step (the CLI's ``--dt``); ``fit``, ``hourglass``: the solver's, whose stable step it gives
-    (``Solver.stable_dt``; None: the model's)."""
+    stable step (the CLI's ``--dt``; None: ``Model.stable_dt() =``); ``fit``, ``hourglass``: the
+    solver's, whose stable step it gives (``Solver.stable_dt``; None: the model's); ``state``,
+    ``flowed``: the step's start and its ``has_flowed()`` where read (``Model._stable_dt_from``),
+    whose stable step it gives, as ``Solver.check_dt``'s warning does."""
     g = _length(tuple(model.gravity))
     eps = _float_info(model.scalar)[2]
     fall = g * dt * dt
@@ -114,11 +116,16 @@ def resolvable_dt(model: Model, dt: float, name: str = "dt", stable: str = "Mode
         # (207.5 s shown as 208, itself refused).
         unit = 10.0 ** (math.floor(math.log10(longest)) - 2)
         longest = math.floor(longest / unit) * unit
+        limit = model._stable_dt_from(0.3, hourglass, fit, state, flowed)
+        # From a flowed body made elastic the step's own is half a new state's: the new state's
+        # was quoted, twice what the step would take.
+        of_state = state is not None and limit != model._stable_dt_from(0.3, hourglass, fit, None)
+        said = stable if stable is not None else "Model.stable_dt(state=) =" if of_state else "Model.stable_dt() ="
         raise ValueError(
             f"{name} = {checks.shorten(dt)!r} is not allowed: one step's fall under gravity, |g| dt^2 = {fall:.3g} m, is more than "
             f"{model.scalar.__name__} resolves at the spacing {model.spacing:.3g} m (spacing / eps = {model.spacing / eps:.3g} m), "
             f"so the positions after it would be round-off; must be at most {longest:.3g} s (and for a stable run at most "
-            f"{stable} {model.stable_dt(hourglass=hourglass, fit=fit):.3g} s)")
+            f"{said} {limit:.3g} s{' from the state it starts at' if of_state else ''})")
     return dt
 
 
@@ -967,7 +974,8 @@ class Solver(Unpicklable):
         # ``c``: the control the step runs; the step passes the one it has just chosen, which
         # next_hourglass would ask the parameters for again (3 us a step); ``flowed``: its
         # reading of state.has_flowed() (None: not read), which a GPU would wait for again.
-        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit, hourglass=c)
+        dt = resolvable_dt(self.model, representable_dt(self.model.scalar, dt), fit=self.asked_fit, hourglass=c, state=state,
+                           flowed=flowed)
         stable = self.model._stable_dt_from(0.3, c, self.asked_fit, state, flowed)
         past = dt / stable
         if past > 1.0 + STEP_ROUNDING and past > self._warned_dt.get(dt, 0.0) * STEP_REWARN:
