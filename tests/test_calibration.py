@@ -3009,6 +3009,40 @@ def test_a_target_given_twice_is_refused_not_counted_twice(tmp_path, capsys, dou
                  "--target-frames", "3", *common]) == 0
 
 
+def test_a_target_given_twice_at_frames_written_otherwise_or_shared_in_part_is_refused(tmp_path, capsys, dough_scene,
+                                                                                        monkeypatch):
+    """The check above compared the ``--target-frames`` as written: ``1:3`` and ``1,2,3``, or
+    ``last`` and ``-1``, choose the same frames of one file and passed, each frame's
+    observations counted twice. The frames chosen are compared now, and two choices that share
+    some frames (``1,2`` and ``2:3``) count those twice too: refused, naming the frames, before
+    any scene is built; a file without frame numbers (an .npy's entries) likewise."""
+    from warp_esph import scenes
+    from warp_esph.cli import main
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
+    monkeypatch.chdir(tmp_path)
+
+    def built(*_, **__):
+        raise AssertionError("a scene was built before the refusal")
+
+    monkeypatch.setattr(scenes, "load_scaled_scene", built)
+    common = ["--iterations", "0", "--no-progress", "--no-diagnostics", "--no-usd", "--output-dir", str(tmp_path / "o")]
+    for target, first, second, frames in (("run.usdc", "1:3", "1,2,3", "frames 1, 2, 3"), ("run.usdc", "last", "-1", "frame 3"),
+                                          ("run.usdc", "1,2", "2:3", "frame 2"), ("t.npy", "1:3", "3,2,1", "frames 1, 2, 3"),
+                                          ("t.npy", "0,1", "1:2", "frame 1")):
+        capsys.readouterr()
+        assert main(["fit", str(guess), "--target", target, "--target", f"./{target}", "--target-frames", first,
+                     "--target-frames", second, *common]) == 2, (first, second)
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and err[0] == (
+            f"warp-esph: error: --target = './{target}' is not allowed twice at {frames} (--target #1 and #2 are one file, "
+            f"and --target-frames '{first}' and '{second}' both choose {'them' if 'frames' in frames else 'it'}): its "
+            "observations there would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give the file "
+            "once, with --target-frames naming every frame to fit"), (first, second, err)
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_json_file_given_as_a_target_says_what_it_is_not_that_meshio_cannot_read_it(tmp_path):
     """The ``_tools.json`` a run writes beside its force log (or a fit's ``fit.json``, a camera
     or experiments file) given as ``--target`` was refused as a mesh meshio could not read

@@ -660,6 +660,75 @@ def _coverages(spec, args, where, count, key) -> tuple[list[str], str]:
     return values, name
 
 
+def _numbered_frames(fspec, name: str) -> list[int]:
+    """The frames ``fspec`` (``1,2,3``, ``A:B[:STEP]``, B included) names for a target that stores
+    no frame numbers of its own; ``name`` (``--target-frames``) names it in a refusal."""
+    try:
+        chosen = []
+        for part in str(fspec).split(","):
+            bits = part.split(":")
+            if len(bits) == 1:
+                chosen.append(int(part))
+            elif len(bits) in (2, 3):
+                # A:B[:STEP], both ends given (B included): the frames of a file of many
+                # entries, which stores none of its own, without writing each out.
+                a, b, step = int(bits[0]), int(bits[1]), int(bits[2]) if len(bits) == 3 else 1
+                if step < 1 or b < a:
+                    raise ValueError
+                span = range(a, b + 1, step)
+                if len(chosen) + len(span) > MAX_TARGET_FRAMES:  # counted before the list is made
+                    raise ValueError(f"{name} = {checks.shorten(fspec)!r} is not allowed: it names more than "
+                                     f"{MAX_TARGET_FRAMES} frames")
+                chosen.extend(span)
+            else:
+                raise ValueError
+        if min(chosen) < 0:
+            raise ValueError
+    except ValueError as e:
+        if str(e).startswith(name):
+            raise
+        # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
+        raise ValueError(f"{name} = {checks.shorten(fspec)!r} is not allowed: use comma-separated frame "
+                         "indices >= 0 or ranges A:B[:STEP] (B included)") from None
+    return chosen
+
+
+def _chosen_frames(t, fspec, name: str):
+    """The frames of target ``t`` (read with ``fspec``) that the fit observes, or None where they
+    are known only once the run's length is (a cloud's or a mesh's default: the last)."""
+    usd = os.path.splitext(str(t.path))[1].lower() in (".usd", ".usda", ".usdc")
+    if fspec is None or usd or t.frames_stored:
+        return None if t.frames is None else list(t.frames)
+    return _numbered_frames(fspec, name)
+
+
+def _refuse_repeated_frames(entries, where: str, key) -> None:
+    """Refuse one file given as two targets whose frames overlap: each frame's observations would
+    count twice. ``entries``: (the target's index, its path, the frames' choice as given or None,
+    the frames or None: not known yet), in the order given. Frames shared in part count twice as much as the same
+    frames do, so they are refused too: the choice of frames is one option of one target."""
+    name, fname = key("target"), key("target_frames")
+    seen: dict[str, list] = {}
+    for k, path, fspec, frames in entries:
+        if frames is None:
+            continue
+        real = os.path.realpath(str(path))
+        for j, other_spec, other in seen.get(real, []):
+            both = sorted(set(frames) & set(other))
+            if both:
+                def said(spec):
+                    return "its default frames" if spec is None else repr(checks.shorten(spec))
+
+                shown = ", ".join(map(str, both[:8])) + (f", ... ({len(both)} in all)" if len(both) > 8 else "")
+                raise ValueError(
+                    f"{where}{name} = {checks.shown_path(path)} is not allowed twice at {'frame' if len(both) == 1 else 'frames'} "
+                    f"{shown} ({name} #{j + 1} and #{k + 1} are one file, and {fname} {said(other_spec)} and {said(fspec)} both "
+                    f"choose {'it' if len(both) == 1 else 'them'}): its observations there would count twice, and the "
+                    f"diagnostics' standard errors shrink by 1/sqrt(2); give the file once, with {fname} naming every frame "
+                    "to fit")
+        seen.setdefault(real, []).append((k, fspec, frames))
+
+
 def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, *, targets_only=False,
                 read_targets=None):
     """One experiment of the command: scene, model (jittered), targets, loss, time step.
@@ -690,7 +759,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     cameras = spec.get("cameras")
     fspecs = [tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None) for k in range(len(targets))]
     # One recording given twice (the same frames of the same file) counted its observations
-    # twice: the diagnostics reported standard errors 1/sqrt(2) of the data's.
+    # twice: the diagnostics reported standard errors 1/sqrt(2) of the data's. The same choice
+    # written alike is refused here; one written otherwise ('1:3' and '1,2,3'), or choices that
+    # share some frames, once the frames are read (_refuse_repeated_frames).
     given = {}
     for k, path in enumerate(targets):
         first = given.setdefault((os.path.realpath(str(path)), None if fspecs[k] is None else str(fspecs[k])), k)
@@ -699,6 +770,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             raise ValueError(f"{where}{name} = {checks.shown_path(path)} is not allowed twice ({name} #{first + 1} and "
                              f"#{k + 1} are one file{'' if fspecs[k] is None else ' at the same frames'}): its observations "
                              "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give each file once")
+    real = [os.path.realpath(str(path)) for path in targets]
+    repeated = {k for k in range(len(targets)) if real.count(real[k]) > 1}
 
     def read(path, fspec):
         ext = os.path.splitext(str(path))[1].lower()
@@ -724,10 +797,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     # A target whose frames are chosen is read first: the choice is refused before the scene's
     # checks launch their kernels (a range past the frames an .npz stores was found after them).
+    # A file given more than once is read too, its frames compared before the scene's.
     early = read_targets if read_targets is not None else {
         k: read(path, fspecs[k]) for k, path in enumerate(targets)
-        if not cameras and fspecs[k] is not None and os.path.isfile(path)}
+        if not cameras and (fspecs[k] is not None or k in repeated) and os.path.isfile(path)}
     if targets_only:
+        _refuse_repeated_frames([(k, path, fspecs[k], _chosen_frames(early[k], fspecs[k], f"{where}{key('target_frames')}"))
+                                 for k, path in enumerate(targets) if k in early and k in repeated], where, key)
         return early
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
@@ -762,33 +838,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         t = early[k] if k in early else read(path, fspec)
         any_usd = any_usd or usd
         if fspec is not None and usd_spec is None and not t.frames_stored:  # (a stored frames' choice is read's)
-            try:
-                chosen = []
-                for part in str(fspec).split(","):
-                    bits = part.split(":")
-                    if len(bits) == 1:
-                        chosen.append(int(part))
-                    elif len(bits) in (2, 3):
-                        # A:B[:STEP], both ends given (B included): the frames of a file of many
-                        # entries, which stores none of its own, without writing each out.
-                        a, b, step = int(bits[0]), int(bits[1]), int(bits[2]) if len(bits) == 3 else 1
-                        if step < 1 or b < a:
-                            raise ValueError
-                        span = range(a, b + 1, step)
-                        if len(chosen) + len(span) > MAX_TARGET_FRAMES:  # counted before the list is made
-                            raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names more than "
-                                             f"{MAX_TARGET_FRAMES} frames")
-                        chosen.extend(span)
-                    else:
-                        raise ValueError
-                if min(chosen) < 0:
-                    raise ValueError
-            except ValueError as e:
-                if str(e).startswith(f"{where}{key('target_frames')}"):
-                    raise
-                # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
-                raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: use comma-separated frame "
-                                 "indices >= 0 or ranges A:B[:STEP] (B included)") from None
+            chosen = _numbered_frames(fspec, f"{where}{key('target_frames')}")
             if t.kind != "positions":
                 seen = set()
                 twice = next((f for f in chosen if f in seen or seen.add(f)), None)
@@ -903,6 +953,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     force_noise = spec.get("force_noise")
     force_noise = checks.noise(f"{where}{key('force_noise')}", force_noise) if force_noise is not None else (
         _arg(args, "force_noise") if where else None)
+    # The frames a target without a choice shows (a cloud's, a mesh's: the last) are known
+    # only now.
+    _refuse_repeated_frames([(k, path, fspecs[k], t.frames if t.frames is not None else [frames])
+                             for k, (kind, path, t) in enumerate(loaded) if kind == "file" and k in repeated], where, key)
     loss = None
     zero_readings: list[str] = []
     for k, (kind, path, t) in enumerate(loaded):
