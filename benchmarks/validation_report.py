@@ -781,7 +781,9 @@ def _fitted_yield_target(results, mpm) -> list[tuple[str, str, str, str]]:
 
 #: The near-yield column's target, and its rows measured at dx = 0.01 m (not in the plan:
 #: run on their own before the plan's fixed-width study, Notes), whose columns grow with the
-#: resolution and so are no resolution study.
+#: resolution and so are no resolution study. Those on the slip ghost floor were measured
+#: before its rim fix (2026-12-07) and not again: ``_near_yield_growing`` adds the floor's
+#: fixed-width rows after it, read from the results.
 NEAR_YIELD_TARGET = "a near-yield column holds with only its bottom yielding"
 NEAR_YIELD_GROWING = (
     "at dx = 0.01 m (the column n cm across, so it grows with n: not a resolution study), not in the plan, "
@@ -790,17 +792,29 @@ NEAR_YIELD_GROWING = (
     "0.69 L deep (1-D: 0.8 L), the part 0.1-0.5 L deep at 1.00 / 1.01 / 1.18 x its weight's stress; "
     "plastic shortening 0.064 / 0.29 / 0.55 x the 1-D analysis's free spreading (the collider's bottom "
     "layer holds the base in; the continuum MPM's column: 1.03 / 0.96 / 0.99 / 0.94 x at 4 / 6 / 9 / 12 cells across; "
-    "on the slip ghost floor, which fits the bottom layer two-sided: 0.44 / 0.61 / 0.82 / 0.90 / 1.01 x at 4 / 6 / 8 / 10 / 12 "
-    "across after 36 periods, the 12-across base still creeping 0.19 % of the theory's shortening per s; "
-    "run on to 72 periods it went into gross motion, 10.5 x the 1-D plastic shortening: the column, 12 cm wide "
-    "and 60 cm tall, is 1.15 x its self-weight buckling length (8 / 10 across: 1.00 / 1.08 x) and leans over, "
-    "docs/physics.md, \"The near-yield column's late collapse\")")
+    "on the slip ghost floor, which fits the bottom layer two-sided, before its rim fix (2026-12-07): 0.44 / 0.61 / "
+    "0.82 / 0.90 / 1.01 x at 4 / 6 / 8 / 10 / 12 across after 36 periods, the 12-across base still creeping 0.19 % "
+    "of the theory's shortening per s; run on to 72 periods it went into gross motion, 10.5 x the 1-D plastic "
+    "shortening: the column, 12 cm wide and 60 cm tall, is 1.15 x its self-weight buckling length (8 / 10 across: "
+    "1.00 / 1.08 x) and leans over, docs/physics.md, \"The near-yield column's late collapse\"")
 #: The fit weight of the dx = 0.01 m rows (measured before the option existed), whose target
 #: row carries them whatever the default.
 NEAR_YIELD_GROWING_WEIGHT = "poly6"
 NEAR_YIELD_GROWING_MET = ("at dx = 0.01 m: holds, base only yielding (within a width): yes; the 1-D spreading: no (on "
-                          "the slip ghost floor: within 10 % at 10 and 12 across, columns at and past their buckling "
-                          "length; at rest: not at 12 across)")
+                          "the slip ghost floor before its rim fix: within 10 % at 10 and 12 across, columns at and past "
+                          "their buckling length; at rest: not at 12 across")
+
+
+def _near_yield_growing(slip: list[dict]) -> tuple[str, str]:
+    """The dx = 0.01 m columns' measured text and verdict, and after the slip ghost floor's
+    rim fix its fixed-width rows ``slip`` (by resolution; none: nothing after it)."""
+    if not slip:
+        return NEAR_YIELD_GROWING + ")", NEAR_YIELD_GROWING_MET + ")"
+    after = f"; after it measured at a fixed width of {100 * slip[0]['width']:g} cm alone"
+    shortening = " / ".join(format(r["plastic_over_theory"], ".2f") for r in slip)
+    return (f"{NEAR_YIELD_GROWING}{after} ({_runs_of(slip)}): {shortening} x at "
+            f"{' / '.join(str(r['resolution']) for r in slip)} across)",
+            f"{NEAR_YIELD_GROWING_MET}{after}: {slip[-1]['plastic_over_theory']:.2f} x at {slip[-1]['resolution']} across)")
 #: The near-yield column at rest: the largest kinetic energy over M g times the theory's
 #: shortening, and the largest change the top's creep would make to the plastic shortening
 #: over another run as long, as a fraction of the 1-D analysis's (a tenth of the 10 % band).
@@ -825,7 +839,7 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[
     less than twice the theory) and yields only within a width of the 1-D yield depth, and
     its plastic shortening within 10 % of the 1-D analysis's and converging. Rest is not part
     of "holds": a resolution not at rest (``near_yield_at_rest``) is named after the verdict.
-    Then the dx = 0.01 m rows (``NEAR_YIELD_GROWING``), whose columns grow with the resolution.
+    Then the dx = 0.01 m rows (``_near_yield_growing``), whose columns grow with the resolution.
     The rows of the fit ``weight`` alone, named for it unless it is the default; the dx = 0.01 m
     part goes with ``NEAR_YIELD_GROWING_WEIGHT``'s row, and another weight without a
     fixed-width run has no row."""
@@ -875,8 +889,10 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[
         met.append(verdict)
     if not growing:
         return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured), "; ".join(met), _runs_of(used))]
-    return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured + [NEAR_YIELD_GROWING]),
-             "; ".join(met + [NEAR_YIELD_GROWING_MET]), _runs_of(used) if used else "–")]
+    said, verdict = _near_yield_growing(sorted((r for r in rows if r.get("floor", "ground") == "slip_ghost_particles"),
+                                              key=lambda r: r["resolution"]))
+    return [(NEAR_YIELD_TARGET + _with_weight(weight), "; ".join(measured + [said]),
+             "; ".join(met + [verdict]), _runs_of(used) if used else "–")]
 
 
 def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:

@@ -1108,8 +1108,17 @@ def test_the_near_yield_target_judges_the_fixed_width_study_per_floor():
     assert "at rest: not at 6 across" in ground and "not a resolution study" in measured, (ground, measured)
     assert growing.startswith(" = 0.01 m"), met
     assert "at 4 / 6 / 8 across: plastic shortening 0.44 / 0.80 / 0.95 x" in measured, measured
-    # Without fixed-width rows only the growing columns' verdict stands.
-    assert _near_yield_target([], NEAR_YIELD_GROWING_WEIGHT)[0][2].startswith("at dx = 0.01 m: holds")
+    # The growing columns on the slip ghost floor predate its rim fix: said so, and the floor's
+    # rows after it are the fixed-width ones, read from the rows (they quoted the old columns alone).
+    assert "on the slip ghost floor, which fits the bottom layer two-sided, before its rim fix" in measured, measured
+    assert measured.endswith("; after it measured at a fixed width of 4 cm alone (R1): 0.44 / 0.80 / 0.95 x at 4 / 6 / 8 "
+                             "across)"), measured
+    assert met.endswith("on the slip ghost floor before its rim fix: within 10 % at 10 and 12 across, columns at and "
+                        "past their buckling length; at rest: not at 12 across; after it measured at a fixed width of 4 "
+                        "cm alone: 0.95 x at 8 across)"), met
+    # Without fixed-width rows only the growing columns' verdict stands, with nothing after the fix.
+    (_, measured, met, _), = _near_yield_target([], NEAR_YIELD_GROWING_WEIGHT)
+    assert met.startswith("at dx = 0.01 m: holds") and "after it" not in measured + met, (measured, met)
 
 
 def test_the_near_yield_target_reads_each_fit_weight_on_its_own():
