@@ -20,6 +20,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from warp_esph.cli import EXIT_NOT_CONVERGED
 from warp_esph.diagnostics import LARGE_STRAIN_ALPHA, diagnose
 from warp_esph.fit import Experiment, choose_checkpointing, fit, latin_hypercube, memory_estimate
 from warp_esph.losses import PositionLoss
@@ -400,7 +401,8 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
                    "--params", "yield_stress", "--iterations", "8", "--output-dir", str(out), "--no-progress", "--no-usd",
                    "--dtype", "float64"])
     captured = capsys.readouterr()
-    assert status == 0, captured.err
+    # In the flat bottom, not converged (the masks do not determine it): the results written, exit 5.
+    assert status == EXIT_NOT_CONVERGED, captured.err
     assert "to silhouettes from" in captured.err
     result = json.loads((out / "fit.json").read_text())
     fitted = result["params"]["yield_stress"][0]
@@ -1381,7 +1383,7 @@ def test_target_body_picks_the_run_usd_and_leaves_a_force_log_beside_it_alone(tm
     assert main(["run", str(truth), "-o", str(run), "--no-progress"]) == 0
     common = ["--iterations", "1", "--no-progress", "--no-usd", "--output-dir", str(tmp_path / "fit")]
     assert main(["fit", str(guess), "--target", str(run), "--target", f"{run}_tools.csv", "--target-tool", "plane0",
-                 "--target-body", "dough", *common]) == 0
+                 "--target-body", "dough", *common]) == EXIT_NOT_CONVERGED  # one iteration: the cap, results written
     capsys.readouterr()
     assert main(["fit", str(guess), "--target", f"{run}_tools.csv", "--target-body", "dough", *common]) == 2
     err = capsys.readouterr().err
@@ -1887,11 +1889,11 @@ def test_an_earlier_fits_json_does_not_stay_beside_a_fit_written_with_o_elsewher
     assert main([*common, "--iterations", "0"]) == 0
     assert json.loads((out / "fit.json").read_text())["iterations"] == 0
     elsewhere = tmp_path / "elsewhere.json"
-    assert main([*common, "--iterations", "2", "-o", str(elsewhere)]) == 0
+    assert main([*common, "--iterations", "2", "-o", str(elsewhere)]) == EXIT_NOT_CONVERGED  # the cap, results written
     assert sorted(p.name for p in out.iterdir()) == ["history.csv", "loss.png", "params.png"]
     assert json.loads(elsewhere.read_text())["iterations"] == 2
     # -o naming the folder's own fit.json writes it there, as without -o.
-    assert main([*common, "--iterations", "1", "-o", str(out / "fit.json")]) == 0
+    assert main([*common, "--iterations", "1", "-o", str(out / "fit.json")]) == EXIT_NOT_CONVERGED
     assert json.loads((out / "fit.json").read_text())["iterations"] == 1
     # An experiments file of that name in the folder is an input: refused, not removed.
     (out / "fit.json").write_text(json.dumps([{"scene": str(guess), "target": str(target)}]))
@@ -2585,7 +2587,7 @@ def test_the_fit_summary_counts_what_ran_as_fit_json_does(tmp_path, capsys, doug
               "--no-progress", "--no-usd"]
 
     capsys.readouterr()
-    assert main([*common, "--samples", "2", "--output-dir", str(tmp_path / "a")]) == 0
+    assert main([*common, "--samples", "2", "--output-dir", str(tmp_path / "a")]) == EXIT_NOT_CONVERGED  # the cap
     out = capsys.readouterr().out
     doc = json.loads((tmp_path / "a" / "fit.json").read_text())
     said = re.search(r"^loss (\S+) -> (\S+) in (\d+) evaluations: (\d+) of the global stage \(loss only: the guess "
@@ -2599,7 +2601,7 @@ def test_the_fit_summary_counts_what_ran_as_fit_json_does(tmp_path, capsys, doug
     assert float(said.group(1)) == pytest.approx(doc["initial_loss"], rel=1e-3)
     assert float(said.group(2)) == pytest.approx(doc["loss"], rel=1e-3)
 
-    assert main([*common, "--no-diagnostics", "--output-dir", str(tmp_path / "b")]) == 0
+    assert main([*common, "--no-diagnostics", "--output-dir", str(tmp_path / "b")]) == EXIT_NOT_CONVERGED
     out = capsys.readouterr().out
     doc = json.loads((tmp_path / "b" / "fit.json").read_text())
     said = re.search(r"^loss \S+ -> \S+ in (\d+) evaluations of the descent$", out, re.M)
@@ -2736,10 +2738,44 @@ def test_the_fit_help_says_the_iteration_cap_is_each_starts_as_it_is(tmp_path, c
     target = tmp_path / "t.npz"
     np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
     assert main(["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--iterations", "1", "--starts",
-                 "2", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == 0
+                 "2", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == EXIT_NOT_CONVERGED
     history = json.loads((tmp_path / "o" / "fit.json").read_text())["history"]
     per_start = [sum(1 for h in history if h.get("start") == k) for k in (0, 1)]
     assert 1 <= max(per_start) <= 2 and sum(per_start) == len(history) > 2, per_start
+
+
+def test_a_fit_that_stops_without_converging_exits_5_with_its_results_written(tmp_path, capsys, dough_scene):
+    """``warp-esph fit`` exited 0 whether the fit converged, stalled or hit the iteration cap: a
+    script read a fit stopped short as fitted values. It now exits ``EXIT_NOT_CONVERGED`` (5)
+    with every result written, its last line saying how it stopped and what to change; 0 for a
+    converged fit, and for ``--iterations 0``, which asks for no descent."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
+    common = ["fit", str(guess), "--params", "mu", "--no-progress", "--no-usd", "--no-diagnostics"]
+    capsys.readouterr()
+    assert main([*common, "--target", str(target), "--iterations", "1", "--output-dir", str(tmp_path / "a")]) == 5
+    said = capsys.readouterr()
+    doc = json.loads((tmp_path / "a" / "fit.json").read_text())
+    assert doc["stopped"] == "iterations" and not doc["converged"] and (tmp_path / "a" / "history.csv").is_file()
+    assert said.out.startswith("fit hit the iteration cap before converging"), said.out
+    assert said.err.splitlines()[-1] == (
+        "warp-esph fit: not converged: it hit the iteration cap (--iterations 1); run it again with a larger --iterations to "
+        "go further (it starts again from the scene's values); its results are written as above (exit 5)"), said.err
+    assert main([*common, "--target", str(target), "--iterations", "0", "--output-dir", str(tmp_path / "b")]) == 0
+    assert "not converged" not in capsys.readouterr().err
+    # The guess's own run: converged (a probe lr away reads a loss above the guess's 0).
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(guess), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main([*common, "--target", str(run), "--iterations", "5", "--output-dir", str(tmp_path / "c")]) == 0
+    assert "not converged" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "c" / "fit.json").read_text())["converged"]
 
 
 @pytest.mark.parametrize("signum, status, said", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),

@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from warp_esph.cli import EXIT_NOT_CONVERGED
 from warp_esph.fit import fit
 from warp_esph.rollout import Rollout
 
@@ -79,7 +80,7 @@ def test_the_command_says_in_its_summary_and_fit_json_that_evaluations_ran_past_
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     capsys.readouterr()
     assert main(["fit", str(guess), "--target", str(run), "--params", "mu", "--optimizer", "lbfgs", "--iterations", "4",
-                 "--no-usd", "--no-progress", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == 0
+                 "--no-usd", "--no-progress", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == EXIT_NOT_CONVERGED
     out = capsys.readouterr().out
     record = json.loads((tmp_path / "o" / "fit.json").read_text())["step_limit"]
     assert record["dt_over_stable"] > 1.0 + 1e-6, record

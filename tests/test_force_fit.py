@@ -13,6 +13,7 @@ import warp as wp
 
 import warp_esph as we
 from warp_esph import tools
+from warp_esph.cli import EXIT_NOT_CONVERGED
 from warp_esph.losses import PositionLoss, ReactionForceLoss
 from warp_esph.rollout import FORCES, Rollout
 
@@ -219,7 +220,7 @@ def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path
     status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plate", "--params", "mu,yield_stress",
                    "--iterations", "12", "--output-dir", str(out), "--no-progress", "--no-usd", "--no-diagnostics"])
     captured = capsys.readouterr()
-    assert status == 0, captured.err
+    assert status == EXIT_NOT_CONVERGED, captured.err  # at the cap of 12, within 1e-3 of the truth
     doc = json.loads((out / "fit.json").read_text())
     assert doc["params"]["mu"][0] == pytest.approx(5000.0, rel=1e-3)
     assert doc["params"]["yield_stress"][0] == pytest.approx(1000.0, rel=1e-3)

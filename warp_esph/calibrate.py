@@ -142,14 +142,17 @@ def _refuse_overwriting_inputs(outputs, inputs) -> None:
 
 
 def run_fit(args, out=None, err=None) -> int:
-    """Run ``warp-esph fit`` from parsed ``args``; returns 0. Raises ``ValueError`` on bad input.
+    """Run ``warp-esph fit`` from parsed ``args``; returns 0 for a converged fit, else
+    ``EXIT_NOT_CONVERGED`` (5: stopped without converging, every result written, its line said
+    last). Raises ``ValueError`` on bad input.
     ``out``/``err``: the report and the progress messages (default: the current
     ``sys.stdout``/``sys.stderr``, looked up at the call)."""
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
     import warp as wp  # noqa: PLC0415
 
-    from .cli import _parse_bounds, _parse_param_scales, _safe_point, _signal_name, _stopped, option_flag  # noqa: PLC0415
+    from .cli import (  # noqa: PLC0415
+        EXIT_NOT_CONVERGED, _parse_bounds, _parse_param_scales, _safe_point, _signal_name, _stopped, option_flag)
     from .fit import (  # noqa: PLC0415
         BoundsError, Experiment, FitInterrupted, ParamScaleRefused, StartRefused, _material_indices, check_options, fit, load_target,
         solvers_record, starts_stable_steps)
@@ -520,7 +523,33 @@ def run_fit(args, out=None, err=None) -> int:
         log(f"{_stopped(args)} while writing the fit's results (printed above): {kept}")
         raise
     print("wrote " + ", ".join(written), file=out)
+    unconverged = _unconverged_said(result, args)
+    if unconverged:
+        # A fit that stopped short exited 0, as a converged one: a script read its values as fitted.
+        log(unconverged)
+        return EXIT_NOT_CONVERGED
     return 0
+
+
+def _unconverged_said(result, args) -> str:
+    """The line of a fit that stopped without converging (its status ``EXIT_NOT_CONVERGED``), what
+    to change to go further, or "" for a converged one. ``--iterations 0`` asks for the start's
+    evaluation and no descent, so nothing is judged converged or not."""
+    from .cli import EXIT_NOT_CONVERGED  # noqa: PLC0415
+
+    if result.converged or args.iterations == 0:
+        return ""
+    how = {
+        "iterations": f"it hit the iteration cap (--iterations {args.iterations}); run it again with a larger --iterations "
+                      "to go further (it starts again from the scene's values)",
+        "stalled": f"it stalled (no lower loss in --patience {_arg(args, 'patience', 20)} evaluations, or a line search that "
+                   "found none); a larger --patience waits longer for one, a larger --iterations with it",
+        "flat": "the gradient is exactly zero at the start, and more iterations will not change that (the first line "
+                "says what to change)",
+        "uninformative": "the data do not tell the start from values nearby, and more iterations will not change that "
+                         "(the first line says what to change)",
+    }.get(result.stopped, f"it stopped: {result.stopped}")
+    return f"not converged: {how}; its results are written as above (exit {EXIT_NOT_CONVERGED})"
 
 
 def _evaluations_said(result) -> str:

@@ -6,7 +6,10 @@ Exit status: 0 success; 1 an unexpected error stopped a run, an export or a rend
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before; ``export``, ``render``: the files
-written before; ``fit``: its results, printed first); 130 interrupted (Ctrl-C), 143 terminated
+written before; ``fit``: its results, printed first); 5 ``fit`` stopped without converging (stalled, at
+the iteration cap, a gradient of exactly zero or data that do not tell the values apart; not with
+``--iterations 0``, which asks for no descent): every result is written as for a converged fit, and the last line
+says how it stopped and what to change; 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
 (``--checkpoint-every``) resumes the run (``--resume``). ``sweep`` exits 3 when at least
 one sample failed (its row says why) and 130 when interrupted (the table keeps the
@@ -34,6 +37,7 @@ EXIT_UNEXPECTED = 1  # an error of no kind the run expects stopped it mid-way (P
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_WRITE_FAILED = 4
+EXIT_NOT_CONVERGED = 5  # fit: stopped without converging, its results written
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE: what a shell reports for a writer whose reader left
@@ -1284,7 +1288,8 @@ def _parse_param_scales(items) -> dict:
 
 
 def fit_cli(args, out=None) -> int:
-    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
+    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0, or
+    ``EXIT_NOT_CONVERGED`` for a fit that stopped without converging (its results written).
 
     The work is ``warp_esph.calibrate.run_fit``: it prints the memory and time estimates,
     fits, says whether the fit converged, stalled or hit the iteration cap, prints the
