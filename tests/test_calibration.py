@@ -3079,6 +3079,29 @@ def test_a_target_given_twice_at_frames_written_otherwise_or_shared_in_part_is_r
     assert not (tmp_path / "o").exists()
 
 
+def test_a_cloud_given_twice_at_its_default_frame_and_that_frame_named_is_refused(tmp_path, capsys, dough_scene):
+    """A cloud's frame left out is the run's last, known once the targets set the run's length:
+    an experiment's ``target_frames`` [null, "2"] of one cloud (the run ends at frame 2) fitted
+    frame 2's observations twice; refused once the frame is known, naming it."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    np.savetxt(tmp_path / "c.xyz", load_scene(str(guess)).builder.finalize().particle_x0 + 0.001)
+    exps = tmp_path / "e.json"
+    exps.write_text(json.dumps([{"scene": str(guess), "target": ["c.xyz", "./c.xyz"], "target_frames": [None, "2"]}]))
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "c.xyz"), "--experiments", str(exps), "--iterations", "0",
+                 "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].endswith(
+        "c.xyz' is not allowed twice at frame 2 (target #1 and #2 are one file, and target_frames left out (the default) and "
+        "'2' both choose it): its observations there would count twice, and the diagnostics' standard errors shrink by "
+        "1/sqrt(2); give the file once, with target_frames naming every frame to fit"), err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_json_file_given_as_a_target_says_what_it_is_not_that_meshio_cannot_read_it(tmp_path):
     """The ``_tools.json`` a run writes beside its force log (or a fit's ``fit.json``, a camera
     or experiments file) given as ``--target`` was refused as a mesh meshio could not read

@@ -746,7 +746,7 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
             both = sorted(set(frames) & set(other))
             if both:
                 def said(spec):
-                    return "its default frames" if spec is None else repr(checks.shorten(spec))
+                    return "left out (the default)" if spec is None else repr(checks.shorten(spec))
 
                 shown = ", ".join(map(str, both[:8])) + (f", ... ({len(both)} in all)" if len(both) > 8 else "")
                 raise ValueError(
