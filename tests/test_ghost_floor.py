@@ -145,6 +145,59 @@ def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energ
     assert np.abs(bare[coords] + dEdx).max() / np.abs(dEdx).max() > 0.05
 
 
+def test_slip_ghost_positions_at_the_rim_have_the_gradient_of_their_central_differences():
+    """The ghosts' positions after one step, ``sum w . ghost_y`` (random ``w``), against
+    float64 central differences in every coordinate of every free particle's start, on a slip
+    floor a spacing wider than a jittered block moving along it at random: its 24 ghosts past
+    the rim fill part of their stencils (``stencil_fill``, 0 < fill < 1), so their positions
+    hang on the fill's partial weights (the stencil's total through ``1 - total / N``, the
+    support-wide Shepard weights). Within 1e-6 of the largest (measured: 2.2e-8); with the
+    fill's weights left off the tape (their forward unchanged) 2.3 of it."""
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, -9.81, 0.0))
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, elastic_force="variational")
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
+    b.add_particle_floor("block", margin=SPACING, ghost=True, slip=True)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    n, nf = model.particle_count, model.ghost_floor.count
+    free = np.arange(n) < n - nf
+    rng = np.random.default_rng(4)
+    x0 = model.particle_x0.copy()
+    x0[free] += rng.normal(scale=0.05 * SPACING, size=(free.sum(), 3))
+    v = np.zeros_like(x0)
+    v[free] = np.array([2.0, 0.0, 0.7]) + rng.normal(scale=0.5, size=(free.sum(), 3))
+    w = rng.normal(size=(n, 3)) * ~free[:, None]
+    solver = we.Solver(model)
+    dt = 3.0e-4
+
+    def loss(x):
+        a, c = model.state(requires_grad=False), model.state(requires_grad=False)
+        a.x.assign(x)
+        a.v.assign(v)
+        solver.step(a, c, dt)
+        return float((c.ghost_y.numpy() * w).sum()), c
+
+    a, c = model.state(), model.state()
+    a.x.assign(x0)
+    a.v.assign(v)
+    tape = wp.Tape()
+    with tape:
+        solver.step(a, c, dt)
+    tape.backward(grads={c.ghost_y: wp.array(w, dtype=c.ghost_y.dtype, device=c.ghost_y.device)})
+    grad = a.x.grad.numpy().ravel()
+    fill = loss(x0)[1].ghost_fill.numpy().sum(axis=1)
+    assert ((fill > 1e-6) & (fill < 1.0 - 1e-6)).sum() == 24, fill
+
+    def moved(k, d):
+        x = x0.copy().ravel()
+        x[k] += d
+        return loss(x.reshape(-1, 3))[0]
+
+    coords = np.flatnonzero(np.repeat(free, 3))
+    fd = central_gradient(moved, coords)
+    err = np.abs(grad[coords] - fd).max() / np.abs(fd).max()
+    assert err < 1e-6, err
+
+
 @pytest.mark.parametrize("change, pattern", [
     ({"fit": "curvature_corrected"}, r"fit = 'curvature_corrected' is not allowed with a ghost floor"),
     ({"elastic_force": "paper"}, r"Material.elastic_force = \['paper'\] is not allowed with a ghost floor"),
