@@ -976,6 +976,33 @@ def test_a_force_log_that_does_not_point_against_the_model_is_not_said_to_have_t
         assert [w for w in d.warnings if "times smaller than the fitted curve" in w], d.warnings
 
 
+def test_a_negated_force_log_is_said_to_be_so_from_a_guess_eight_times_as_stiff():
+    """The sign's test compared the target negated with the target at their own sizes: from a
+    guess 8 times as stiff as the sample (mu 40 kPa for 5 kPa), the press's log negated (a log
+    of the force on the plate) at cosine -0.98 was said nothing of at the start, where only the
+    sign is read (negated, it still left 0.61 of the misfit: a curve 8 times the log's misses
+    it by 7 times its size negated, by 9 not), and the fit then drives the material soft,
+    where the curve fades and points nowhere. With the target scaled to the model's size it
+    is said, as from a guess within 5.8 times the log's it was; the log of the right sign is
+    not."""
+    from test_force_fit import _elastic_press, _press_curve  # noqa: PLC0415
+
+    from warp_esph.losses import ReactionForceLoss  # noqa: PLC0415
+
+    ends, truth = _press_curve(120, 20, dt=1.0e-4)
+    stiff = _press_curve(120, 20, mu=40000.0, dt=1.0e-4)[1]
+    assert 7.0 < np.linalg.norm(stiff) / np.linalg.norm(truth) < 9.0
+    for sign in (-1.0, 1.0):
+        logged = []
+        fit(_elastic_press(40000.0), ReactionForceLoss(sign * truth, "plate", ends, window=20, components="y"), ["mu"],
+            steps=120, dt=1.0e-4, iterations=0, progress=False, diagnostics=False, log=logged.append)
+        said = [m for m in logged if "points against the model's" in m]
+        if sign < 0:
+            assert len(said) == 1 and "(cosine -0.98" in said[0] and said[0].endswith("(at the start)"), logged
+        else:
+            assert not said, logged
+
+
 def test_a_target_lying_in_the_ground_is_warned_of_before_the_fit_runs_on_it(landing):
     """A lab's file with z up (the scene's y is up) puts a third of the landed cube's points
     under the ground, where no particle goes: positions or a scan so turned were fitted

@@ -1628,26 +1628,31 @@ class ReactionForceLoss(Loss):
     def residuals(self, obs) -> np.ndarray:
         return (self.curve(obs) - self.targets).ravel()
 
-    #: ``opposite_sign`` speaks where the target negated leaves at most this share of the misfit.
+    #: ``opposite_sign`` speaks where the target negated, at the model's size, leaves at most
+    #: this share of the misfit of the target at that size (a cosine of -1/3 or less).
     OPPOSITE_SHARE = 0.5
 
     def opposite_sign(self, obs) -> str | None:
         """A sentence where the simulated curve points against the target (a negative cosine
-        over the observed windows, the simulated curve's RMS at least a tenth of the target's):
-        it then fits worse than no force at all. A log of the force on the tool, or of
-        compression counted positive, measures the negative of the force the tool exerts on the
-        material, which no material value reaches: a fit drove mu from 8000 to 7 Pa and said
-        only that it had not converged. Said only where the target negated would leave at most
-        ``OPPOSITE_SHARE`` of the misfit: a curve at a cosine near 0 (columns swapped: -0.00) or
-        one far smaller than the model's (a log of zeros whose round-off points against it) is
-        not mended by negating it, and was told to be."""
+        over the observed windows, the two curves' RMS within ``SIZE_MISMATCH`` of each other,
+        where ``size_mismatch`` is silent): it then fits worse than no force at all. A log of
+        the force on the tool, or of compression counted positive, measures the negative of the
+        force the tool exerts on the material, which no material value reaches: a fit drove mu
+        from 8000 to 7 Pa and said only that it had not converged. Said only where the target
+        negated, scaled to the model's RMS, would leave at most ``OPPOSITE_SHARE`` of the misfit
+        of the target so scaled: a curve at a cosine near 0 (columns swapped: -0.00) is not
+        mended by negating it, nor is a log of zeros whose round-off points against the model's
+        (the size's note says what it is), and both were told to be. The scale keeps the test
+        to the direction: compared at their own sizes, a negated log of a guess 6 to 10 times
+        as stiff as the sample (or 0.1 to 0.17 times) was said nothing of."""
         sim = self.curve(obs)
-        norm = float(np.linalg.norm(sim) * np.linalg.norm(self.targets))
-        if not norm > 0.0 or np.linalg.norm(sim) < 0.1 * np.linalg.norm(self.targets):
+        s, t = float(np.linalg.norm(sim)), float(np.linalg.norm(self.targets))
+        if not s * t > 0.0 or not t / self.SIZE_MISMATCH < s < t * self.SIZE_MISMATCH:
             return None
-        cosine = float(np.sum(sim * self.targets)) / norm
-        negated = float(np.sum((sim + self.targets) ** 2))
-        if cosine >= 0.0 or negated > self.OPPOSITE_SHARE * float(np.sum((sim - self.targets) ** 2)):
+        cosine = float(np.sum(sim * self.targets)) / (s * t)
+        scaled = self.targets * (s / t)
+        negated = float(np.sum((sim + scaled) ** 2))
+        if cosine >= 0.0 or negated > self.OPPOSITE_SHARE * float(np.sum((sim - scaled) ** 2)):
             return None
         return (f"the {self.term_name} points against the model's (cosine {cosine:.2f} over the observed windows; no "
                 "force at all would fit it better): the target is the force the tool exerts on the material, and a log "
