@@ -1032,6 +1032,26 @@ def test_a_target_lying_in_the_ground_is_warned_of_before_the_fit_runs_on_it(lan
                 iterations=0, progress=False, diagnostics=False)
 
 
+def test_a_target_under_a_plane_of_a_z_up_scene_is_not_said_to_need_the_scenes_y_up():
+    """A scene may stand along z (gravity (0, 0, -9.81), its ground ``add_plane((0, 0, 1), 0)``):
+    a y-up lab's positions put a third of the cube under that plane, and the warning told the
+    user the scene's y is up and that a z-up file's z is the scene's y, the opposite of the
+    mend. Where the plane is not a y-up ground the warning names its normal and no up axis."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, -9.81))
+    b.add_box((0.0, 0.0, 0.035), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, density=1000.0), velocity=(0.0, 0.0, -1.0))
+    b.add_plane((0.0, 0.0, 1.0), 0.0, friction=0.5)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    y_up = np.asarray(model.particle_x0)[:, [0, 2, 1]]  # the lab's y is the scene's z
+    with pytest.warns(UserWarning) as said:
+        fit(model, {2: y_up}, ["mu"], steps=2, dt=1.0e-4, iterations=0, progress=False, diagnostics=False)
+    below = [str(w.message) for w in said if "below the scene's" in str(w.message)]
+    assert len(below) == 1 and re.search(r"^target: 33 % of its positions lie more than half a spacing \(0\.01 m\) below the "
+                                         r"scene's plane0 \(up to 0\.02\d* m\), where no particle goes: a file in other axes "
+                                         r"than the scene's \(the plane's normal, out of its solid side, is \[0\.0, 0\.0, 1\.0\]\)",
+                                         below[0]), below
+    assert "y is up" not in below[0] and "scene's y" not in below[0]
+
+
 def test_residuals_beyond_the_bodys_own_size_are_said_to_be_no_noise(landing):
     """A run of another scene (the block placed 0.5 m away) fitted as this one's target: the
     dough block's fit said only that both values were undetermined, and reported an

@@ -549,11 +549,17 @@ def _warn_target_below_planes(loss: Loss, model: Model, what: str) -> None:
             if share > TARGET_BELOW_SHARE:
                 import warnings  # noqa: PLC0415
 
-                name = f"ground (plane{i})" if tuple(plane.normal) == (0.0, 1.0, 0.0) else f"plane{i}"
+                # The y-up hint only where the plane is a y-up ground: a scene whose gravity and
+                # ground are along -z was told its y is up, and a wall was called the floor's.
+                normal = tuple(float(c) for c in plane.normal)
+                if normal == (0.0, 1.0, 0.0):
+                    name, hint = f"ground (plane{i})", "whose up axis is not the scene's y (a lab's with z up: its z is the scene's y)"
+                else:
+                    name, hint = f"plane{i}", f"in other axes than the scene's (the plane's normal, out of its solid side, is {list(normal)})"
                 warnings.warn(f"{what}: {100 * share:.0f} % of its {kind} lie more than half a spacing "
                               f"({0.5 * model.spacing:.3g} m) below the scene's {name} (up to {depth.max():.3g} m), "
-                              "where no particle goes: a file whose up axis is not the scene's y (a lab's with z up: "
-                              "its z is the scene's y), or in other coordinates than the scene's", UserWarning, stacklevel=3)
+                              f"where no particle goes: a file {hint}, or in other coordinates than the scene's",
+                              UserWarning, stacklevel=3)
                 break
 
 
