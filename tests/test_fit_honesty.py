@@ -1003,6 +1003,24 @@ def test_a_negated_force_log_is_said_to_be_so_from_a_guess_eight_times_as_stiff(
             assert not said, logged
 
 
+def test_a_force_curve_along_another_axis_is_said_so_without_taking_y_for_up():
+    """A scene built along z (gravity (0, 0, -9.81)) presses along z; a y-up lab's log has the
+    force in fy. It was told 'the scene's y is up: a z-up lab's fz is the scene's fy', the
+    opposite of the scene; the loss knows no scene's up axis, and the sentence now says only
+    what holds in any: a z-up lab's fz is a y-up scene's fy."""
+    from warp_esph.losses import ReactionForceLoss  # noqa: PLC0415
+    from warp_esph.rollout import FORCES, TOOL_NAMES  # noqa: PLC0415
+
+    ends = [10, 20, 30]
+    pressed = np.zeros((30, 1, 3))
+    pressed[:, 0, 2] = -np.linspace(0.1, 3.0, 30)  # the plate's force on the sample, along -z
+    log = np.zeros((3, 3))
+    log[:, 1] = [-0.5, -1.5, -2.5]  # the same press in a y-up lab's columns
+    said = ReactionForceLoss(log, "plate", ends, window=10).other_axes({FORCES: pressed, TOOL_NAMES: ["plate"]})
+    assert said.startswith("the force curve of 'plate' lies along y (RMS 1.71 N), the model's along z (RMS 1.75 N; cosine 0.00"), said
+    assert "y is up" not in said and said.endswith("(a z-up lab's fz is a y-up scene's fy)"), said
+
+
 def test_a_target_lying_in_the_ground_is_warned_of_before_the_fit_runs_on_it(landing):
     """A lab's file with z up (the scene's y is up) puts a third of the landed cube's points
     under the ground, where no particle goes: positions or a scan so turned were fitted

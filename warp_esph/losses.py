@@ -1661,9 +1661,10 @@ class ReactionForceLoss(Loss):
     def other_axes(self, obs) -> str | None:
         """A sentence where the target's force lies mostly along another axis than the simulated
         curve's (each along its largest component by more than half its sum of squares, their
-        sizes within ``SIZE_MISMATCH``): a lab's log whose vertical force is fz (z up, where the
-        scene's y is up) or whose columns are in another order fits as a force the model never
-        exerts, and the fit drives the material soft, said only as undetermined."""
+        sizes within ``SIZE_MISMATCH``): a lab's log whose vertical force is fz (z up, where a
+        y-up scene's is fy) or whose columns are in another order fits as a force the model never
+        exerts, and the fit drives the material soft, said only as undetermined. The loss does
+        not know the scene's up axis (a scene may stand along z), so the sentence names none."""
         if len(self._axes) < 2:
             return None
         sim = self.curve(obs)
@@ -1676,8 +1677,8 @@ class ReactionForceLoss(Loss):
         k = len(self.frames)
         return (f"the {self.term_name} lies along {self.components[a]} (RMS {np.sqrt(t2[a] / k):.3g} N), the model's along "
                 f"{self.components[b]} (RMS {np.sqrt(s2[b] / k):.3g} N; cosine {cosine:.2f} over the observed windows): "
-                "its columns fx, fy, fz are in another order, or in the lab's axes, not the scene's (the scene's y is up: "
-                "a z-up lab's fz is the scene's fy)")
+                "its columns fx, fy, fz are in another order, or in the lab's axes, not the scene's (a z-up lab's fz is a "
+                "y-up scene's fy)")
 
     #: A target this many times larger or smaller (RMS) than the fitted curve is named (``size_mismatch``).
     SIZE_MISMATCH = 10.0
