@@ -378,12 +378,14 @@ NO_NOISE_SPREAD = 2.0
 
 
 def _no_noise(r: float, model, which: str) -> str | None:
-    """A sentence where the geometric residuals' RMS per coordinate ``r`` is past
-    ``NO_NOISE_SPREAD`` times the scene's particles' own spread about their centroid at the
-    start (per coordinate): no measurement and no material value misses by twice the body's
-    size. A run of another scene (the dough block placed 0.5 m away) was fitted with its
-    residuals taken for the noise (0.289 m per coordinate, 12.9 times the block's spread), the
-    values said only to be undetermined."""
+    """A sentence where the geometric residuals' RMS ``r`` (per coordinate of positions; a
+    cloud's or a mesh's is a distance per point) is past ``NO_NOISE_SPREAD`` times the scene's
+    particles' own spread about their centroid at the start (per coordinate; a cube's is 0.29
+    of its side, so the bar is 0.58 of it): no measurement misses by that much, and a material
+    value only where the fit stopped far from the target (a local minimum, a bound). A run of
+    another scene (the dough block placed 0.5 m away) was fitted with its residuals taken for
+    the noise (0.289 m per coordinate, 12.9 times the block's spread), the values said only to
+    be undetermined."""
     x0 = np.asarray(model.particle_x0, dtype=np.float64)
     if not r > 0.0 or len(x0) < 2:
         return None
