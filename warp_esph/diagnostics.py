@@ -393,9 +393,10 @@ def _no_noise(r: float, model, which: str) -> str | None:
     if not r > NO_NOISE_SPREAD * size > 0.0:
         return None
     return (f"{which}positions' residuals (RMS {r:.3g} m per coordinate) are {r / size:.3g} times the spread of the scene's "
-            f"particles at the start ({size:.3g} m per coordinate): no noise or material value misses by that much, so the "
-            "target does not follow this scene (a run of another scene, placement or --scale, or positions in other units or "
-            "axes); the standard errors, read against these residuals, mean nothing")
+            f"particles at the start ({size:.3g} m per coordinate): no noise misses by that much, so the target does not "
+            "follow this scene (a run of another scene, placement or --scale, or positions in other units or axes) or the "
+            "fit stopped far from it (a local minimum, a bound); the standard errors, read against these residuals, mean "
+            "nothing")
 
 
 def _has_residuals(prob) -> bool:
