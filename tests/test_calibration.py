@@ -3111,8 +3111,15 @@ def test_a_json_file_given_as_a_target_says_what_it_is_not_that_meshio_cannot_re
 
     (tmp_path / "run.usdc_tools.json").write_text('{"units": {"force": "N"}, "rows": []}')
     (tmp_path / "fit.json").write_text("{}")
+    # A record copied without its CSV is not pointed to a CSV beside it as if it were there.
     with pytest.raises(ValueError, match=r"^target \S*run\.usdc_tools\.json is not allowed: it is a JSON file, not a "
-                                         r"measurement; a run's force log is its CSV beside it, \S*run\.usdc_tools\.csv"):
+                                         r"measurement; a run's force log is its CSV beside it, \S*run\.usdc_tools\.csv "
+                                         r"\(the same rows\), which is not there \(give the run's log as it wrote it\)$"):
+        load_target(tmp_path / "run.usdc_tools.json")
+    (tmp_path / "run.usdc_tools.csv").write_text("frame,time,tool,fx,fy,fz\n")
+    with pytest.raises(ValueError, match=r"^target \S*run\.usdc_tools\.json is not allowed: it is a JSON file, not a "
+                                         r"measurement; a run's force log is its CSV beside it, \S*run\.usdc_tools\.csv "
+                                         r"\(the same rows\)$"):
         load_target(tmp_path / "run.usdc_tools.json")
     with pytest.raises(ValueError, match=r"^target \S*fit\.json is not allowed: it is a JSON file, not a measurement; give "
                                          r"the run's USD.*\(a camera file goes with --cameras, experiments with --experiments\)$"):

@@ -3930,7 +3930,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         # Handed to meshio too: a run's force record beside its log was refused as a mesh that
         # 'Could not deduce file format', naming no target the command takes.
         log = p[:-len(".json")] + ".csv" if p.lower().endswith("_tools.json") else None
-        what = (f"a run's force log is its CSV beside it, {checks.shown_path(log, False)} (the same rows)" if log else
+        # Said to be beside it only where it is: a record copied alone was pointed to a CSV not there.
+        gone = "" if log is None or os.path.isfile(log) else ", which is not there (give the run's log as it wrote it)"
+        what = (f"a run's force log is its CSV beside it, {checks.shown_path(log, False)} (the same rows){gone}" if log else
                 "give the run's USD, positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud (a camera "
                 "file goes with --cameras, experiments with --experiments)")
         raise ValueError(f"target {checks.shown_path(p, False)} is not allowed: it is a JSON file, not a measurement; {what}")
