@@ -340,12 +340,13 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
 def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
                                model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky",
                                second_pressure_force: str | None = None, ground: float | None = None,
-                               fit: str | None = None, pair_repulsion: float = 0.0):
+                               fit: str | None = None, pair_repulsion: float = 0.0, friction: float = 0.5):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones; with
     ``second_pressure_force`` a second block of that force touches the first; with ``ground``
     the block stands over the ground at that height with floor images
-    (``add_ground(images=True)``), squeezed towards it; ``fit``: ``Solver(fit=...)``; with
+    (``add_ground(images=True)``, of ``friction``: 0, the images moving with their particles,
+    and the block then also sliding along x at 0.3 m/s), squeezed towards it; ``fit``: ``Solver(fit=...)``; with
     ``pair_repulsion`` (``Material``'s) its particle 1 starts 0.3 dx from particle 0, within
     the repulsion's range (0.5 dx)."""
     import warp_esph as we  # noqa: PLC0415
@@ -358,7 +359,7 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     if second_pressure_force is not None:
         b.add_box((0.0, 0.08, 0.0), (0.1, 0.08, 0.08), mat.replace(pressure_force=second_pressure_force, viscosity=3.0))
     if ground is not None:
-        b.add_ground(ground, friction=0.5, images=True)
+        b.add_ground(ground, friction=friction, images=True)
     model = b.finalize(dtype=scalar, requires_grad=True)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
     if pair_repulsion:
@@ -367,9 +368,12 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
         x0[1] = x0[0] + 0.3 * 0.02 * d / np.linalg.norm(d)
         model.particle_x0 = x0
     model.particle_v0 = (20.0 if ground is None else -20.0) * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    if friction == 0.0:
+        model.particle_v0 = model.particle_v0 + np.array([0.3, 0.0, 0.0])
     solver = we.Solver(model, fit=fit)
     solver.hand_adjoints = hand
-    assert solver.fast_under_tape() == hand  # the fused forward with the hand-written adjoints, or neither
+    # The fused forward with the hand-written adjoints, or neither (the corrected fit is not fused).
+    assert solver.fast_under_tape() == (hand and fit in (None, "linear"))
     states = [model.state() for _ in range(steps + 1)]
     states[0].alpha.fill_(0.02)
     states[0].alpha_image.fill_(0.02)  # the images' hardening as their particles'
@@ -623,6 +627,21 @@ def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_forc
         tol = 2e-3
     _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force, ground=ground,
                                    elastic_force=elastic_force)
+
+
+@pytest.mark.parametrize("ground,fit", [(-0.045, None), (-0.037, None), (-0.031, None), (-0.045, "curvature_corrected"),
+                                        (-0.037, "curvature_corrected")],
+                         ids=["linear", "linear-ramp", "linear-contact", "corrected", "corrected-ramp"])
+def test_hand_written_adjoints_carry_the_moving_floor_images(ground, fit):
+    """On the frictionless imaged ground (``friction = 0``) the images move with their
+    particles over the step (``deformation.partner_displacement``: ``J(x_j) u_j`` in both fits'
+    image pairs and in each image's own fit, ``J(x_j) v_j`` in the SPH viscosity), and the
+    block slides along it: the hand-written adjoints of the linear and the corrected fit give
+    the generated adjoints' gradients in float64, with the bottom layer 0.75 dx over the plane
+    (mirrors), 0.35 dx (on the images' depth ramp, ``deformation.image_depth``, where the
+    Jacobian's own slope enters: ``mirrored_motion_adjoint``) and 0.05 dx (held at half a
+    spacing deep, and the collider's contact)."""
+    _assert_hand_matches_generated(wp.float64, 1e-10, pressure_force="energy", ground=ground, friction=0.0, fit=fit)
 
 
 _gf = guards.guard_funcs(S)

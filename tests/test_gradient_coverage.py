@@ -72,7 +72,9 @@ ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
 #: tests are in ``test_yield_with_pressure.py``; the ``isotropic`` pressure force (the default
 #: solver, which runs it on the unfused schedule); the pair repulsion (``Material.pair_repulsion``,
 #: a pair started 0.3 dx apart, inside its range: ``_model``), fused and not, whose central
-#: differences in ``test_gradients.py`` take a free block's merging layers alone.
+#: differences in ``test_gradients.py`` take a free block's merging layers alone; the frictionless
+#: imaged ground (``friction = 0``: the images move with their particles over the step, in both fits,
+#: the images' own fits and the SPH viscosity), the linear fit fused and the corrected one.
 CASES = {
     "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
     "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
@@ -100,6 +102,8 @@ CASES = {
     "elastic_pinned_floor": ({}, {}, {}, "pinned_elastic"),
     "capsule_tool": ({}, {}, {}, "capsule"),
     "field_images": ({}, {}, {}, "images_field"),
+    "frictionless_images": ({}, {}, {}, "images_frictionless"),
+    "frictionless_images_corrected": ({}, {"fit": "curvature_corrected"}, {}, "images_frictionless"),
     "field_default_elastic": (ELASTIC, {}, {}, "ground_field"),
     "yield_with_pressure": ({}, {"yield_with_pressure": True}, {}, "ground"),
     "isotropic_pressure": ({"pressure_force": "isotropic"}, {}, {}, "ground"),
@@ -129,7 +133,7 @@ def _model(case, scene, params=None, worlds=1, world1=None):
         # Standing on its axis: the block's middle rests on its round cap.
         b.add_tool("capsule", radius=0.05, half_height=0.02, position=(0.0, -0.059, 0.0), friction=0.5, name="floor")
     else:
-        b.add_ground(0.01, friction=0.5, images=floor.startswith("images"))
+        b.add_ground(0.01, friction=0.0 if floor == "images_frictionless" else 0.5, images=floor.startswith("images"))
     if floor.endswith("_field"):
         # A horizontal squeeze towards the block's axis, on from the start.
         b.add_compression_field((0.0, 0.0, 0.0), 50.0)

@@ -557,7 +557,7 @@ class SceneBuilder:
         ``images=True``: the ground is also a rough floor of the material's fits: each
         particle within the support radius of it has, in its incremental fit and in the
         elastic force (the variational energy, or the paper's pairs), the mirror images of its
-        neighbours below the plane, static over a step and carrying a stress (their own, below)
+        neighbours below the plane, carrying a stress (their own, below)
         (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear.
@@ -567,24 +567,20 @@ class SceneBuilder:
         its energy does is stored and an undamped layer on it keeps its energy
         (docs/physics.md, "The floor images' energy is not stored").
 
-        The images hold the material whatever ``friction`` is: they are at rest over each
-        step in the fits, so a bottom layer sliding over them is sheared as on a floor at
-        rest, and its stress pulls the body back (a rough floor: an elastic box thrown
-        sideways on it swings about where it was). ``friction`` acts only where a particle touches
-        the plane, and a body resting on the images stays off it, so ``friction = 0``, which
-        cannot make this floor frictionless, is refused with ``images=True`` (docs/physics.md,
-        "The imaged ground is rough whatever its friction")."""
+        With ``friction > 0`` the images are at rest over each step in the fits, so a bottom
+        layer sliding over them is sheared as on a floor at rest, and its stress pulls the body
+        back: a rough floor whatever the friction (an elastic box thrown sideways on it swings
+        about where it was; ``friction`` itself acts only where a particle touches the plane,
+        and a body resting on the images stays off it, so its value does not grade the floor).
+        With ``friction = 0`` the images move with their particles over each step (the
+        mirror of each particle's displacement in the fits, of its velocity in the SPH
+        viscosity): a frictionless floor, on which a body slides on (docs/physics.md, "The
+        imaged ground is rough whatever its friction")."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):
             raise ValueError("images = True is not allowed twice: one ground may be a rough floor of the fits")
         y0, friction = checks.number("height", height), checks.non_negative("friction", friction)
-        if images and friction == 0.0:
-            # Measured: a box sliding at 0.5 m/s on the images loses 0.32 of its speed in
-            # 0.01 s, the same to the bit with friction 0 and 5 (docs/physics.md).
-            raise ValueError("friction = 0 is not allowed with images = True: the images are a rough floor of the fits, "
-                             "which holds a body resting on them whatever the friction (it acts only where a particle "
-                             "touches the plane); for a frictionless ground leave images out")
         plane = Plane((0.0, 1.0, 0.0), y0, friction, images)
         self._refuse_coincident(plane, f"add_ground(height = {checks.shorten(height)!r})")
         self._add_collider(self.planes, plane, "plane")

@@ -502,6 +502,13 @@ class State(Unpicklable):
 #: spacings: half a spacing, where a floor of particles has its top layer.
 IMAGE_MIN_DEPTH = 0.5
 
+#: The kernels' ``images`` argument (``Model.image_args``): no image plane; images at rest over
+#: each step in the fits (a rough floor, the ground's ``friction > 0``); images that move with
+#: their particles over the step (a frictionless floor, ``friction = 0``;
+#: ``deformation.partner_displacement``; docs/physics.md, "The imaged ground is rough whatever
+#: its friction").
+IMAGES_NONE, IMAGES_AT_REST, IMAGES_MOVING = 0, 1, 2
+
 
 class Model(Unpicklable):
     """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
@@ -678,17 +685,22 @@ class Model(Unpicklable):
         #: ``(normal, offset)`` of the plane whose mirror images enter the fits (a rough floor,
         #: ``SceneBuilder.add_ground(images=True)``); None: none.
         self.image_plane = (tuple(imaged[0].normal), float(imaged[0].offset)) if imaged else None
+        #: How the images move over a step (``IMAGES_*``): with their particles on a frictionless
+        #: imaged ground, else at rest.
+        self.image_motion = (IMAGES_NONE if not imaged else IMAGES_MOVING if imaged[0].friction == 0.0
+                             else IMAGES_AT_REST)
         check_pressure_forces(materials, self.image_plane is not None)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
     def image_args(self) -> list:
-        """The kernels' arguments of the image plane: normal, offset and whether it is on (the
-        same list every call: a replayed launch then finds the very objects it packed)."""
+        """The kernels' arguments of the image plane: normal, offset, the images' least depth and
+        how they move (``image_motion``: 0 without an image plane; the same list every call: a
+        replayed launch then finds the very objects it packed)."""
         if self._image_args is None:
             n, off = self.image_plane if self.image_plane is not None else ((0.0, 1.0, 0.0), 0.0)
             self._image_args = [self.types.vec3(*n), self.scalar(off), self.scalar(IMAGE_MIN_DEPTH * self.spacing),
-                                int(self.image_plane is not None)]
+                                int(self.image_motion)]
         return self._image_args
 
     MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")

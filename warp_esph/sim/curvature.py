@@ -128,7 +128,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         (y_lo - x_lo)`` with the positions' round-off, as ``deformation.fit_pair_sums``: exact
         at rest, docs/physics.md, the float32 creep floor) or over the floor's images ``g_j``
         of ``i`` and of its same-body neighbours (``image`` 1: ``xb = g_j - x_i``, ``ub =
-        -u_i``, the floor at rest over the step). Only the raw sums live in this loop: the
+        -u_i``, the floor at rest over the step; ``image`` 2: ``ub = J(x_j) u_j - u_i``, the
+        images moving with their particles; ``deformation.partner_displacement``). Only the raw sums live in this loop: the
         caller's inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
         A = mat33()
         B = mat33()
@@ -144,9 +145,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
             j, p = df.pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
-                ub = -ui
-                if image == 0:
-                    ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
+                ub = df.partner_displacement(j, x, y, x_lo, y_lo, 0, gn, goff, gmin, image) - ui
                 dA, dB, dC, dD, dE, c = moment_pair_terms(p - xi, ub, h, c6, hh)
                 A += dA
                 B += dB
@@ -193,7 +192,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         has an image plane (``images``)."""
         A, B, C, D, E, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
         if images != 0:
-            Ag, Bg, Cg, Dg, Eg, sg = moment_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, 1)
+            Ag, Bg, Cg, Dg, Eg, sg = moment_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
             A = A + Ag
             B = B + Bg
             C = C + Cg
@@ -307,26 +306,37 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
     ) -> ImageSums:
         """``deformation.floor_image_displacement_sums`` with the curvature terms: ``Bu = sum
-        w ub xb^T``, ``Eu = sum w ub q^T`` of ``i``'s own image ``g_i`` at rest over ``i`` and its
-        same-body neighbours (``xb = x_r - g_i``, ``ub = u_r``), and the sum of their weights."""
+        w ub xb^T``, ``Eu = sum w ub q^T`` of ``i``'s own image ``g_i`` over ``i`` and its
+        same-body neighbours (``xb = x_r - g_i``, ``ub = u_r - u_g``: ``u_g`` 0 at rest), for
+        moving images (``images`` 2) over their images too (``xb = g_r - g_i``, ``ub = J(x_r) u_r
+        - u_g``), and the sum of the particle pairs' weights."""
         B = mat33()
         E = mat33()
         wsum = scalar(0.0)
         xi = x[i]
         bi = body[i]
         gi = df.floor_image(xi, gn, goff, gmin)
+        ug = df.partner_displacement(i, x, y, x_lo, y_lo, 0, gn, goff, gmin, images)
         c6 = fw.coef(h)
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 w = fw.w_c(wp.dot(xb, xb), h, c6)
-                wu = w * df.displacement(x[j], y[j], x_lo[j], y_lo[j])
+                wu = w * (df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ug)
                 B += wp.outer(wu, xb)
                 E += wp.outer(wu, curvature_basis(xb, h))
                 wsum += w
+                if images == 2 and j != i:
+                    gb = df.floor_image(x[j], gn, goff, gmin) - gi
+                    pb = x[j] - xi
+                    wu = fw.w_c(wp.dot(pb, pb), h, c6) * (
+                        df.partner_displacement(j, x, y, x_lo, y_lo, 0, gn, goff, gmin, images) - ug)
+                    B += wp.outer(wu, gb)
+                    E += wp.outer(wu, curvature_basis(gb, h))
         sums = ImageSums()
         sums.Bu = B
         sums.Eu = E
@@ -550,8 +560,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                              image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_C: mat33, adj_D: mat33,
                              adj_D_sym: mat33, adj_E: mat33, adj_same: scalar, adj_x: wp.array(dtype=vec3),
                              adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
-        """Adjoint of ``moment_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
-        ``g_j - y_i`` for an image) given the moments' adjoints and the smooth count's
+        """Adjoint of ``moment_pair_sums``' pairs (``image`` as there; ``yb = q - y_i`` with the
+        far end ``q`` at the step's end, ``deformation.pair_ends``) given the moments' adjoints and the smooth count's
         (``adj_same``, ``guards.count_weight``): each pair's
         ``moment_pair_adjoint`` scattered to its partner (``deformation.scatter_pair_adjoint``)
         and taken from ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
@@ -570,7 +580,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     c, dc = gf.count_weight(r2, hh)
                     gx, gy = moment_pair_adjoint(xb, q - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D, adj_D_sym,
                                                  adj_E, adj_same * dc)
-                    df.scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
+                    df.scatter_pair_adjoint(adj_x, adj_y, j, x[j], y[j], gx, gy, gn, goff, gmin, image)
                     gx_i -= gx
                     gy_i -= gy
         return gx_i, gy_i
@@ -634,6 +644,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return gg, gp
 
     @wp.func
+    def moving_image_pair_adjoint(adj_B: mat33, adj_E: mat33, gb: vec3, pb: vec3, ub: vec3, hh: scalar, c6: scalar,
+                                  h: scalar):
+        """``deformation``'s ``moving_image_pair_adjoint`` with the curvature term: the adjoint of
+        an image-image pair's ``w(|pb|^2) ub gb^T`` in ``Bu`` and ``w ub q(gb)^T`` in ``Eu``
+        (``floor_image_displacement_sums``, ``images`` 2): ``(adj gb, adj pb, adj ub)``, the
+        second term's as the first's with ``q`` for ``gb``, carried back through ``q(gb)``."""
+        gg, gp, gu = df.moving_image_pair_adjoint(adj_B, gb, pb, ub, hh, c6)
+        gq, gpq, guq = df.moving_image_pair_adjoint(adj_E, curvature_basis(gb, h), pb, ub, hh, c6)
+        return gg + curvature_basis_adjoint(gb, gq, h), gp + gpq, gu + guq
+
+    @wp.func
     def floor_image_own_update_adjoint(
         i: int,
         x: wp.array(dtype=vec3),
@@ -645,6 +666,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
         scale: scalar,
         sums: ImageSums,
         Fg: mat33,
@@ -658,8 +680,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         the weight sum the share reads (``adj_wsum``), as
         ``deformation.floor_image_own_update_adjoint`` for the corrected fit: ``inc0 = (Bu - Eu
         K) A~^-1`` back into the image's moments (``projection_adjoint``), each pair's
-        ``moment_pair_adjoint`` (``xb = x_r - g_i``, ``yb = u_r``) scattered to ``x``, ``y``,
-        the image pairs' ``scatter_image_pair_adjoint``, ``g_i``'s to ``x_i`` through
+        ``moment_pair_adjoint`` (``xb = x_r - g_i``, ``yb = u_r - u_g``) scattered to ``x``, ``y``,
+        the image pairs' ``scatter_image_pair_adjoint`` (and for moving images, ``images`` 2,
+        their ``moving_image_pair_adjoint`` and ``u_g``'s), ``g_i``'s to ``x_i`` through
         ``deformation.floor_image_jacobian``; returns ``(adj Fg, adj scale)``."""
         inc0 = mat33()
         K = mat33()
@@ -687,6 +710,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         hh = h * h
         gg_i = vec3()
         gx_i = vec3()
+        gu_i = vec3()
+        # The image's own displacement (the round-off arrays are not differentiated: x for both).
+        ug = df.partner_displacement(i, x, y, x, x, 0, gn, goff, gmin, images)
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
@@ -695,17 +721,29 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     w, dw = fw.w_inside(r2, hh, c6)
-                    gx, gu = moment_pair_adjoint(xb, y[j] - xj, w, dw, h, adj_A, adj_A_sym, adj_Bu, adj_C, adj_D,
+                    gx, gu = moment_pair_adjoint(xb, y[j] - xj - ug, w, dw, h, adj_A, adj_A_sym, adj_Bu, adj_C, adj_D,
                                                  adj_D_sym, adj_Eu, adj_wsum * dw)
                     wp.atomic_add(adj_y, j, gu)
                     wp.atomic_add(adj_x, j, gx - gu)
                     gg_i -= gx
+                    gu_i -= gu
                 if j != i and applied != 0:
-                    gg, gp = scatter_image_pair_adjoint(df.floor_image(xj, gn, goff, gmin) - gi, xj - xi, hh, c6, h, K,
-                                                        adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn,
-                                                        goff, gmin)
+                    gb = df.floor_image(xj, gn, goff, gmin) - gi
+                    gg, gp = scatter_image_pair_adjoint(gb, xj - xi, hh, c6, h, K, adj_A, adj_A_sym, adj_C, adj_D,
+                                                        adj_D_sym, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
+                    if images == 2:
+                        yj = y[j]
+                        gg, gp, gu = moving_image_pair_adjoint(adj_Bu, adj_Eu, gb, xj - xi,
+                                                               df.mirrored_motion(xj, yj - xj, gn, goff, gmin) - ug,
+                                                               hh, c6, h)
+                        df.scatter_moving_image_adjoint(adj_x, adj_y, j, xj, yj, gg, gp, gu, gn, goff, gmin)
+                        gg_i -= gg
+                        gx_i -= gp
+                        gu_i -= gu
+        if images == 2:
+            df.scatter_moving_image_adjoint(adj_x, adj_y, i, xi, y[i], vec3(), vec3(), gu_i, gn, goff, gmin)
         df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         adj_Fg = Gg
         if applied != 0:
@@ -806,7 +844,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gx_i, gy_i = moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B, adj_C,
                                           adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, vec3(), vec3())
         if images != 0:
-            gx_i, gy_i = moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
+            gx_i, gy_i = moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, adj_A, adj_A_sym, adj_B,
                                               adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, gx_i, gy_i)
         return gx_i, gy_i
 

@@ -79,21 +79,26 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def image_depth(d: scalar, min_depth: scalar):
         """How deep under the plane the floor image of a point ``d`` above it lies, and its
-        slope in ``d``: ``d`` from ``min_depth`` up, ``min_depth`` below ``min_depth - w``
+        slope in ``d`` and that slope's own: ``d`` from ``min_depth`` up, ``min_depth`` below ``min_depth - w``
         (``w = min_depth / 2``), and between them the cubic ``min_depth + w t^2 (t - 1)``,
         ``t = 1 + (d - min_depth) / w``, which joins the two with value and slope continuous
         (a plain ``max(d, min_depth)`` has a kink, and a loss through contact jumps in its slope
         where a particle crosses it; docs/physics.md, "The imaged ground's contact is smooth").
         The cubic dips at most ``4 w / 27`` below ``min_depth``; the image's own depth ``d + s``
-        still grows with ``d`` (slope >= 2/3)."""
+        still grows with ``d`` (slope >= 2/3). The second slope, ``(6 t - 2) / w`` on the cubic
+        and 0 off it (it jumps at the cubic's ends), is what the adjoint of an image moving with
+        its particle reads (``mirrored_motion_adjoint``)."""
         s = d
         ds = scalar(1.0)
+        dds = scalar(0.0)
         if d < min_depth:
             w = scalar(0.5) * min_depth
             t = wp.max(scalar(1.0) + (d - min_depth) / w, scalar(0.0))
             s = min_depth + w * t * t * (t - scalar(1.0))
             ds = t * (scalar(3.0) * t - scalar(2.0))
-        return s, ds
+            if t > scalar(0.0):
+                dds = (scalar(6.0) * t - scalar(2.0)) / w
+        return s, ds, dds
 
     @wp.func
     def floor_image(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> vec3:
@@ -103,8 +108,53 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         pressed towards the plane closes on its image as on a floor particle (docs/physics.md,
         "The ground collider's thin-layer strength")."""
         d = wp.dot(n, x) - offset
-        s, ds = image_depth(d, min_depth)
+        s, ds, dds = image_depth(d, min_depth)
         return x - (d + s) * n
+
+    @wp.func
+    def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
+        """``d floor_image / d x`` (symmetric): ``I - (1 + s') n n^T`` for the slope ``s'`` of
+        ``image_depth``: the mirror ``R = I - 2 n n^T`` while ``x`` is higher than
+        ``min_depth``, the tangential projector ``I - n n^T`` below ``min_depth - w``, where the
+        image stays at ``min_depth`` under the plane, and between them a blend of the two."""
+        s, ds, dds = image_depth(wp.dot(n, x) - offset, min_depth)
+        return wp.identity(n=3, dtype=scalar) - (scalar(1.0) + ds) * wp.outer(n, n)
+
+    @wp.func
+    def mirrored_motion(x: vec3, u: vec3, n: vec3, offset: scalar, min_depth: scalar) -> vec3:
+        """The motion of the floor image of a particle at ``x`` moving by ``u`` (a displacement
+        over the step, or a velocity), to first order: ``floor_image_jacobian(x) u``, its
+        tangential part kept and its normal part reversed while ``x`` is higher than
+        ``min_depth`` (the mirror). Images that move so (``model.IMAGES_MOVING``) follow a
+        body sliding over them: a frictionless imaged ground (docs/physics.md, "The imaged
+        ground is rough whatever its friction")."""
+        return floor_image_jacobian(x, n, offset, min_depth) * u
+
+    @wp.func
+    def mirrored_motion_adjoint(x: vec3, u: vec3, g: vec3, n: vec3, offset: scalar, min_depth: scalar):
+        """Adjoint of ``mirrored_motion`` given the gradient ``g`` of its output: ``(adj x, adj
+        u)``, ``adj u = J g`` (``J`` symmetric) and ``adj x = -(n . u)(n . g) s'' n`` through the
+        Jacobian's depth slope (``image_depth``'s second slope ``s''``: 0 but on its cubic)."""
+        s, ds, dds = image_depth(wp.dot(n, x) - offset, min_depth)
+        return -(dds * wp.dot(n, u) * wp.dot(n, g)) * n, floor_image_jacobian(x, n, offset, min_depth) * g
+
+    @wp.func
+    def partner_displacement(j: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                             y_lo: wp.array(dtype=vec3), given: int, gn: vec3, goff: scalar, gmin: scalar,
+                             image: int) -> vec3:
+        """The displacement over the step of the far end of a fit pair whose partner is particle
+        ``j`` (``pair_partner``): ``image`` 0, ``j``'s own (``displacement``; ``given`` 1: ``y``
+        holds it); 1, its floor image's at rest: 0; 2, its image's moving with it,
+        ``mirrored_motion`` of ``j``'s. Every fit's image pair takes its displacement here: the
+        pair's ``ub`` is this minus the near end's."""
+        u = vec3()
+        if image != 1:
+            u = y[j]
+            if given == 0:
+                u = displacement(x[j], u, x_lo[j], y_lo[j])
+            if image == 2:
+                u = mirrored_motion(x[j], u, gn, goff, gmin)
+        return u
 
     @wp.func
     def image_row_length(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar) -> int:
@@ -150,11 +200,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     def pair_ends(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32), x: wp.array(dtype=vec3),
                   y: wp.array(dtype=vec3), gn: vec3, goff: scalar, gmin: scalar, image: int):
         """``pair_partner`` with the partner's position at the step's end: ``(j, x_j, y_j)``, or
-        for a floor image ``(j, g_j, g_j)`` (the floor is at rest over the step)."""
+        for a floor image ``(j, g_j, g_j)`` at rest over the step (``image`` 1) or ``(j, g_j, g_j +
+        mirrored_motion(x_j, y_j - x_j))`` moving with ``j`` (``image`` 2;
+        ``partner_displacement``)."""
         j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
         q = p
         if image == 0:
             q = y[j]
+        elif image == 2:
+            q = p + mirrored_motion(x[j], y[j] - x[j], gn, goff, gmin)
         return j, p, q
 
     @wp.func
@@ -199,8 +253,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         same-body partners (the guard's, ``guards.count_weight``), over ``i``'s row neighbours
         (``image`` 0: ``xb = x_j - x_i``, ``ub = u_j - u_i``) or over the floor's images ``g_j``
         of ``i`` and of its same-body neighbours (``image`` 1: ``xb = g_j - x_i``, ``ub = -u_i``:
-        the floor is at rest, an image does not move over the step; an image is at least as
-        far from ``x_i`` as its particle, so the row holds every image within ``h``).
+        the floor is at rest, an image does not move over the step; ``image`` 2: ``ub =
+        J(x_j) u_j - u_i``, the image moving with its particle, ``partner_displacement``; an
+        image is at least as far from ``x_i`` as its particle, so the row holds every image
+        within ``h``).
 
         ``ub`` from each particle's displacement ``u = (y - x) + (y_lo - x_lo)`` (``x_lo``,
         ``y_lo``: the positions' round-off, ``State.x_lo``) rather than ``y_j - y_i``: ``y - x``
@@ -230,12 +286,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
                 xb = p - xi
-                ub = -ui
-                if image == 0:
-                    uj = y[j]
-                    if given == 0:
-                        uj = displacement(x[j], uj, x_lo[j], y_lo[j])
-                    ub = uj - ui
+                ub = partner_displacement(j, x, y, x_lo, y_lo, given, gn, goff, gmin, image) - ui
                 w, dA, c = moment_pair_terms(xb, h, c6, hh)
                 A += dA
                 B += w * wp.outer(ub, xb)
@@ -296,15 +347,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return A, B, same
 
     @wp.func
-    def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
-        """``d floor_image / d x`` (symmetric): ``I - (1 + s') n n^T`` for the slope ``s'`` of
-        ``image_depth``: the mirror ``R = I - 2 n n^T`` while ``x`` is higher than
-        ``min_depth``, the tangential projector ``I - n n^T`` below ``min_depth - w``, where the
-        image stays at ``min_depth`` under the plane, and between them a blend of the two."""
-        s, ds = image_depth(wp.dot(n, x) - offset, min_depth)
-        return wp.identity(n=3, dtype=scalar) - (scalar(1.0) + ds) * wp.outer(n, n)
-
-    @wp.func
     def scatter_partner_adjoint(adj_x: wp.array(dtype=vec3), j: int, xj: vec3, g: vec3, gn: vec3, goff: scalar,
                                 gmin: scalar, image: int):
         """Adds the adjoint ``g`` of a pair's far end to its particle ``j``: to ``x_j``, or where
@@ -324,6 +366,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         wp.atomic_add(adj_x, i, gx + floor_image_jacobian(xi, gn, goff, gmin) * gg)
 
     @wp.func
+    def scatter_moving_image_adjoint(adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), j: int, xj: vec3,
+                                     yj: vec3, gg: vec3, gp: vec3, gu: vec3, gn: vec3, goff: scalar, gmin: scalar):
+        """Adds to particle ``j`` the adjoints of its floor image ``g_j`` (``gg``, through
+        ``floor_image_jacobian``), of ``x_j`` itself (``gp``) and of its image's displacement
+        ``mirrored_motion(x_j, y_j - x_j)`` (``gu``, ``mirrored_motion_adjoint``): the far end of a
+        pair with an image moving with its particle (``model.IMAGES_MOVING``)."""
+        ax, au = mirrored_motion_adjoint(xj, yj - xj, gu, gn, goff, gmin)
+        wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp + ax - au)
+        wp.atomic_add(adj_y, j, au)
+
+    @wp.func
     def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33,
                          adj_r2: scalar):
         """Adjoint of one pair's terms ``w(|xb|^2) xb xb^T`` in ``A`` and ``w yb xb^T`` in ``B``
@@ -335,24 +388,29 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * (dw * s + adj_r2) * xb, w * Bx
 
     @wp.func
-    def scatter_pair_adjoint(adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), j: int, xj: vec3, gx: vec3,
-                             gy: vec3, gn: vec3, goff: scalar, gmin: scalar, image: int):
-        """Adds a fit pair's ``(adj xb, adj yb)`` to its partner ``j`` (``pair_partner``):
-        to ``x_j`` and ``y_j``, or for a floor image (``image`` 1), which stands at ``g_j`` at
-        the step's start and end, their sum to ``x_j`` through ``floor_image_jacobian``."""
-        if image != 0:
-            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
-        else:
+    def scatter_pair_adjoint(adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), j: int, xj: vec3, yj: vec3,
+                             gx: vec3, gy: vec3, gn: vec3, goff: scalar, gmin: scalar, image: int):
+        """Adds a fit pair's ``(adj xb, adj yb)`` to its partner ``j`` (``pair_ends``): to ``x_j``
+        and ``y_j``; for a floor image at rest (``image`` 1), which stands at ``g_j`` at the
+        step's start and end, their sum to ``x_j`` through ``floor_image_jacobian``; for one
+        moving with ``j`` (``image`` 2), ending at ``g_j + J(x_j) (y_j - x_j)``, ``J gx`` to
+        ``x_j``, ``J gy`` to ``y_j`` and the Jacobian's own slope to ``x_j``
+        (``mirrored_motion_adjoint``)."""
+        if image == 0:
             wp.atomic_add(adj_x, j, gx)
             wp.atomic_add(adj_y, j, gy)
+        elif image == 1:
+            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
+        else:
+            scatter_moving_image_adjoint(adj_x, adj_y, j, xj, yj, gx + gy, vec3(), gy, gn, goff, gmin)
 
     @wp.func
     def fit_pairs_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                           nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
                           image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_same: scalar,
                           adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
-        """Adjoint of ``fit_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
-        ``g_j - y_i`` for an image) given ``adj A``, ``adj B`` and ``adj same`` (the smooth
+        """Adjoint of ``fit_pair_sums``' pairs (``image`` as there; ``yb = q - y_i`` with the far
+        end ``q`` at the step's end, ``pair_ends``) given ``adj A``, ``adj B`` and ``adj same`` (the smooth
         count's, ``guards.count_weight``): each pair's
         ``fit_pair_adjoint`` scattered to its partner (``scatter_pair_adjoint``) and taken from
         ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
@@ -370,7 +428,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     w, dw = fw.w_inside(r2, hh, c6)
                     c, dc = gf.count_weight(r2, hh)
                     gx, gy = fit_pair_adjoint(w, dw, xb, q - yi, adj_A, adj_A_sym, adj_B, adj_same * dc)
-                    scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
+                    scatter_pair_adjoint(adj_x, adj_y, j, x[j], y[j], gx, gy, gn, goff, gmin, image)
                     gx_i -= gx
                     gy_i -= gy
         return gx_i, gy_i
@@ -429,6 +487,23 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
         return gg, gp
 
+    @wp.func
+    def moving_image_pair_adjoint(adj_B: mat33, gb: vec3, pb: vec3, ub: vec3, hh: scalar, c6: scalar):
+        """Adjoint of an image-image term ``w(|pb|^2) ub gb^T`` of a moving image's displacement
+        moment (``floor_image_displacement_sums``, ``images`` 2): ``(adj gb, adj pb, adj ub)`` =
+        ``(w adj_B^T ub, 2 dw (ub . adj_B gb) pb, w adj_B gb)``."""
+        gg = vec3()
+        gp = vec3()
+        gu = vec3()
+        r2 = wp.dot(pb, pb)
+        if r2 < hh:
+            w, dw = fw.w_inside(r2, hh, c6)
+            Bg = adj_B * gb
+            gg = w * (wp.transpose(adj_B) * ub)
+            gp = scalar(2.0) * dw * wp.dot(ub, Bg) * pb
+            gu = w * Bg
+        return gg, gp, gu
+
     @wp.struct
     class ImageSums:
         """The sums of a floor image's own fit that move with the particles
@@ -450,24 +525,34 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
     ) -> ImageSums:
-        """Eq. 6 of particle ``i``'s own image ``g_i``, at rest over the step: ``B - A = sum w
-        ub xb^T`` over ``i`` and its same-body neighbours, ``xb = x_r - g_i``, ``ub = u_r`` (their
-        displacements, ``displacement``); its image pairs do not move. Also the sum of those
-        pairs' weights: 0 where no particle is within ``h`` of the image."""
+        """Eq. 6 of particle ``i``'s own image ``g_i``: ``B - A = sum w ub xb^T`` over ``i`` and
+        its same-body neighbours, ``xb = x_r - g_i``, ``ub = u_r - u_g`` (their displacements,
+        ``displacement``, less the image's own, ``partner_displacement``: 0 for images at rest,
+        ``images`` 1, whose image pairs do not move either); for images moving with their
+        particles (``images`` 2) also over the neighbours' images, ``xb = g_r - g_i`` weighed
+        as their particles' pair (``floor_image_moment``), ``ub = J(x_r) u_r - u_g``. Also the sum
+        of the particle pairs' weights: 0 where no particle is within ``h`` of the image."""
         B = mat33()
         wsum = scalar(0.0)
         xi = x[i]
         bi = body[i]
         gi = floor_image(xi, gn, goff, gmin)
+        ug = partner_displacement(i, x, y, x_lo, y_lo, 0, gn, goff, gmin, images)
         c6 = fw.coef(h)
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 w = fw.w_c(wp.dot(xb, xb), h, c6)
-                B += w * wp.outer(displacement(x[j], y[j], x_lo[j], y_lo[j]), xb)
+                B += w * wp.outer(displacement(x[j], y[j], x_lo[j], y_lo[j]) - ug, xb)
                 wsum += w
+                if images == 2 and j != i:
+                    pb = x[j] - xi
+                    B += fw.w_c(wp.dot(pb, pb), h, c6) * wp.outer(
+                        partner_displacement(j, x, y, x_lo, y_lo, 0, gn, goff, gmin, images) - ug,
+                        floor_image(x[j], gn, goff, gmin) - gi)
         sums = ImageSums()
         sums.Bu = B
         sums.wsum = wsum
@@ -567,6 +652,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
         scale: scalar,
         sums: ImageSums,
         Fg: mat33,
@@ -579,10 +665,12 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         """Adjoint of ``floor_image_own_update`` where the image's own fit applies (``sums``,
         ``Ag`` its sums at ``x``, ``y``; ``Gg`` the gradient of its output) and of the weight
         sum ``floor_image_share`` reads (``adj_wsum``): scatters the pairs' adjoints (``B``'s
-        ``w u xb^T`` with ``u = y_r - x_r``, ``xb = x_r - g_i``, ``w`` itself, and
+        ``w u xb^T`` with ``u = y_r - x_r - u_g``, ``xb = x_r - g_i``, ``w`` itself, and
         ``floor_image_moment``'s two kinds of term) to ``x`` and ``y``, ``g_i``'s to ``x_i``
-        through ``floor_image_jacobian``; returns ``(adj Fg, adj scale)``. ``applied`` 0: the
-        weight sum's alone."""
+        through ``floor_image_jacobian``; for moving images (``images`` 2) the image pairs'
+        ``B`` terms too (``moving_image_pair_adjoint``) and the image's own displacement
+        ``u_g``'s (``scatter_moving_image_adjoint``); returns ``(adj Fg, adj scale)``.
+        ``applied`` 0: the weight sum's alone."""
         D0 = mat33()
         adj_B = mat33()
         adj_A = mat33()
@@ -600,6 +688,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         hh = h * h
         gg_i = vec3()
         gx_i = vec3()
+        gu_i = vec3()
+        # The image's own displacement (the round-off arrays are not differentiated: x for both).
+        ug = partner_displacement(i, x, y, x, x, 0, gn, goff, gmin, images)
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
@@ -608,7 +699,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     w, dw = fw.w_inside(r2, hh, c6)
-                    u = y[j] - xj
+                    u = y[j] - xj - ug
                     Bx = adj_B * xb
                     adj_u = w * Bx
                     adj_xb = (w * (adj_A_sym * xb + wp.transpose(adj_B) * u)
@@ -616,11 +707,22 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     wp.atomic_add(adj_y, j, adj_u)
                     wp.atomic_add(adj_x, j, adj_xb - adj_u)
                     gg_i -= adj_xb
+                    gu_i -= adj_u
                 if j != i and applied != 0:
-                    gg, gp = scatter_image_pair_adjoint(adj_A, adj_A_sym, floor_image(xj, gn, goff, gmin) - gi, xj - xi,
-                                                        hh, c6, adj_x, j, xj, gn, goff, gmin)
+                    gb = floor_image(xj, gn, goff, gmin) - gi
+                    gg, gp = scatter_image_pair_adjoint(adj_A, adj_A_sym, gb, xj - xi, hh, c6, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
+                    if images == 2:
+                        yj = y[j]
+                        gg, gp, gu = moving_image_pair_adjoint(adj_B, gb, xj - xi,
+                                                               mirrored_motion(xj, yj - xj, gn, goff, gmin) - ug, hh, c6)
+                        scatter_moving_image_adjoint(adj_x, adj_y, j, xj, yj, gg, gp, gu, gn, goff, gmin)
+                        gg_i -= gg
+                        gx_i -= gp
+                        gu_i -= gu
+        if images == 2:
+            scatter_moving_image_adjoint(adj_x, adj_y, i, xi, y[i], vec3(), vec3(), gu_i, gn, goff, gmin)
         scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         adj_Fg = Gg
         if applied != 0:
@@ -647,7 +749,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         an image plane (``images``)."""
         A, B, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
         if images != 0:
-            Ag, Bg, sg = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, gn, goff, gmin, 1)
+            Ag, Bg, sg = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, gn, goff, gmin, images)
             A = A + Ag
             B = B + Bg
             same = same + sg
@@ -768,8 +870,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gx_i, gy_i = fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B, adj_same,
                                        adj_x, adj_y, vec3(), vec3())
         if images != 0:
-            gx_i, gy_i = fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B, adj_same,
-                                           adj_x, adj_y, gx_i, gy_i)
+            gx_i, gy_i = fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, adj_A, adj_A_sym, adj_B,
+                                           adj_same, adj_x, adj_y, gx_i, gy_i)
         return gx_i, gy_i
 
     return types.SimpleNamespace(
@@ -779,6 +881,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
         fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
+        mirrored_motion=mirrored_motion, mirrored_motion_adjoint=mirrored_motion_adjoint,
+        partner_displacement=partner_displacement, scatter_moving_image_adjoint=scatter_moving_image_adjoint,
+        moving_image_pair_adjoint=moving_image_pair_adjoint,
         scatter_partner_adjoint=scatter_partner_adjoint, scatter_own_adjoint=scatter_own_adjoint,
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
@@ -830,13 +935,15 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
         code: int,
         scale: scalar,
         Fg: mat33,
         F_new: mat33,
     ):
         """Eq. 8 of particle ``i``'s floor image (``State.F_image``). The image is a floor
-        particle at rest over the step: its own fit over the particles near it (the fit's
+        particle, at rest over the step or moving with ``i`` (``images``,
+        ``floor_image_displacement_sums``): its own fit over the particles near it (the fit's
         ``floor_image_displacement_sums`` and ``floor_image_moment``), faded as ``i``'s
         (``scale``), updates its own flowed ``Fg``, so that the work of its energy (the
         fit's ``image_map``) is stored as a particle's is (docs/physics.md, "The floor
@@ -845,7 +952,7 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         of its pairs' weights, smooth as they enter its support. Returns the image's new F and
         that share (``State.image_share``: the image's hardening is blended by it too,
         ``plasticity.image_hardening_update``)."""
-        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
         return df.floor_image_blend(own, F_new, sums.wsum, h)
 
@@ -863,6 +970,7 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        images: int,
         code: int,
         scale: scalar,
         D0: mat33,
@@ -879,14 +987,14 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         (the fit's ``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins
         the gradient of the particle's new F, and the adjoints of the image's flowed F and of
         the fade ``scale``."""
-        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
         c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, sums.wsum, h)
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):
-            adj_Fg, adj_s = fn.floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, sums, Fg,
-                                                              c * Gg, applied, adj_wsum, adj_x, adj_y)
+            adj_Fg, adj_s = fn.floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, scale, sums,
+                                                              Fg, c * Gg, applied, adj_wsum, adj_x, adj_y)
         return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
     return types.SimpleNamespace(floor_image_update=floor_image_update,
@@ -950,8 +1058,8 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         Fg_new = F_new
         c = scalar(0.0)
         if images != 0:
-            Fg_new, c = fi.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
-                                              scale, Fg_prev[i], F_new)
+            Fg_new, c = fi.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images,
+                                              guard[i], scale, Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
         share_out[i] = c
 
@@ -1015,7 +1123,7 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         adj_s = scalar(0.0)
         if images != 0:
             G_share, adj_Fg, adj_sg = fi.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
+                                                                    images, code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
                                                                     adj_share[i], adj_x, adj_y)
             G = G + G_share
             adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg

@@ -224,8 +224,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 fi += half
             wp.atomic_add(f, j, fj)
         if sph != 0 and images != 0:
-            fi += image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_i, vi, mass, rho, rho_p, rest_density, material,
-                                        mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
+            fi += image_pressure_forces(i, x, v, nbr, count[i], Vi, Vpi, pi, rho_i, vi, mass, rho, rho_p, rest_density,
+                                        material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin, images)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -275,8 +275,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fg_new = F_new
         c = scalar(0.0)
         if images != 0:
-            Fg_new, c = image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
-                                              Fg_prev[i], F_new)
+            Fg_new, c = image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images, code, s,
+                                     Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
         share_out[i] = c
 

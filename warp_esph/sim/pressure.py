@@ -261,6 +261,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     # The images' geometry only (no fit weight in it): any weight's namespace serves.
     floor_image = deformation.funcs(scalar, "poly6").floor_image
     floor_image_jacobian = deformation.funcs(scalar, "poly6").floor_image_jacobian
+    mirrored_motion = deformation.funcs(scalar, "poly6").mirrored_motion
     image_row_length = deformation.funcs(scalar, "poly6").image_row_length
     image_row_particle = deformation.image_row_particle
 
@@ -282,12 +283,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         return r
 
     @wp.func
-    def image_pressure_forces(i: int, x: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int, Vi: scalar,
-                              Vpi: scalar, pi: scalar, rho_pi: scalar, vi: vec3, mass: wp.array(dtype=scalar),
-                              rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
+    def image_pressure_forces(i: int, x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32),
+                              n: int, Vi: scalar, Vpi: scalar, pi: scalar, rho_pi: scalar, vi: vec3,
+                              mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
                               rest_density: wp.array(dtype=scalar), material: wp.array(dtype=wp.int32), mat: Materials,
                               h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar, gn: vec3, goff: scalar,
-                              gmin: scalar) -> vec3:
+                              gmin: scalar, images: int) -> vec3:
         """The SPH force on ``i`` (velocity ``vi``, volume ``Vi = m_i / rho_i`` of the SPH
         density, ``Vpi = m_i / rho_pi`` of the pressure density ``rho_pi``, pressure ``pi``)
         of the floor images in the densities (``image_density``), the floor taking the
@@ -295,8 +296,10 @@ def funcs(scalar) -> types.SimpleNamespace:
         ``rho_i`` and the pair ``(k, g_i)`` in ``rho_k``, the second through ``d g_i / d x_i``
         (``floor_image_jacobian``: the mirror ``R = I - 2 n n^T`` while ``i`` is above
         ``min_depth``, the tangential projector ``I - n n^T`` where its image stays put); and
-        the viscous force of the floor
-        at rest on ``i``. As for the particle pairs (``sph_pair_force``) the pressure and the
+        the viscous force of the images on ``i``: at rest (``images`` 1, relative velocity
+        ``-v_i``) or moving with their particles (``images`` 2, ``J(x_k) v_k - v_i``,
+        ``deformation.mirrored_motion``, which a body sliding on a frictionless imaged ground
+        does not feel). As for the particle pairs (``sph_pair_force``) the pressure and the
         energy forms read the pressure density ``rho_p`` and the volumes the SPH density
         ``rho``. For the energy forms it is minus the gradient of the pressure energy."""
         xi = x[i]
@@ -312,8 +315,11 @@ def funcs(scalar) -> types.SimpleNamespace:
                                              mat)
             # No pair repulsion with the images (s_rep 0): they are no particles a landing drives
             # together, and a particle's own image, 2 y below it, would push it off the floor.
+            vg = vec3()
+            if images == 2:
+                vg = mirrored_motion(x[j], v[j], gn, goff, gmin)
             fi += sph_pair_force(VV, VVp, pi, zero, rho_pi, rho_p[j], form, eta, xi - floor_image(x[j], gn, goff, gmin),
-                                 -vi, h, c6, c_spiky, c_visc, zero)
+                                 vg - vi, h, c6, c_spiky, c_visc, zero)
             fi += J * sph_pair_force(VV, VVp, zero, pj, rho_pi, rho_p[j], form, zero, gi - x[j], vec3(), h, c6, c_spiky,
                                      c_visc, zero)
         return fi
@@ -513,8 +519,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             wp.atomic_add(f, j, -half)
             fi += half
         if images != 0:
-            fi += fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], vi, mass, rho, rho_p, rest_density,
-                                           material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
+            fi += fn.image_pressure_forces(i, x, v, nbr, count[i], Vi, Vpi, pi, rho_p[i], vi, mass, rho, rho_p, rest_density,
+                                           material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin, images)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(module="unique")
