@@ -129,8 +129,10 @@ def box_side(n: int) -> int:
 
 # ------------------------------------------------------------------ warp_esph
 def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None,
-                pressure_force: str | None = None, max_neighbors: int | str | None = None, images: bool = False,
+                pressure_force: str | None = None, max_neighbors: int | str | None = None, images: bool | str = False,
                 fit_weight: str | None = None):
+    """The dough cube dropped on the ground; ``images``: with floor images (friction 0.5, at
+    rest over each step), or ``"frictionless"`` (friction 0, moving with their particles)."""
     import warp as wp
 
     side = box_side(n)
@@ -144,7 +146,12 @@ def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: 
     if pressure_force is not None:
         mat = mat.replace(pressure_force=pressure_force)
     b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), mat, velocity=(0.0, -1.0, 0.0))
-    b.add_ground(0.0, friction=0.5, images=images) if images else b.add_ground(0.0, friction=0.5)
+    if images == "frictionless":
+        b.add_ground(0.0, friction=0.0, images=True)
+    elif images:
+        b.add_ground(0.0, friction=0.5, images=True)
+    else:
+        b.add_ground(0.0, friction=0.5)
     return b.finalize(device=device, dtype=wp.float32, requires_grad=requires_grad)
 
 
@@ -421,10 +428,12 @@ def pressure_force_rates(n: int, device, args) -> dict:
 
 
 def ground_image_rates(n: int, device, args) -> dict:
-    """Forward rate of the dough on the plain ground and on the ground with floor images
+    """Forward rate of the dough on the plain ground, on the ground with floor images
     (``add_ground(images=True)``: the bottom layers' fits, energy and densities take the
-    images in, docs/physics.md), blocks interleaved in one run; the ratio images / plain."""
-    return _interleaved_rates(n, device, args, "images", (("plain", False), ("images", True)))
+    images in, docs/physics.md) and on the frictionless imaged ground (friction 0: the images
+    move with their particles), blocks interleaved in one run; the ratios against the plain."""
+    return _interleaved_rates(n, device, args, "images",
+                              (("plain", False), ("images", True), ("frictionless_images", "frictionless")))
 
 
 def fit_weight_rates(n: int, device, args) -> dict:
@@ -461,7 +470,7 @@ def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
     """Forward rates of the dough with ``build_model(field=choice)`` (a Material field, the
     ground's ``images`` or the builder's ``fit_weight``) for each choice (a value, or a pair ``(label, value)``), the
     timed blocks interleaved so that a drifting machine load affects each alike; the ratios
-    ``"<last>_over_<first>"``."""
+    ``"<choice>_over_<first>"`` of every other choice."""
     import warp_esph as we
 
     prepared = []
@@ -479,11 +488,11 @@ def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
             "particle_steps_per_second_mean": n_p / float(np.mean([t for t, _ in times])),
             "particle_steps_per_second_cpu_time_best_block": n_p / min(c for _, c in times),
         }
-    last, first = choices[-1][0], choices[0][0]
-    ratio = f"{last}_over_{first}"
-    for key in ("particle_steps_per_second_best_block", "particle_steps_per_second_mean",
-                "particle_steps_per_second_cpu_time_best_block"):
-        out.setdefault(ratio, {})[key] = out[last][key] / out[first][key]
+    first = choices[0][0]
+    for other, _value in choices[1:]:
+        for key in ("particle_steps_per_second_best_block", "particle_steps_per_second_mean",
+                    "particle_steps_per_second_cpu_time_best_block"):
+            out.setdefault(f"{other}_over_{first}", {})[key] = out[other][key] / out[first][key]
     return out
 
 
@@ -825,7 +834,8 @@ def main(argv=None):
     for flag, key, label, rates, choices in (
             ("elastic_forces", "elastic_forces", "elastic forces", elastic_force_rates, ("paper", "variational")),
             ("pressure_forces", "pressure_forces", "pressure forces", pressure_force_rates, ("spiky", "energy")),
-            ("ground_images", "ground_images", "ground images", ground_image_rates, ("plain", "images")),
+            ("ground_images", "ground_images", "ground images", ground_image_rates,
+             ("plain", "images", "frictionless_images")),
             ("fit_weights", "fit_weights", "fit weights", fit_weight_rates, ("poly6", "biweight"))):
         if not getattr(args, flag):
             continue
@@ -840,7 +850,8 @@ def main(argv=None):
                 print("  " + ", ".join(f"{f}: {r[f]['particle_steps_per_second_best_block'] / 1e3:.0f} k/s best block "
                                        f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
                                        for f in choices)
-                      + f"; {choices[-1]} / {choices[0]}: " + ", ".join(f"{v:.3f}" for v in r[ratio].values()),
+                      + "".join(f"; {c} / {choices[0]}: " + ", ".join(f"{v:.3f}" for v in r[f"{c}_over_{choices[0]}"].values())
+                                for c in choices[1:]),
                       flush=True)
                 if "taped" in r:
                     t = r["taped"]

@@ -40,6 +40,9 @@ def test_tiny_benchmark_writes_the_expected_json(tmp_path):
     assert images["plain"]["particle_steps_per_second_best_block"] > 0
     assert images["images_over_plain"]["particle_steps_per_second_best_block"] == pytest.approx(
         images["images"]["particle_steps_per_second_best_block"] / images["plain"]["particle_steps_per_second_best_block"])
+    assert images["frictionless_images_over_plain"]["particle_steps_per_second_best_block"] == pytest.approx(
+        images["frictionless_images"]["particle_steps_per_second_best_block"]
+        / images["plain"]["particle_steps_per_second_best_block"])
     paper = report["paper"]
     assert 35e3 < paper["fig1"]["particle_steps_per_second"] < 37e3
     assert 45e3 < paper["fig5"]["particle_steps_per_second"] < 47e3
