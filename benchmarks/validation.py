@@ -33,7 +33,6 @@ move when that choice changes; a run with none cannot (the count errs on the ful
 
 from __future__ import annotations
 
-import ast
 import json
 import math
 import pathlib
@@ -43,26 +42,18 @@ import warnings
 
 import numpy as np
 
+# The fit's weights, and the one a scene gets without naming one: a case function's
+# ``fit_weight`` and a plan entry without one run it, so the plan's base entries measure what
+# a user gets; each base entry's twins name the others. From the module the kernels read them
+# from, which imports no Warp (this module must not load it).
+from warp_esph.sim.fit_weights import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
+
 G = 9.81
 RHO = 1000.0
 FORCES = ("paper", "variational")
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
-def _solver_fit_weights() -> tuple[tuple[str, ...], str]:
-    """``warp_esph.sim.smoothing``'s ``FIT_WEIGHTS`` and ``DEFAULT_FIT_WEIGHT``, read from its
-    source: importing it loads Warp, which this module must not (tests/test_validation_suite.py
-    checks the values are the module's)."""
-    tree = ast.parse((ROOT / "warp_esph" / "sim" / "smoothing.py").read_text())
-    found = {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
-             for t in node.targets if isinstance(t, ast.Name) and t.id in ("FIT_WEIGHTS", "DEFAULT_FIT_WEIGHT")}
-    return tuple(found["FIT_WEIGHTS"]), found["DEFAULT_FIT_WEIGHT"]
-
-
-#: The fit's weights, and the one a scene gets without naming one: a case function's
-#: ``fit_weight`` and a plan entry without one run it, so the plan's base entries measure what
-#: a user gets; each base entry's twins name the others.
-FIT_WEIGHTS, DEFAULT_FIT_WEIGHT = _solver_fit_weights()
 #: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
 SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
 #: A slump is at rest when, over the last quarter of its run, the top's height moves less than

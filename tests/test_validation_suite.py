@@ -1216,13 +1216,19 @@ def test_biweight_fit_keeps_the_flow_stress_through_the_particles_rearrangement(
 
 
 def test_the_validation_plan_names_the_solvers_fit_weights_and_runs_its_default():
-    """The suite reads the solver's weights and default without importing Warp: a case run
-    without a ``fit_weight``, and a plan entry without one, run ``DEFAULT_FIT_WEIGHT``."""
+    """The suite reads the solver's weights and default without importing Warp (a fresh
+    interpreter that imports it has no ``warp`` module): the very objects the kernels' module
+    ``smoothing`` reads; a case run without a ``fit_weight``, and a plan entry without one, run
+    ``DEFAULT_FIT_WEIGHT``."""
     import inspect
+    import subprocess
 
     from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
-    assert validation.FIT_WEIGHTS == FIT_WEIGHTS and validation.DEFAULT_FIT_WEIGHT == DEFAULT_FIT_WEIGHT
+    loaded = subprocess.run([sys.executable, "-c", "import sys, benchmarks.validation; print('warp' in sys.modules)"],
+                            cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert loaded.stdout.strip() == "False", (loaded.stdout, loaded.stderr[-2000:])
+    assert validation.FIT_WEIGHTS is FIT_WEIGHTS and validation.DEFAULT_FIT_WEIGHT is DEFAULT_FIT_WEIGHT
     assert validation.PLAN_DEFAULTS == {"fit_weight": DEFAULT_FIT_WEIGHT}
     for name in validation.RESULT_CASES:
         default = inspect.signature(getattr(validation, name)).parameters["fit_weight"].default

@@ -1,7 +1,8 @@
 """The simulation: the kernels of the method and the ``Solver`` that schedules them.
 
 One module per stage of the step (docs/physics.md has the table of which equation lives
-where): ``smoothing`` (kernels W), ``neighbors``, ``materials`` (the per-material arrays
+where): ``smoothing`` (kernels W; the fit weights' names in ``fit_weights``, which imports no
+Warp), ``neighbors``, ``materials`` (the per-material arrays
 as one struct), ``plasticity``, ``forces`` (stress, elastic pair forces), ``pressure``
 (SPH), ``deformation``, ``integrate`` with ``colliders``, ``fields``, ``comparison`` (the
 Fig. 8 deformation models), ``ghost_floor`` (the no-slip floor of odd ghosts), ``fused``

@@ -12,6 +12,7 @@ import warp as wp
 
 from .. import checks
 from .._types import type_set
+from .fit_weights import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS  # noqa: F401 (the package's names for them)
 
 
 def elastic_kernel(r: float, h: float) -> float:
@@ -234,20 +235,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     )
 
 
-#: The weights of the incremental fit (eq. 7) and of every sum that shares them (the
-#: variational force's pairs, the curvature-corrected fit's moments, the neighbourhood guard's
-#: moment matrix): ``"poly6"``, the paper's ``(h^2 - r^2)^3``; ``"biweight"``, ``(h^2 - r^2)^2``,
-#: which gives the second neighbours more weight against the first, so that a particle's fitted
-#: increment shares more of its neighbours' (docs/physics.md, "The fit's weight"). The SPH
-#: density, the hourglass control and the ghost floor's stencil keep poly6.
-FIT_WEIGHTS = ("poly6", "biweight")
-#: The weight a model gets unless it names one (``SceneBuilder``, ``Model``, a scene file's
-#: ``[solver]``, the neighbour search): the biweight since 2026-12-06, for the large-strain flow
-#: stress and the S = 0.3 slump height it keeps with every target poly6 meets (docs/physics.md,
-#: "The fit weight's default: the evidence"). Poly6, the paper's eq. 7, stays selectable by name.
-#: The test suite's bounds hold under either weight; docs/validation.md's rows carry their
-#: weight, and a row written before the option was poly6's.
-DEFAULT_FIT_WEIGHT = "biweight"
+#: ``FIT_WEIGHTS``, ``DEFAULT_FIT_WEIGHT``: ``fit_weights``' (no Warp there, for the validation suite).
 
 
 @functools.cache
