@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from warp_esph._types import type_set
-from warp_esph.sim import curvature, deformation, guards, neighbors, smoothing
+from warp_esph.sim import curvature, deformation, guards, isotropic, neighbors, plasticity, smoothing
 
 SCALARS = [wp.float32, wp.float64]
 
@@ -684,6 +684,76 @@ def test_float64_kernels_take_constants_of_python_arithmetic_in_float64():
     np.testing.assert_allclose(mats[0], np.eye(3) / eps, rtol=1e-14, atol=0)
     # (the SVD leaves round-off off the diagonal)
     np.testing.assert_allclose(mats[1], np.eye(3) / det ** (1.0 / 3.0), rtol=1e-13, atol=1e-15)
+
+
+@functools.cache
+def _flow_bound_kernel(scalar):
+    T = type_set(scalar)
+    bound = neighbors.kernels(scalar, "poly6").flow_inverse_bound
+    iso = isotropic.funcs(scalar)
+    flowed_values = plasticity.funcs(scalar).flowed_values
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def run(F: wp.array(dtype=T.mat33), gamma: wp.array(dtype=scalar), G: wp.array(dtype=T.mat33),
+            flowed: wp.array2d(dtype=T.mat33)):
+        i, k = wp.tid()
+        Fi = F[i]
+        if k == 0:
+            G[i] = bound(Fi, wp.determinant(Fi))
+        # The flow's F' as plasticity.flow_under makes it: F plus isotropic_change's U diag(g - s) V^T.
+        U, s, V = iso.svd(Fi)
+        g, c, p = flowed_values(s, gamma[k])
+        flowed[i, k] = Fi + iso.from_principal(U, g - s, V)
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_the_flow_inverse_bound_bounds_every_flowed_inverse_and_is_tight(scalar):
+    """``neighbors.flow_inverse_bound`` (the key of a full stretched row of a material that
+    flows) is ``G`` with ``|G d| <= |F'^-1 d|`` for every ``F'`` this step's flow may make of
+    ``F``: ``sigma_max(G F') <= 1`` for every flow fraction ``gamma``, ``F'`` made as the flow
+    makes it (``isotropic.svd``, ``plasticity.flowed_values``), with ``J`` inside and outside
+    the volume range; and tight, ``sigma_max(G F) = 1`` at ``gamma = 0`` (``F' = F``) where
+    some singular value reaches the flow's target ``t``. To round-off, the same whether ``G``
+    reads ``isotropic.svd``'s singular values or ``wp.svd3``'s: in float32 2e-5 where every
+    singular value is within 0.4 of 1 (``isotropic.svd`` takes them from the strain there),
+    0.3 % farther (``wp.svd3``'s own error), in float64 1e-13; far below the slack of at least
+    5 % the key divides by. ``max(sigma_k, t)`` as ``min``, or ``t`` of ``J`` unclamped,
+    breaks it."""
+    T = type_set(scalar)
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    rng = np.random.default_rng(11)
+
+    def rotations(n):
+        q = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+        return q * np.sign(np.linalg.det(q))[:, None, None]
+
+    n = 60
+    near = np.concatenate([1 + rng.normal(scale=1e-6, size=(n, 3)), 1 + rng.normal(scale=0.05, size=(n, 3))])
+    far = np.concatenate([np.exp(rng.normal(scale=0.4, size=(n, 3))), np.tile([1.6, 1.2, 0.4], (n, 1)),
+                          np.tile([0.9, 0.8, 0.7], (n, 1))])  # J = 0.77, 0.504: below the range
+    sig = np.concatenate([near, far])
+    F = rotations(len(sig)) @ (sig[:, :, None] * np.eye(3)) @ np.transpose(rotations(len(sig)), (0, 2, 1))
+    F[0] = np.eye(3)
+    F = F.astype(np_t)
+    gamma = np.array([0.0, 1e-4, 0.02, 0.3, 1.0])
+    G = wp.zeros(len(F), dtype=T.mat33)
+    flowed = wp.zeros((len(F), len(gamma)), dtype=T.mat33)
+    wp.launch(_flow_bound_kernel(scalar), (len(F), len(gamma)),
+              [wp.array(F, dtype=T.mat33), wp.array(gamma.astype(np_t), dtype=scalar)], [G, flowed])
+    GF = np.einsum("nij,nkjl->nkil", G.numpy().astype(np.float64), flowed.numpy().astype(np.float64))
+    largest = np.linalg.svd(GF, compute_uv=False)[..., 0] - 1.0
+    near_i = np.abs(sig - 1.0).max(axis=1) < 0.4
+    assert near_i[:2 * n].all() and (~near_i).sum() >= n
+    tol = np.where(near_i, 2e-5, 3e-3)[:, None] if scalar == wp.float32 else 1e-13
+    over = largest - tol
+    assert (over <= 0).all(), f"|G d| > |F'^-1 d| by {largest.max():.3g} (F {np.unravel_index(np.argmax(over), over.shape)})"
+    # Tight where the flow's target t = clamp(J)^(1/3) is not above every singular value.
+    tight = sig.max(axis=1) >= np.clip(sig.prod(axis=1), 0.8, 1.25) ** (1.0 / 3.0)
+    assert tight.sum() > len(sig) - 2 * n
+    assert (np.abs(largest[tight, 0]) <= (tol[tight, 0] if np.ndim(tol) else tol)).all(), "not tight at gamma = 0"
+    assert (largest[:, -1] < -0.05).any(), "a full flow moves F' off the bound somewhere"
 
 
 @functools.cache

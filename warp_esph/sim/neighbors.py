@@ -55,7 +55,7 @@ import warp as wp
 
 from .. import checks
 from .._types import type_set
-from . import deformation, guards, materials, pressure, smoothing
+from . import deformation, guards, isotropic, materials, pressure, smoothing
 from .replay import Launches
 
 #: Guard codes written per particle (0 = the MLS update may run).
@@ -136,6 +136,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     count_weight = guard_funcs(scalar).count_weight
     Materials = materials.struct(scalar)
     floor_image = deformation.funcs(scalar, "poly6").floor_image
+    svd = isotropic.funcs(scalar).svd
     # The volume range the plastic flow keeps (flow_inverse_bound); imported here, plasticity
     # imports the modules that import this one.
     from .plasticity import VOLUME_PRESERVING_RANGE  # noqa: PLC0415
@@ -333,11 +334,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         flow may make of ``F`` (``det F > 0``): the flow keeps ``F``'s singular vectors and
         moves each singular value to ``sigma_k^(1 - gamma) t^gamma``, ``gamma`` in [0, 1],
         ``t = clamp(J, 0.8, 1.25)^(1/3)`` (``plasticity.flow_step``), never past
-        ``max(sigma_k, t)``: ``G = V diag(1 / max(sigma_k, t)) U^T``."""
-        U = mat33()
-        sg = vec3()
-        V = mat33()
-        wp.svd3(F, U, sg, V)
+        ``max(sigma_k, t)``: ``G = V diag(1 / max(sigma_k, t)) U^T``. Of the flow's own SVD
+        (``isotropic.svd``), whose ``sigma_k`` are the very values the flow moves: one formula
+        for them (``wp.svd3``'s, which this read before, differ near ``F = I`` by units in the
+        last place, and moved ``G`` by at most 9 units of float32; the bound holds to the same
+        round-off either way, tests/test_shared_formulas.py)."""
+        U, sg, V = svd(F)
         t = wp.pow(wp.min(wp.max(det, j_lo), j_hi), third)
         inv = vec3(scalar(1.0) / wp.max(wp.abs(sg[0]), t), scalar(1.0) / wp.max(wp.abs(sg[1]), t),
                    scalar(1.0) / wp.max(wp.abs(sg[2]), t))
