@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import os
 import shutil
@@ -207,16 +208,18 @@ def auto_camera(lo, hi, width: int, height: int, azimuth: float = 30.0, elevatio
 
 
 # ----------------------------------------------------------------------------- splatting
-_STENCILS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-
+@functools.cache
 def _stencil(r: int):
-    if r not in _STENCILS:
-        o = np.arange(-r, r + 1)
-        ox, oy = np.meshgrid(o, o)
-        keep = ox**2 + oy**2 <= (r + 1) ** 2
-        _STENCILS[r] = (ox[keep].astype(np.int32), oy[keep].astype(np.int32))
-    return _STENCILS[r]
+    """The pixel offsets a disc of radius ``r`` pixels covers. Kept for each ``r`` asked (no
+    more than the largest ``max_radius`` given to ``splat_spheres``, plus one), read-only, so
+    that no caller's change reaches another's."""
+    o = np.arange(-r, r + 1)
+    ox, oy = np.meshgrid(o, o)
+    keep = ox**2 + oy**2 <= (r + 1) ** 2
+    ox, oy = ox[keep].astype(np.int32), oy[keep].astype(np.int32)
+    ox.flags.writeable = False
+    oy.flags.writeable = False
+    return ox, oy
 
 
 def splat_spheres(px, py, depth, rad_px, rad_depth, width: int, height: int, max_radius: int = 64):

@@ -74,13 +74,10 @@ def require_torch():
     return torch
 
 
-_FUNCTION = None
-
-
+# Made once, when first asked for (it subclasses torch's Function, and torch loads only
+# then): a class, shared as any class is, holding no state of a rollout.
+@functools.cache
 def _function():
-    global _FUNCTION
-    if _FUNCTION is not None:
-        return _FUNCTION
     torch = require_torch()
 
     class _SecondDerivative(torch.autograd.Function):
@@ -223,8 +220,7 @@ def _function():
             gvals = [tensor(grads[name]) if need[7 + k] else None for k, name in enumerate(ctx.names)]
             return (None, None, None, None, None, gx0, gv0, *gvals)
 
-    _FUNCTION = RolloutFunction
-    return _FUNCTION
+    return RolloutFunction
 
 
 #: The model's start, which a forward reads where ``x0`` / ``v0`` are not given.
@@ -399,13 +395,9 @@ def _check_dense(torch, name: str, t) -> None:
                          "real device)")
 
 
-_MODULE = None
-
-
+# As ``_function``: the class once, when first asked for.
+@functools.cache
 def _module_class():
-    global _MODULE
-    if _MODULE is not None:
-        return _MODULE
     torch = require_torch()
 
     class RolloutModule(Unpicklable, torch.nn.Module):
@@ -457,8 +449,7 @@ def _module_class():
         def forward(self, x0=None, v0=None):
             return rollout_positions(self.rollout, self.values(), x0=x0, v0=v0)
 
-    _MODULE = RolloutModule
-    return _MODULE
+    return RolloutModule
 
 
 def __getattr__(name):

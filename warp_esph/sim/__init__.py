@@ -7,4 +7,9 @@ as one struct), ``plasticity``, ``forces`` (stress, elastic pair forces), ``pres
 (SPH), ``deformation``, ``integrate`` with ``colliders``, ``fields``, ``comparison`` (the
 Fig. 8 deformation models), ``ghost_floor`` (the no-slip floor of odd ghosts), ``fused``
 (the forward-only schedule), ``solver``.
+
+Each module's factories (``funcs``, ``kernels``, ...) are ``functools.cache``d on the scalar
+type, names and counts: what they keep for the process is Warp functions, kernels and
+structs, compiled once and never changed, and no array or model, so every solver, model and
+thread may share them.
 """

@@ -1123,14 +1123,9 @@ def launch_isotropic_pressure_forces(model, state_in, state_out, hand_adjoint: b
                    device=model.device)
 
 
-_NO_COUNTERS: dict = {}
-
-
 def _no_counters(device) -> wp.array:
     """Where a direct call of the isotropic launch counts nothing: a scratch of the guard
-    counters' size (``COUNT_PRESSURE_REGULARISED`` its last slot), one per device (the same
-    array at every call, so a replayed launch does not repack it)."""
-    key = str(device)
-    if key not in _NO_COUNTERS:
-        _NO_COUNTERS[key] = wp.zeros(COUNT_PRESSURE_REGULARISED + 1, dtype=wp.int32, device=device)
-    return _NO_COUNTERS[key]
+    counters' size (``COUNT_PRESSURE_REGULARISED`` its last slot), new at each call: one kept
+    by the module would be written by every model and thread that called; only a direct call
+    (a test) allocates it, the solver passes its own counters."""
+    return wp.zeros(COUNT_PRESSURE_REGULARISED + 1, dtype=wp.int32, device=device)

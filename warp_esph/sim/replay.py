@@ -190,6 +190,9 @@ def pointer_key(arrays) -> tuple:
     return arrays + tuple(a.grad for a in arrays)
 
 
+# Cached per kernel for the process: a kernel is compiled code, never changed after it is
+# made, and the kernels come from the factories' own caches (sim/__init__.py), so the cache
+# stays as small as they are and holds no array.
 @functools.cache
 def forward_only(kernel):
     """``kernel`` itself where it has no generated adjoint, else the same function as a kernel
