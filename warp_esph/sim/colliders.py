@@ -24,6 +24,7 @@ import numpy as np
 import warp as wp
 
 from .._types import type_set
+from . import smoothing
 
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
 #: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
@@ -84,6 +85,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     ULP = scalar(DEPTH_ROUND_OFF_ULPS * float(np.finfo(T.np_dtype).eps))
     MAX_E = scalar(MAX_ROUND_OFF_SHARE)
+    smoothstep = smoothing.funcs(scalar).smoothstep
 
     @wp.func
     def depth_round_off(scale: scalar) -> scalar:
@@ -141,7 +143,8 @@ def funcs(scalar) -> types.SimpleNamespace:
             a = scalar(1.0) - scalar(2.0) * band / reach
             if q > a:
                 q = q + (q - a) * (q - a) * reach / band
-        return q * q * (scalar(3.0) - scalar(2.0) * q)
+        s, ds = smoothstep(q)
+        return s
 
     @wp.func
     def exit_correction(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> scalar:

@@ -68,6 +68,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fw = smoothing.fit_weight_funcs(scalar, weight)
+    smoothstep = smoothing.funcs(scalar).smoothstep
     gf = guards.guard_funcs(scalar)
 
     @wp.func
@@ -570,8 +571,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         c = scalar(1.0)
         dc = scalar(0.0)
         if t < scalar(1.0):
-            c = t * t * (scalar(3.0) - scalar(2.0) * t)
-            dc = scalar(6.0) * t * (scalar(1.0) - t) / w_ref
+            c, dct = smoothstep(t)
+            dc = dct / w_ref
         return c, dc
 
     @wp.func

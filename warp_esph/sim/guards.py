@@ -28,6 +28,7 @@ import types
 import warp as wp
 
 from .._types import type_set
+from . import smoothing
 
 #: Default ``min_neighbors`` (``Solver``): the fewest same-body neighbours whose fit is taken
 #: whole (paper §4); with one fewer the fit's increment has faded to nothing.
@@ -65,6 +66,7 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
     # inside a kernel in float32, so ``scalar(COUNT_FADE * COUNT_FADE)`` put the float64
     # count's fade edge 2.6e-8 h^2 low.
     count_fade_sq = scalar(COUNT_FADE * COUNT_FADE)
+    smoothstep = smoothing.funcs(scalar).smoothstep
 
     @wp.func
     def well_conditioned(A: mat33, limit: scalar) -> bool:
@@ -105,8 +107,9 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         elif r2 < hh:
             band = hh - q0
             t = (r2 - q0) / band
-            c = scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t)
-            dc = -scalar(6.0) * t * (scalar(1.0) - t) / band
+            st, dst = smoothstep(t)
+            c = scalar(1.0) - st
+            dc = -dst / band
         return c, dc
 
     @wp.func
@@ -120,8 +123,7 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         if t <= scalar(0.0):
             s = scalar(0.0)
         elif t < scalar(1.0):
-            s = t * t * (scalar(3.0) - scalar(2.0) * t)
-            ds = scalar(6.0) * t * (scalar(1.0) - t)
+            s, ds = smoothstep(t)
         return s, ds
 
     @wp.func
@@ -165,8 +167,9 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
                 if t >= scalar(1.0):
                     sc = scalar(0.0)
                 elif t > scalar(0.0):
-                    sc = scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t)
-                    dsc = -scalar(6.0) * t * (scalar(1.0) - t) / band
+                    st, dst = smoothstep(t)
+                    sc = scalar(1.0) - st
+                    dsc = -dst / band
                     G = (sn * dsc / lmin) * (wp.outer(qmax, qmax) - c * wp.outer(qmin, qmin))
                 s = sc * sn
                 dn = sc * dsn

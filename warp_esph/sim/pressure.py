@@ -380,7 +380,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         (the map is ``A^-1`` itself there), ``ISOTROPIC_REGULARISATION`` at 0, a smoothstep
         between, so that the force stays continuous and differentiable in the positions."""
         t = wp.clamp(q / scalar(ISOTROPIC_Q_FULL), scalar(0.0), scalar(1.0))
-        return scalar(ISOTROPIC_REGULARISATION) * (scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t))
+        st, dst = sm.smoothstep(t)
+        return scalar(ISOTROPIC_REGULARISATION) * (scalar(1.0) - st)
 
     @wp.func
     def isotropic_pressure_map(p: scalar, V: scalar, A: mat33) -> mat33:

@@ -56,6 +56,14 @@ def funcs(scalar) -> types.SimpleNamespace:
     exact_cos = scalar is wp.float64
 
     @wp.func
+    def smoothstep(t: scalar):
+        """``t^2 (3 - 2 t)`` and its slope ``6 t (1 - t)``, for ``t`` in [0, 1] (the caller
+        clamps): 0 to 1 with zero slope at both ends, so a quantity faded by it is C1 where the
+        fade starts and ends (the guards, the floor image's share, the isotropic pressure's
+        regularisation, the touchdown share)."""
+        return t * t * (scalar(3.0) - scalar(2.0) * t), scalar(6.0) * t * (scalar(1.0) - t)
+
+    @wp.func
     def poly6_coef(h: scalar) -> scalar:
         return scalar(315.0) / (scalar(64.0) * PI * wp.pow(h, scalar(9.0)))
 
@@ -223,7 +231,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return lap_w_viscosity_c(r2, h, viscosity_coef(h))
 
     return types.SimpleNamespace(
-        w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
+        smoothstep=smoothstep, w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, w_poly6_inside=w_poly6_inside, elastic_coef=elastic_coef,
         grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
