@@ -687,6 +687,64 @@ def test_float64_kernels_take_constants_of_python_arithmetic_in_float64():
 
 
 @functools.cache
+def _fade_and_gradient_kernel(scalar):
+    T = type_set(scalar)
+    sm = smoothing.funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def run(t: wp.array(dtype=scalar), r: wp.array(dtype=T.vec3), h: scalar, fade: wp.array2d(dtype=scalar),
+            w: wp.array(dtype=scalar), grad: wp.array(dtype=T.vec3)):
+        i = wp.tid()
+        s, ds = sm.smoothstep(t[i])
+        fade[i, 0] = s
+        fade[i, 1] = ds
+        c6 = sm.poly6_coef(h)
+        r2 = wp.dot(r[i], r[i])
+        w[i] = sm.w_poly6_c(r2, h, c6)
+        grad[i] = sm.grad_w_poly6_at(r[i], r2, h * h, c6)
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_the_smoothstep_and_poly6s_gradient(scalar):
+    """``smoothing.smoothstep``, the shape of every fade (the guards, the floor image's share,
+    the isotropic pressure's regularisation, the touchdown share): ``t^2 (3 - 2 t)`` and its
+    slope, 0 and 1 with zero slope at the ends, the slope the central difference of the value.
+    ``grad_w_poly6_at`` (the ``energy`` pressure force, the densities' adjoints): the central
+    difference of eq. 7 (``w_poly6_c``) in each coordinate, inside the support."""
+    T = type_set(scalar)
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    h = 0.02
+    dt = 1e-3 if scalar == wp.float32 else 1e-6
+    t0 = np.array([0.0, 0.1, 0.37, 0.5, 0.81, 1.0])
+    t = np.concatenate([t0, t0 - dt, t0 + dt])
+    rng = np.random.default_rng(5)
+    r0 = rng.normal(size=(6, 3))
+    r0 *= (np.array([0.05, 0.3, 0.6, 0.8, 0.95, 0.99]) * h / np.linalg.norm(r0, axis=1))[:, None]
+    e = (dt if scalar == wp.float64 else 1e-3) * h
+    r = np.concatenate([r0] + [r0 + sg * e * np.eye(3)[k] for k in range(3) for sg in (-1.0, 1.0)])
+    n = max(len(t), len(r))
+    tt = np.resize(t, n)
+    fade = wp.zeros((n, 2), dtype=scalar)
+    w = wp.zeros(n, dtype=scalar)
+    grad = wp.zeros(n, dtype=T.vec3)
+    wp.launch(_fade_and_gradient_kernel(scalar), n, [wp.array(tt.astype(np_t), dtype=scalar),
+                                                    wp.array(r.astype(np_t), dtype=T.vec3), scalar(h)], [fade, w, grad])
+    fade, w, grad = fade.numpy().astype(np.float64), w.numpy().astype(np.float64), grad.numpy().astype(np.float64)
+    k = len(t0)
+    tol = 1e-6 if scalar == wp.float32 else 1e-13
+    np.testing.assert_allclose(fade[:k, 0], t0 * t0 * (3.0 - 2.0 * t0), rtol=0, atol=tol)
+    assert fade[0, 0] == 0.0 and fade[k - 1, 0] == 1.0 and fade[0, 1] == 0.0 and fade[k - 1, 1] == 0.0
+    central = (fade[2 * k:3 * k, 0] - fade[k:2 * k, 0]) / (2.0 * dt)
+    np.testing.assert_allclose(fade[1:k - 1, 1], central[1:k - 1], rtol=2e-3 if scalar == wp.float32 else 1e-8)
+    fd = np.stack([(w[k * (2 + 2 * c):k * (3 + 2 * c)] - w[k * (1 + 2 * c):k * (2 + 2 * c)]) / (2.0 * e)
+                   for c in range(3)], axis=1)
+    scale = np.abs(grad[:k]).max()
+    np.testing.assert_allclose(grad[:k], fd, rtol=0, atol=(2e-3 if scalar == wp.float32 else 1e-7) * scale)
+
+
+@functools.cache
 def _flow_bound_kernel(scalar):
     T = type_set(scalar)
     bound = neighbors.kernels(scalar, "poly6").flow_inverse_bound

@@ -100,10 +100,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         pair's share of ``-grad sum_k m_k e_k(rho_k)`` with ``de/drho = p / rho^2`` and ``rho``
         the poly6 sum (``pressure_force = "energy"``, docs/method.md §6). ``VV = V_i V_j =
         m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``r2 = |rij|^2 < h^2``; ``grad W_poly6(r)
-        = -6 c6 (h^2 - |r|^2)^2 r``."""
-        e = h * h - r2
-        w = energy_pair_weight(VV, p_i, p_j, rho_i, rho_j)
-        return (scalar(6.0) * c6 * w * e * e) * rij
+        = -6 c6 (h^2 - |r|^2)^2 r`` (``smoothing.grad_w_poly6_at``)."""
+        return -energy_pair_weight(VV, p_i, p_j, rho_i, rho_j) * sm.grad_w_poly6_at(rij, r2, h * h, c6)
 
     @wp.func
     def density_weight(r2: scalar, h: scalar, c6: scalar, c_ws: scalar, form: int) -> scalar:
@@ -117,16 +115,15 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def density_weight_gradient(d: vec3, r2: scalar, h: scalar, c6: scalar, c_spiky: scalar, form: int) -> vec3:
-        """``d W / d d`` of ``density_weight`` at ``d`` (``r2 = |d|^2 < h^2``): poly6 ``-6 c6
-        (h^2 - r2)^2 d``; for ``form`` 2 and 3 the spiky kernel's ``grad_w_spiky_at`` (0 at
+        """``d W / d d`` of ``density_weight`` at ``d`` (``r2 = |d|^2 < h^2``): poly6's
+        ``grad_w_poly6_at``; for ``form`` 2 and 3 the spiky kernel's ``grad_w_spiky_at`` (0 at
         ``d = 0``, where the direction is undefined)."""
         g = vec3()
         if form >= 2:
             if r2 > scalar(1.0e-24) * h * h:
                 g = sm.grad_w_spiky_at(d, wp.sqrt(r2), h, c_spiky)
         else:
-            e = h * h - r2
-            g = (scalar(-6.0) * c6 * e * e) * d
+            g = sm.grad_w_poly6_at(d, r2, h * h, c6)
         return g
 
     @wp.func

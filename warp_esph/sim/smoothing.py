@@ -88,6 +88,13 @@ def funcs(scalar) -> types.SimpleNamespace:
         return w_poly6_c(r2, h, poly6_coef(h))
 
     @wp.func
+    def grad_w_poly6_at(r: vec3, r2: scalar, hh: scalar, coef: scalar) -> vec3:
+        """The gradient of eq. 7 at ``r``, ``-6 coef (h^2 - |r|^2)^2 r``: ``w_poly6_inside``'s
+        slope on ``r2 = |r|^2 < hh = h^2``, times ``2 r`` (the caller tests the support)."""
+        w, dw = w_poly6_inside(r2, hh, coef)
+        return (scalar(2.0) * dw) * r
+
+    @wp.func
     def elastic_coef(h: scalar) -> scalar:
         """c of eq. 13."""
         return PI / (scalar(8.0) * h * h * h * h * (PI / scalar(3.0) - scalar(8.0) / PI + scalar(16.0) / (PI * PI)))
@@ -231,7 +238,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return lap_w_viscosity_c(r2, h, viscosity_coef(h))
 
     return types.SimpleNamespace(
-        smoothstep=smoothstep, w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
+        smoothstep=smoothstep, w_poly6=w_poly6, grad_w_poly6_at=grad_w_poly6_at, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, w_poly6_inside=w_poly6_inside, elastic_coef=elastic_coef,
         grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
