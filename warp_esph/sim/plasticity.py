@@ -81,6 +81,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         return rate
 
     @wp.func
+    def may_flow(s: vec3) -> bool:
+        """Whether ``F``'s singular values ``s`` let it flow: not where the smallest is below
+        ``MIN_SINGULAR_VALUE`` (paper §4)."""
+        return wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma
+
+    @wp.func
     def flowed_values(s: vec3, gamma: scalar):
         """The singular values after a flow of fraction ``gamma``, ``g = c s^p`` with ``p = 1 -
         gamma`` and ``c = J_c^(gamma / 3)``: volume is kept inside ``[j_lo, j_hi]``; outside,
@@ -216,7 +222,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c = scalar(1.0)
         p = scalar(1.0)
         alpha_new = alpha
-        if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
+        if may_flow(s):
             flowed, g, c, p, alpha_new = flow_step(
                 s, yield_test_norm2(s, mu, F, D, with_pressure), yield_stress, flow_rate, hardening, alpha, dt,
                 wp.where(kind == 1, 1, 0)
@@ -287,7 +293,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         flow=flow, flow_under=flow_under, left_stretch=left_stretch, yield_test_norm2=yield_test_norm2,
         deviatoric_tensor=deviatoric_tensor, pressure_yield_norm2=pressure_yield_norm2,
         flow_step=flow_step, guarded_flow_step=guarded_flow_step, guarded_flow_step_under=guarded_flow_step_under,
-        flow_fraction=flow_fraction,
+        flow_fraction=flow_fraction, may_flow=may_flow,
         power_difference=power_difference, deviatoric=deviatoric, deviatoric_stress_norm2=deviatoric_stress_norm2,
         yield_surface=yield_surface, flow_rate_fraction=flow_rate_fraction, flowed_values=flowed_values,
     )
@@ -432,7 +438,6 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     fl = funcs(scalar)
     fo = forces.funcs(scalar, "poly6")  # the stress only: no fit weight in it
-    min_sigma = scalar(MIN_SINGULAR_VALUE)
     j_lo = scalar(VOLUME_PRESERVING_RANGE[0])
     j_hi = scalar(VOLUME_PRESERVING_RANGE[1])
 
@@ -500,13 +505,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         y = scalar(0.0)
         nn = wp.where(kind == 1, 1, 0)
         dev = fl.deviatoric(s)
-        if nu > scalar(0.0) and wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
+        if nu > scalar(0.0) and fl.may_flow(s):
             y = fl.yield_surface(Y, K, a0)
             s_norm2 = fl.deviatoric_stress_norm2(mu, wp.dot(dev, dev))
-            if s_norm2 > y * y:
-                flowed = 1
+            flowed, gamma = fl.flow_fraction(s_norm2, Y, K, a0, nu, dt, nn)
+            if flowed != 0:
                 s_norm = wp.sqrt(s_norm2)
-                gamma = wp.min(fl.flow_rate_fraction(s_norm, y, nu, dt, nn), scalar(1.0))
                 g, c, p = fl.flowed_values(s, gamma)
                 # c = J_c^(gamma/3) (flowed_values): where J is inside the range, c follows s.
                 J = s[0] * s[1] * s[2]
