@@ -69,11 +69,16 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     Materials = materials.struct(scalar)
 
     @wp.func
+    def principal_strain_trace(s: vec3) -> scalar:
+        """``sum(s - 1)``, the trace of ``F^ - I`` that eq. 9's ``lam`` term scales."""
+        return s[0] + s[1] + s[2] - scalar(3.0)
+
+    @wp.func
     def corotated_principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
         """The principal values ``P^ = 2 mu (s - 1) + lam sum(s - 1)`` of ``corotated_stress``:
         the gradient in ``s`` of ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2``; also eq. 9's
         ``P^``, which ``principal_stress`` scales by ``s``."""
-        tr = s[0] + s[1] + s[2] - scalar(3.0)
+        tr = principal_strain_trace(s)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
         return scalar(2.0) * mu * (s - one) + lam * tr * one
 
@@ -88,7 +93,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         """Divided differences ``(f_i - f_j)/(s_i - s_j)`` of ``principal_stress`` (pairs
         01, 02, 12) for the adjoint of ``isotropic_map``: ``2 mu (s_i + s_j - 1) + lam tr``,
         exact, also at ``s_i = s_j``."""
-        tr = s[0] + s[1] + s[2] - scalar(3.0)
+        tr = principal_strain_trace(s)
         return vec3(
             scalar(2.0) * mu * (s[0] + s[1] - scalar(1.0)) + lam * tr,
             scalar(2.0) * mu * (s[0] + s[2] - scalar(1.0)) + lam * tr,
@@ -360,6 +365,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image_map=image_map, floor_image_forces=floor_image_forces,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         corotated_principal_stress=corotated_principal_stress, corotated_stress=corotated_stress,
+        principal_strain_trace=principal_strain_trace,
         cannot_flow_variational=cannot_flow_variational, stress_model=stress_model,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         elastic_pair_adjoint=elastic_pair_adjoint, paper_image_count=paper_image_count,

@@ -524,7 +524,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         C = Ut * G * V
         CP = Ut * adj_stress[i] * V
         af = vec3(CP[0, 0], CP[1, 1], CP[2, 2])
-        tr = g[0] + g[1] + g[2] - scalar(3.0)
+        tr = fo.principal_strain_trace(g)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
         base = fo.corotated_principal_stress(g, mu, lam)
         f = base
