@@ -54,7 +54,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     gf = deformation.guards.guard_funcs(scalar)
     moment_sums, step_gradient, unless_inverted = df.moment_sums, df.step_gradient, df.unless_inverted
     Materials = materials.struct(scalar)
-    third = scalar(1.0 / 3.0)
     cf = curvature.funcs(scalar, weight)
     iso = isotropic.funcs(scalar)
     ff = forces.funcs(scalar, weight)
@@ -176,8 +175,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if d == 2:
             # Additive: F = I + eps, flow on dev eps, linear stress, no back projection.
             eps = F - I
-            tr = eps[0, 0] + eps[1, 1] + eps[2, 2]
-            dev = eps - tr * third * I
+            dev = pf.deviatoric_tensor(eps)
             dn2 = wp.ddot(dev, dev)
             a_new = a
             if mat.flow_rate[m] > scalar(0.0):
