@@ -195,5 +195,18 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         code, s, G, dn = guard(A, same, min_neighbors, max_condition)
         return s
 
+    @wp.func
+    def isotropic_conditioning(A: mat33) -> scalar:
+        """``q = det A / (tr A / 3)^3`` of a moment matrix ``A = sum_j w_j d_j d_j^T``: 1 for an
+        isotropic ``A``, 0 for neighbours on a plane or a line; 1 where ``tr A = 0`` (no
+        neighbour). What the isotropic pressure's regularisation and the hourglass control's
+        switch read (``pressure.isotropic_regularisation``, ``hourglass.residual_map``)."""
+        q = scalar(1.0)
+        tr = A[0, 0] + A[1, 1] + A[2, 2]
+        if tr > scalar(0.0):
+            a = tr / scalar(3.0)
+            q = wp.determinant(A) / (a * a * a)
+        return q
+
     return types.SimpleNamespace(guard=guard, guard_code=guard_code, guard_scale=guard_scale, count_weight=count_weight,
-                                 count_scale=count_scale)
+                                 count_scale=count_scale, isotropic_conditioning=isotropic_conditioning)

@@ -24,7 +24,7 @@ so the control is conservative and its stiffness symmetric. (Its first form used
 ``F_i`` in place of ``G_i``: with the linear fit, whose ``F`` is nearly that minimiser, the
 same; with the curvature-corrected fit, whose ``F`` is not, a non-symmetric stiffness, and an
 undamped breathing cube gained 25 % kinetic energy in 1.5 s, measured.) Where ``A_i`` is
-singular (a sheet or a line of neighbours: ``det A_i`` below ``MIN_DET (S_i / 3)^3``) the
+singular (a sheet or a line of neighbours: ``det A_i`` below ``MIN_DET (tr A_i / 3)^3``) the
 particle has no control. It is measured against the rest positions, so it is for elastic
 solids: after plastic flow the rest neighbourhood is no longer the material's and the control
 would pull the body back towards its rest shape.
@@ -54,10 +54,9 @@ import numpy as np
 import warp as wp
 
 from .._types import type_set
-from . import smoothing
-from . import materials
+from . import guards, materials, smoothing
 
-#: ``residual_map``'s least ``det A_i / (S_i / 3)^3`` (1 for a symmetric neighbourhood; on a
+#: ``residual_map``'s least ``det A_i / (tr A_i / 3)^3`` (1 for a symmetric neighbourhood; on a
 #: 6^3 lattice cube at least 0.88 / 0.79 / 0.72 at h = 2 / 2.5 / 3 dx, its corners; 0 for a sheet).
 MIN_DET = 1.0e-4
 
@@ -67,6 +66,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
+    gf = guards.guard_funcs(scalar)
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -97,13 +97,13 @@ def kernels(scalar) -> types.SimpleNamespace:
     def residual_map(s: scalar, A: mat33, B: mat33):
         """The affine map ``G_i = B_i A_i^-1`` that minimises ``E_i`` (module doc; of the
         displacements, with ``rest_fit_sums``' ``B_i``: ``I + G_i`` the positions'), and whether
-        it is defined: ``det A_i`` above ``MIN_DET`` of ``(S_i / 3)^3`` (a sheet or a line of
-        neighbours samples a direction with zero weight; there the particle has no control)."""
+        it is defined: ``det A_i`` above ``MIN_DET`` of ``(tr A_i / 3)^3``
+        (``guards.isotropic_conditioning``; a sheet or a line of neighbours samples a direction
+        with zero weight; there the particle has no control)."""
         ok = s > scalar(0.0)
         G = mat33()
         if ok:
-            t = s / scalar(3.0)
-            ok = wp.determinant(A) > scalar(MIN_DET) * t * t * t
+            ok = gf.isotropic_conditioning(A) > scalar(MIN_DET)
             if ok:
                 G = B * wp.inverse(A)
         return G, ok

@@ -32,7 +32,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, materials, smoothing
+from . import deformation, guards, materials, smoothing
 from .replay import outside_recording_tape, recording_tape
 
 
@@ -347,17 +347,8 @@ def funcs(scalar) -> types.SimpleNamespace:
             A += isotropic_weight(wp.dot(d, d), h) * wp.outer(d, d)
         return A
 
-    @wp.func
-    def isotropic_conditioning(A: mat33) -> scalar:
-        """``q = det A / (tr A / 3)^3`` of the isotropic pressure's moments: 1 for an isotropic
-        ``A``, 0 for neighbours on a plane or a line; 1 where ``tr A = 0`` (no neighbour: no
-        map, nothing regularised)."""
-        q = scalar(1.0)
-        tr = A[0, 0] + A[1, 1] + A[2, 2]
-        if tr > scalar(0.0):
-            a = tr / scalar(3.0)
-            q = wp.determinant(A) / (a * a * a)
-        return q
+    # The isotropic pressure's moments' conditioning (no neighbour: no map, nothing regularised).
+    isotropic_conditioning = guards.guard_funcs(scalar).isotropic_conditioning
 
     @wp.func
     def isotropic_regularised(A: mat33) -> int:
