@@ -1933,7 +1933,7 @@ def test_the_monitor_counts_the_work_of_moving_tools_and_pins():
     rubber = we.Material.preset("rubber")
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.3, 0.0), (0.2, 0.06, 0.06), rubber, name="bar")
-    b.pin(body="bar", region=((-0.2, 0.0, -1.0), (-0.07, 1.0, 1.0)), motion=tools.Velocity((2.0, 0.0, 0.0)), name="grip")
+    b.pin(body="bar", region=((-0.2, 0.0, -1.0), (-0.08, 1.0, 1.0)), motion=tools.Velocity((2.0, 0.0, 0.0)), name="grip")
     bar = b.finalize()
     out = simulate(bar, frames=4, fps=30, progress=False)
     assert out.x.numpy()[:, 0].mean() > 0.2  # dragged about 2 m/s x 0.13 s
@@ -3090,3 +3090,35 @@ def test_a_rollout_memory_refusal_of_a_fit_survives_pickle_without_its_experimen
     assert type(back) is RolloutMemoryError and str(back) == str(e) and back.experiment is None
     assert {k: v for k, v in vars(back).items() if k != "experiment"} == {k: v for k, v in vars(e).items() if k != "experiment"}
     assert e.experiment is model  # the raised one keeps it
+
+
+def test_a_pin_region_whose_face_is_at_a_layers_value_takes_the_layer(tmp_path):
+    """A 3 x 3 x 3 box at y = 0.1 on a 4 cm lattice has its layers at y = 0.06, 0.1 and 0.14, as
+    a user writes them; its coordinates carry round-off (0.1 - 0.04 is 0.06000000000000001).
+    A region whose face is at a layer's value takes that layer, the bottom as the top: 9
+    particles each (before, the bottom region held none and was refused while the top one took
+    its 9, and a quarter of the faces so written left their layer out, a clamp a layer short
+    without a word). A face 1e-9 m short of the layer, far beyond the round-off, leaves it out;
+    a scene file's ``[[pins]] region`` is read alike."""
+    def box():
+        b = we.SceneBuilder(spacing=0.04)
+        b.add_box((0.0, 0.1, 0.0), (0.12, 0.12, 0.12), we.Material.preset("rubber"), name="blk")
+        return b
+
+    b = box()
+    b.pin(region=((-1, -1, -1), (1, 0.06, 1)), name="bottom")
+    b.pin(region=((-1, 0.14, -1), (1, 1, 1)), name="top")
+    bottom, top = (p.indices for p in b.pins)
+    points = np.concatenate(b._points)
+    assert len(bottom) == len(top) == 9
+    assert np.allclose(points[bottom, 1], 0.06, rtol=0, atol=1e-12) and np.allclose(points[top, 1], 0.14, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="the selection holds no particle"):
+        box().pin(region=((-1, -1, -1), (1, 0.06 - 1e-9, 1)))
+    with pytest.raises(ValueError, match="the selection holds no particle"):
+        box().pin(region=((-1, 0.14 + 1e-9, -1), (1, 1, 1)))
+    path = tmp_path / "clamp.toml"
+    path.write_text('[scene]\nspacing = 0.04\n\n[[bodies]]\nshape = "box"\nname = "blk"\nmaterial = "rubber"\n'
+                    'center = [0.0, 0.1, 0.0]\nsize = [0.12, 0.12, 0.12]\n\n'
+                    '[[pins]]\nname = "clamp"\nbody = "blk"\nregion = [[-1, -1, -1], [1, 0.06, 1]]\n')
+    assert len(load_scene_file(path).builder.pins[0].indices) == 9
+

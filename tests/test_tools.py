@@ -101,7 +101,7 @@ def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(mot
     def build(m):
         b = we.SceneBuilder(spacing=0.02)
         b.add_box((0.0, 0.1, 0.0), (0.2, 0.06, 0.06), _elastic(2e4), name="beam")
-        b.pin(body="beam", region=((-1, -1, -1), (-0.07, 1, 1)), name="clamp", motion=m)
+        b.pin(body="beam", region=((-1, -1, -1), (-0.08, 1, 1)), name="clamp", motion=m)
         return b.finalize()
 
     with pytest.raises(ValueError, match=rf"^pinned set 'clamp' is not allowed to start away from its rest pose: its "
@@ -117,7 +117,7 @@ def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(mot
         path = tmp_path / "clamp.toml"
         head = ('[[bodies]]\nshape = "box"\nname = "beam"\nmaterial = "dough"\ncenter = [0.0, 0.1, 0.0]\n'
                 'size = [0.2, 0.06, 0.06]\n[scene]\nspacing = 0.02\n'
-                '[[pins]]\nbody = "beam"\nname = "clamp"\nregion = [[-1, -1, -1], [-0.07, 1, 1]]\n')
+                '[[pins]]\nbody = "beam"\nname = "clamp"\nregion = [[-1, -1, -1], [-0.08, 1, 1]]\n')
         path.write_text(head + 'keyframe_times = [0.0, 1.0]\nkeyframe_positions = [[0, 0, 0], [0, 0.01, 0]]\n')
         with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: \[\[pins\]\] #1: keyframe_positions\[0\] = \[0\.0, 0\.0, "
                                              rf"0\.0\] is not allowed: pinned set 'clamp' starts there \(keyframe_times\[0\] = 0, "
@@ -144,7 +144,7 @@ def test_a_held_pinned_set_far_out_in_float32_is_at_its_rest_pose(cx):
     out for 2.7e-4 m, within what float32 can say there; the set stays where it was built."""
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((cx, 0.1, 0.0), (0.2, 0.1, 0.2), _elastic(2e3), name="slab")
-    b.pin(region=((cx - 1, 0, -1), (cx + 1, 0.08, 1)))
+    b.pin(region=((cx - 1, 0, -1), (cx + 1, 0.07, 1)))
     m = b.finalize()
     s, a, c = we.Solver(m), m.state(), m.state()
     s.step(a, c, 1e-4)

@@ -1768,6 +1768,11 @@ def allocate_state(model, state, requires_grad: bool):
 
 
 # --------------------------------------------------------------------------- selection
+#: How far outside a pin's ``region`` (in spacings) a particle is still taken: round-off of the
+#: lattice's coordinates, not a margin (a face 1e-9 m off a layer at spacing 0.01 still leaves it out).
+REGION_TOLERANCE = 1e-9
+
+
 def select_particles(builder, *, indices=None, body=None, region=None, where=None, name: str) -> np.ndarray:
     """Indices of the particles selected by all the given criteria (intersection): an index
     array, a body (its name or index), an axis-aligned box ``region = (lo, hi)`` and a predicate ``where``
@@ -1808,7 +1813,12 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
                              "finite numbers") from None
         if np.any(hi < lo):
             raise ValueError(f"region = {checks.shorten(region)!r} is not allowed: lo must be <= hi in every axis")
-        mask &= np.all((points >= lo) & (points <= hi), axis=1)
+        # A face written at a lattice layer's value takes that layer: the lattice's coordinates
+        # carry round-off (0.1 - 0.04 is 0.06000000000000001), and a face at 0.06 had left the
+        # bottom layer out while a face at the top layer's value took it (a quarter of such faces
+        # missed their layer). The lattice's own count takes the same 1e-9 spacings.
+        tol = REGION_TOLERANCE * builder.spacing
+        mask &= np.all((points >= lo - tol) & (points <= hi + tol), axis=1)
     if where is not None:
         mask &= checks.selection("where", where, points, "rest_positions")
     out = np.nonzero(mask)[0]
