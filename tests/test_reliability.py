@@ -3122,3 +3122,26 @@ def test_a_pin_region_whose_face_is_at_a_layers_value_takes_the_layer(tmp_path):
                     '[[pins]]\nname = "clamp"\nbody = "blk"\nregion = [[-1, -1, -1], [1, 0.06, 1]]\n')
     assert len(load_scene_file(path).builder.pins[0].indices) == 9
 
+
+def test_a_rollouts_frames_out_of_order_or_twice_are_refused_not_reordered():
+    """``Rollout(frames=[3, 1])`` was sorted without a word: ``forward`` returned step 1's
+    positions first and ``backward([g3, g1])`` took them as ``[g1, g3]``, the gradient of
+    another loss; ``[2, 2]`` returned one frame where two were asked for. Both are refused,
+    naming ``frames``; a set, which has no order, is taken sorted. A fit whose loss lists its
+    frames out of order (``PositionLoss({3: ..., 1: ...})``) runs as before: the positions
+    reach the loss by step."""
+    from warp_esph.fit import fit
+    from warp_esph.losses import PositionLoss
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    for frames in ([3, 1], [2, 2], (1, 3, 2)):
+        with pytest.raises(ValueError, match=r"^frames = .* is not allowed: give increasing step indices, each once"):
+            Rollout(model, 3, 5e-4, frames=frames)
+    assert Rollout(model, 3, 5e-4, frames={3, 1}).frames == (1, 3)
+    r = Rollout(model, 3, 5e-4, frames=[1, 3])
+    x1, x3 = r.forward()
+    assert x3[:, 1].mean() < x1[:, 1].mean() < model.particle_x0[:, 1].mean()  # falling: step 3 below step 1
+    result = fit(model, PositionLoss({3: x3, 1: x1}), ["mu"], steps=3, dt=5e-4, iterations=1, progress=False)
+    assert result.history[0]["loss"] < 1e-20  # the positions matched to their steps: the truth's loss is round-off

@@ -1139,7 +1139,7 @@ class _Run(_Values):
             ck = None
         self._segment = ck
         try:
-            self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck,
+            self.rollout = Rollout(self.model, self.steps, self.dt, frames=sorted(loss.frames), checkpoint_every=ck,
                                    taped=self.taped)
         except RolloutMemoryError as e:
             # Named by the experiment, as its other refusals; and 'auto' as given: its choice
@@ -1201,7 +1201,7 @@ class _Run(_Values):
     def retime(self, dt: float) -> None:
         """Run the rollout at ``dt`` (the same steps and frames; before any run)."""
         self.dt = dt
-        self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment,
+        self.rollout = Rollout(self.model, self.steps, dt, frames=sorted(self.loss.frames), checkpoint_every=self._segment,
                                taped=self.taped)
 
     _flowed = None  # flowed_start, read once for the stable steps (_start_kept)

@@ -600,7 +600,8 @@ class Rollout:
 
     - ``model``: finalized with ``requires_grad=True`` (float64 to validate gradients).
     - ``frames``: step indices in ``[0, steps]`` whose positions ``forward`` returns and
-      whose position gradients ``backward`` takes; default ``[steps]``. Sorted, unique.
+      whose position gradients ``backward`` takes, in that order; default ``[steps]``. Increasing,
+      each once (a set is taken sorted).
     - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
       keeps only segment starts every ``S`` steps and re-runs segments in ``backward``. A
       rollout whose taped states would not fit in the device's memory is refused here.
@@ -661,13 +662,22 @@ class Rollout:
         self.dt = dt
         if frames is None:
             frames = [self.steps]
+        unordered = isinstance(frames, (set, frozenset))
         frames = _step_indices(frames)
+        if unordered:
+            frames = sorted(frames)
         if not frames:
             raise ValueError("frames = [] is not allowed: give at least one step index")
         bad = [f for f in frames if not 0 <= f <= self.steps]
         if bad:
             raise ValueError(f"frames = {bad!r} are not allowed: step indices must be in [0, steps = {self.steps}]")
-        self.frames = tuple(sorted(set(frames)))
+        if any(a >= b for a, b in zip(frames, frames[1:])):
+            # They were sorted and made unique without a word: frames=[300, 100] returned step 100's
+            # positions first and took backward's [g300, g100] as [g100, g300], a gradient of
+            # another loss; [2, 2] returned one frame.
+            raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed: give increasing step indices, each once "
+                             f"(forward returns their positions, and backward takes their gradients, in that order)")
+        self.frames = tuple(frames)
         if checkpoint_every is None:
             self.segment = self.steps
         else:
