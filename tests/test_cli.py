@@ -870,6 +870,12 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "weight": -1}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "experiment #1: weight = -1 is not allowed: must be > 0")
+    # Frame numbers as a JSON list are one choice per target: the refusal says how one target's
+    # frames are written (it said only 'given 2 times for 1 target files').
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "target_frames": [1, 2]}]))
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "experiment #1: target_frames is given 2 times for 1 target files: ",
+                          'a list is one choice per target: frames 1, 2 of one target are "1,2"')
     # A material index out of range, or true (read as a body named 'True'): named by experiment.
     for chosen, words in ((5, "experiment #1: material 5 is not allowed: indices are 0..0"),
                           (True, "experiment #1: material = True is not allowed: give a material index or a body name")):

@@ -782,8 +782,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # Given is not true: 0 (an experiment's frame 0) and '' were dropped, every frame fitted.
     tframes = tframes if isinstance(tframes, (list, tuple)) else ([] if tframes is None else [tframes])
     if len(tframes) > 1 and len(tframes) != len(targets):
+        # A list of frame numbers ([2, 4]) is read as one choice per target, and was refused
+        # as given 2 times for 1 target, leaving the user to guess the form a choice takes.
+        numbers = all(isinstance(f, int) and not isinstance(f, bool) for f in tframes)
+        hint = (f"; a list is one choice per {key('target')}: frames {', '.join(map(str, tframes))} of one target are "
+                f"\"{','.join(map(str, tframes))}\"" if numbers else "")
         raise ValueError(f"{where}{key('target_frames')} is given {len(tframes)} times for {len(targets)} "
-                         f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
+                         f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all{hint}")
     coverages, coverage_name = _coverages(spec, args, where, len(targets), key)
     cameras = spec.get("cameras")
     fspecs = [tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None) for k in range(len(targets))]
