@@ -440,6 +440,12 @@ def test_render_command(tmp_path, capsys):
     # No -o typed: the default output is said as such (it said "with --output = '.../cli.usdc.png'").
     (["--fps", "10"], "--fps = 10.0 is not allowed with the default output {d}/cli.usdc.png: it is the playback rate"),
     (["-o", "{d}/a.gif", "--columns", "2"], "--columns = 2 is not allowed with --output = '{d}/a.gif'"),
+    # A sheet of one frame: the last frame was drawn alone, as without --columns, exit 0.
+    (["-o", "{d}/a.png", "--columns", "2"], "--columns = 2 is not allowed with one frame: it lays several frames out side by "
+                                            "side, and a .png without --frames is the last frame alone (frame 1); give --frames "
+                                            "for several (e.g. --frames all)"),
+    (["-o", "{d}/a.png", "--columns", "2", "--frames", "0"], "--columns = 2 is not allowed with one frame: it lays several "
+                                                             "frames out side by side, and --frames = '0' chooses one (frame 0)"),
     (["-o", "{d}/a.obj"], "--output = '{d}/a.obj' is not allowed: the extension must be"),
 ])
 def test_render_and_export_refusals_name_the_option_typed(tmp_path, capsys, options, message):

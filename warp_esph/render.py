@@ -1170,6 +1170,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         raise ValueError(f"{flag('columns')} = {checks.shorten(columns)!r} is not allowed with {named}: it lays several frames out "
                          f"side by side in one .png, and a {'folder' if kind == 'dir' else '.' + kind} holds them "
                          f"one after another")
+    given_frames = frames is not None
     if frames is None and kind == "png":
         frames = "last"
     # An animation may repeat a frame on purpose (holding it); a sheet or a folder of pictures
@@ -1183,6 +1184,13 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     playback = checks.in_range(flag("fps"), fps, FPS_RANGE[0], FPS_RANGE[1]) if fps is not None else data.fps
     if columns is not None:
         columns = checks.positive_int(flag("columns"), columns)
+        if len(chosen) == 1:
+            # A sheet of one frame: '-o grid.png --columns 3' drew the last frame alone, as
+            # without the option, and said it had written the picture asked for.
+            which = (f"{flag('frames')} = {checks.shorten(frames)!r} chooses one (frame {chosen[0]}); choose several" if given_frames
+                     else f"a .png without {flag('frames')} is the last frame alone (frame {chosen[0]}); give {flag('frames')} for several")
+            raise ValueError(f"{flag('columns')} = {checks.shorten(columns)!r} is not allowed with one frame: it lays several frames "
+                             f"out side by side, and {which} (e.g. {flag('frames')} all)")
     sheet_columns = min(columns or 4, len(chosen))
     if kind == "png" and len(chosen) > 1:
         # One picture holds them all: refused before drawing where it would not fit in memory
