@@ -2778,6 +2778,41 @@ def test_a_fit_that_stops_without_converging_exits_5_with_its_results_written(tm
     assert json.loads((tmp_path / "c" / "fit.json").read_text())["converged"]
 
 
+def test_a_sigterm_that_landed_in_a_finalizer_of_an_unconverged_fit_is_no_exit_5(tmp_path, capsys, dough_scene, monkeypatch):
+    """A signal that lands in a finalizer cannot be raised there: it is recorded, and ``main``
+    turned a finished command's 0 into the signal's status. A fit that stopped without
+    converging returns 5 (``EXIT_NOT_CONVERGED``), which ``main`` passed on: a SIGTERM that
+    landed while its results were written exited 5, not 143, and nothing said it was
+    terminated. The results stay written; the status is the signal's."""
+    from warp_esph import calibrate
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
+    real = calibrate.write_outputs
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def write_outputs(*args, **kwargs):
+        Finalized()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(calibrate, "write_outputs", write_outputs)
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--params", "mu", "--target", str(target), "--iterations", "1", "--no-progress",
+                   "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert status == 143, err
+    assert err.splitlines()[-1] == "warp-esph: terminated", err
+    assert json.loads((tmp_path / "o" / "fit.json").read_text())["stopped"] == "iterations"
+
+
 @pytest.mark.parametrize("signum, status, said", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
                                                   (signal.SIGINT, 130, "interrupted (Ctrl-C, SIGINT)")],
                          ids=["SIGTERM", "SIGINT"])

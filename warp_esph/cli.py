@@ -1591,9 +1591,10 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
             status = _dispatch(args)
         finally:
             signals.disarm()
-        if status == 0 and signals.received:
+        if status in (0, EXIT_NOT_CONVERGED) and signals.received:
             # A signal the handler could not raise (it landed in a finalizer): the work is done,
-            # but the command was asked to stop, and that is no success.
+            # but the command was asked to stop, and that is no success. A fit that stopped
+            # short finished too: its 5 had hidden the signal (a SIGTERM exited 5, not 143).
             print(f"{PROG}: {_stopped(args)}", file=sys.stderr)
             status = EXIT_INTERRUPTED
         if status == EXIT_INTERRUPTED and signal.SIGTERM in signals.received:
