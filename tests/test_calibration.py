@@ -2778,6 +2778,40 @@ def test_a_fit_that_stops_without_converging_exits_5_with_its_results_written(tm
     assert json.loads((tmp_path / "c" / "fit.json").read_text())["converged"]
 
 
+def test_a_stalled_fits_last_line_names_what_stalled_it(tmp_path, capsys, dough_scene, monkeypatch):
+    """A fit stalls by ``patience`` (evaluations in a row without a lower loss) or by its
+    optimiser's own search (an L-BFGS line search shrunk below ``xtol``, the default
+    optimiser's stall on a rough loss). The exit-5 line told both to raise ``--patience``,
+    which the search's stall never reached; it now says which, and ``fit.json`` records it
+    (``stalled_by``)."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    common = ["fit", str(guess), "--target", str(run), "--params", "yield_stress", "--no-progress", "--no-usd",
+              "--no-diagnostics"]
+    capsys.readouterr()
+    # Adam's first step (lr 3 in log space) moves the yield stress past the truth: a higher loss.
+    assert main([*common, "--optimizer", "adam", "--lr", "3", "--patience", "1", "--iterations", "5",
+                 "--output-dir", str(tmp_path / "p")]) == EXIT_NOT_CONVERGED
+    last = capsys.readouterr().err.splitlines()[-1]
+    doc = json.loads((tmp_path / "p" / "fit.json").read_text())
+    assert (doc["stopped"], doc["stalled_by"], len(doc["history"])) == ("stalled", "patience", 2), doc["history"]
+    assert last == ("warp-esph fit: not converged: it stalled (no lower loss in --patience 1 evaluations); a larger "
+                    "--patience waits longer for one, a larger --iterations with it; its results are written as above "
+                    "(exit 5)"), last
+
+    def line_search_stalled(evaluate, project, z, *args, **kwargs):
+        evaluate(z)
+        return "stalled"  # as _run_lbfgs returns where its line search shrank the step below xtol
+
+    monkeypatch.setattr(fit_module, "_run_lbfgs", line_search_stalled)
+    assert main([*common, "--optimizer", "lbfgs", "--iterations", "5", "--output-dir", str(tmp_path / "s")]) == EXIT_NOT_CONVERGED
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert json.loads((tmp_path / "s" / "fit.json").read_text())["stalled_by"] == "search"
+    assert "--patience 20" not in last and "which a larger --patience or --iterations does not change" in last, last
+
+
 def test_a_sigterm_that_landed_in_a_finalizer_of_an_unconverged_fit_is_no_exit_5(tmp_path, capsys, dough_scene, monkeypatch):
     """A signal that lands in a finalizer cannot be raised there: it is recorded, and ``main``
     turned a finished command's 0 into the signal's status. A fit that stopped without

@@ -542,8 +542,14 @@ def _unconverged_said(result, args) -> str:
     how = {
         "iterations": f"it hit the iteration cap (--iterations {args.iterations}); run it again with a larger --iterations "
                       "to go further (it starts again from the scene's values)",
-        "stalled": f"it stalled (no lower loss in --patience {_arg(args, 'patience', 20)} evaluations, or a line search that "
-                   "found none); a larger --patience waits longer for one, a larger --iterations with it",
+        # A search's stall (the default L-BFGS's on a rough loss) was told to raise --patience,
+        # which it never reached.
+        "stalled": (f"it stalled (no lower loss in --patience {_arg(args, 'patience', 20)} evaluations); a larger --patience "
+                    "waits longer for one, a larger --iterations with it" if result.stalled_by == "patience" else
+                    "it stalled: its optimiser's search found no lower loss (an L-BFGS line search shrank its step below "
+                    "the tolerance, or a Gauss-Newton Jacobian's runs failed on both sides), which a larger --patience or "
+                    "--iterations does not change: a rough loss or a narrow valley (docs/fitting.md, \"How a fit ends\"); "
+                    "start elsewhere (--samples) or try another --optimizer"),
         "flat": "the gradient is exactly zero at the start, and more iterations will not change that (the first line "
                 "says what to change)",
         "uninformative": "the data do not tell the start from values nearby, and more iterations will not change that "

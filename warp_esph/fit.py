@@ -167,6 +167,12 @@ class FitResult:
     #: ("SIGINT", "SIGTERM"; ``warp-esph fit`` sets it); "" where only a ``KeyboardInterrupt``
     #: was seen. A SIGTERM had been reported as Ctrl-C in ``fit.json``'s termination.
     signal: str = ""
+    #: For ``stopped`` "stalled": what stopped it, "patience" (``patience`` evaluations in a row
+    #: without a lower loss: a larger ``patience`` waits longer) or "search" (the optimiser's
+    #: own: an L-BFGS line search that shrank its step below ``xtol`` without a lower loss, or a
+    #: Gauss-Newton Jacobian column whose runs failed on both sides, which no larger ``patience``
+    #: or ``iterations`` changes); else "".
+    stalled_by: str = ""
     #: Of each parameter fitted as itself, the size one unit of optimiser space is and where
     #: it came from (``{"size": S, "from": "given" | "start" | "bounds" | "material"}``): what a
     #: step of ``lr`` moves it by, which the history alone does not say.
@@ -253,6 +259,7 @@ class FitResult:
             "converged": self.converged,
             "termination": self.termination,
             **({"signal": self.signal} if self.stopped == "interrupted" and self.signal else {}),
+            **({"stalled_by": self.stalled_by} if self.stopped == "stalled" and self.stalled_by else {}),
             "starts": list(self.starts),
             "param_scales": self.param_scales,
             "step_limit": self.step_limit,
@@ -2009,6 +2016,7 @@ class _Track:
 
     def __init__(self, index):
         self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
+        self.patience_spent = False  # stalled by ``patience``, not by its optimiser's own search
         self.entry = None  # its last history entry
         self.kept = None  # the runs at its best point (_Run.kept), one per experiment
         # What its first evaluation observed, and whether a later one observed otherwise
@@ -2346,6 +2354,7 @@ def fit(
         if tol is not None and finite and value < tol:
             raise _Stop("tol")
         if track.since_best >= patience:
+            track.patience_spent = True
             raise _Stop("stalled")
         return value, gz, finite
 
@@ -2560,11 +2569,11 @@ def fit(
             state["bar"].close()
         for r in runs:
             r.keep = False  # the diagnostics' own runs need no copies
-    run_best = [(t.best, t.best_p, stop, t.kept) for t, stop in zip(tracks, stops)]
+    run_best = [(t.best, t.best_p, stop, t.kept, t) for t, stop in zip(tracks, stops)]
     finite_runs = [rb for rb in run_best if rb[1] is not None]
     if not finite_runs:
         raise FloatingPointError("no finite loss was found")
-    value, p, stopped, kept = min(finite_runs, key=lambda rb: rb[0])
+    value, p, stopped, kept, won = min(finite_runs, key=lambda rb: rb[0])
     fitted = [r.finish(p, params) for r in runs]
     result = FitResult(
         params={k: v.copy() for k, v in p.items()},
@@ -2576,6 +2585,8 @@ def fit(
         model=runs[0].model,
         stopped=stopped,
     )
+    if stopped == "stalled":
+        result.stalled_by = "patience" if won.patience_spent else "search"
     result.models = [r.model for r in runs]
     result.experiment_materials = fitted
     result.flowed_starts = [r.flowed_start() for r in runs]
