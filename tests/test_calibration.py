@@ -2778,6 +2778,30 @@ def test_a_fit_that_stops_without_converging_exits_5_with_its_results_written(tm
     assert json.loads((tmp_path / "c" / "fit.json").read_text())["converged"]
 
 
+def test_a_gauss_newton_fit_that_reaches_a_loss_of_zero_converges_not_flat(tmp_path, capsys, dough_scene):
+    """Gauss-Newton said ``flat`` ("stopped at once: the gradient is exactly zero ... start
+    elsewhere") wherever its Jacobian was all zeros, also after steps that took the loss to
+    exactly 0: a dough block fitted from 200 Pa to its run at 1e5 Pa (a yield stress above
+    every stress: any such value reproduces it) reached loss 0 and exited 5 as not converged,
+    its last line saying the gradient was zero at the start, where L-BFGS converged. After a
+    step a Jacobian of zeros is a minimum reached: ``converged``, exit 0."""
+    from warp_esph.cli import main
+
+    guess, hard = tmp_path / "guess.toml", tmp_path / "hard.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    hard.write_text(dough_scene(yield_stress=1e5, flow_rate=20.0, frames=2))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(hard), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--params", "yield_stress", "--target", str(run), "--iterations", "30", "--optimizer",
+                   "gauss-newton", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")])
+    said = capsys.readouterr()
+    doc = json.loads((tmp_path / "o" / "fit.json").read_text())
+    assert status == 0, said.err
+    assert doc["stopped"] == "converged" and doc["loss"] == 0.0 and doc["params"]["yield_stress"][0] > 1000.0, doc["params"]
+    assert len(doc["history"]) > 1 and said.out.startswith("fit converged"), said.out
+
+
 def test_a_stalled_fits_last_line_names_what_stalled_it(tmp_path, capsys, dough_scene, monkeypatch):
     """A fit stalls by ``patience`` (evaluations in a row without a lower loss) or by its
     optimiser's own search (an L-BFGS line search shrunk below ``xtol``, the default

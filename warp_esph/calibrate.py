@@ -547,7 +547,7 @@ def _unconverged_said(result, args) -> str:
         "stalled": (f"it stalled (no lower loss in --patience {_arg(args, 'patience', 20)} evaluations); a larger --patience "
                     "waits longer for one, a larger --iterations with it" if result.stalled_by == "patience" else
                     "it stalled: its optimiser's search found no lower loss (an L-BFGS line search shrank its step below "
-                    "the tolerance, or a Gauss-Newton Jacobian's runs failed on both sides), which a larger --patience or "
+                    "the tolerance; Gauss-Newton's damping grew past 1e8, or a Jacobian column's runs failed on both sides), which a larger --patience or "
                     "--iterations does not change: a rough loss or a narrow valley (docs/fitting.md, \"How a fit ends\"); "
                     "start elsewhere (--samples) or try another --optimizer"),
         "flat": "the gradient is exactly zero at the start, and more iterations will not change that (the first line "

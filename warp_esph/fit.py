@@ -169,9 +169,9 @@ class FitResult:
     signal: str = ""
     #: For ``stopped`` "stalled": what stopped it, "patience" (``patience`` evaluations in a row
     #: without a lower loss: a larger ``patience`` waits longer) or "search" (the optimiser's
-    #: own: an L-BFGS line search that shrank its step below ``xtol`` without a lower loss, or a
-    #: Gauss-Newton Jacobian column whose runs failed on both sides, which no larger ``patience``
-    #: or ``iterations`` changes); else "".
+    #: own: an L-BFGS line search that shrank its step below ``xtol`` without a lower loss; a
+    #: Gauss-Newton damping grown past 1e8 without one, or a Jacobian column whose runs failed on
+    #: both sides; which no larger ``patience`` or ``iterations`` changes); else "".
     stalled_by: str = ""
     #: Of each parameter fitted as itself, the size one unit of optimiser space is and where
     #: it came from (``{"size": S, "from": "given" | "start" | "bounds" | "material"}``): what a
@@ -3469,6 +3469,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
     held = np.zeros(n, dtype=bool)
     kept = np.zeros(n, dtype=bool)  # the held values whose column is the last Jacobian's, not z's
     current = False  # whether J is z's already (the kept columns run afresh at z)
+    stepped = False  # whether a step was taken: a Jacobian of zeros after one is a minimum reached
     ran_at = np.full((n, n), np.nan)  # row j: the point column j of J was run at
     ran_with = [None] * n  # the correspondences column j of J was run with
 
@@ -3537,7 +3538,11 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         current = False
         A, g = J.T @ J, J.T @ r
         if not np.any(A.diagonal() > 0.0):
-            return "flat"
+            # At the start nothing moves the loss; after a step the loss fell to where nothing
+            # does, as L-BFGS's gradient of zeros there (gtol) is: a target run at a yield stress
+            # above every stress, fitted from below, reached a loss of exactly 0 and was called
+            # 'flat' ('stopped at once'), exit 5, where L-BFGS converged.
+            return "converged" if stepped else "flat"
         held = _held(z, g, bounds)
         free = ~held
         if not free.any():
@@ -3592,6 +3597,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         if current:
             continue
         z, r, f = z_new, r_new, f_new
+        stepped = True
         at_z = chosen() if chosen is not None else None
         if float(np.abs(step).max()) < xtol:
             return "converged"
