@@ -1,6 +1,8 @@
 """The no-slip ghost floor (``SceneBuilder.add_particle_floor(ghost=True)``,
 ``warp_esph/sim/ghost_floor.py``): its fits, its forces and its gradients."""
 
+import contextlib
+
 import numpy as np
 import pytest
 import warp as wp
@@ -368,3 +370,67 @@ def test_ghost_floor_refuses_a_material_changed_to_the_paper_force_at_the_next_s
     model.set_material(0, model.materials[0].replace(elastic_force="paper"))
     with pytest.raises(ValueError, match=r"Material.elastic_force = \['paper'\] is not allowed with a ghost floor"):
         solver.step(c, a, DT)
+
+
+def _expected_stencils(model, x):
+    """Each ghost's stencil rows from the positions ``x`` (numpy): the free particles within
+    ``rs`` of its mirror point, or on a slip floor within the fill's ``reach`` where the
+    stencil's weight is below ``MIN_TOTAL + SWITCH`` (``stencil_fill`` > 0 exactly there), and
+    how many lie within each radius. ``near`` is None where a distance or the weight is
+    within round-off of a threshold."""
+    from warp_esph.sim import ghost_floor as G
+
+    g = model.ghost_floor
+    free = np.flatnonzero(g.slot.numpy() < 0)
+    out = []
+    for k, off, slip in zip(g.floor.numpy(), g.offset.numpy(), g.slip.numpy()):
+        p = np.array([x[k, 0], 2.0 * off - x[k, 1], x[k, 2]])
+        d2 = ((x[free] - p) ** 2).sum(axis=1)
+        near = d2 < g.radius**2
+        wide = d2 < g.reach**2
+        total = ((1.0 - d2[near] / g.radius**2) ** 3).sum()
+        ties = (np.abs(d2 - g.radius**2).min() < 1e-12 or np.abs(d2 - g.reach**2).min() < 1e-12
+                or abs(total - (G.MIN_TOTAL + G.SWITCH)) < 1e-12)
+        filled = slip and total < G.MIN_TOTAL + G.SWITCH
+        out.append((set(free[wide if filled else near].tolist()), int(near.sum()), int(wide.sum()), bool(filled), ties))
+    return out
+
+
+@pytest.mark.parametrize("width", [None, 8])
+def test_slip_ghost_stencil_rows_hold_the_stencil_or_the_fill_and_a_full_row_is_counted(width):
+    """The slip ghosts' stencil rows are exactly the free particles within the stencil radius
+    ``rs`` of the mirror point, or within the fill's ``reach`` where the stencil is not full,
+    as searched from the step's start (one grid query at ``reach``, kept to ``rs`` where the
+    stencil is full). With rows narrower than a filled stencil (8, forced: the floor's rows
+    are as wide as a neighbour row), a row is counted as cut (``neighbors_cut``) exactly
+    where its own set does not fit: a filled stencil past 8 within ``reach``, a full one
+    never (it holds about 7 within ``rs``, though more than 8 lie within ``reach``), and a
+    full one keeps all its own; the cut warns."""
+    model = _model(slide=2.0, slip=True, requires_grad=False)
+    if width is not None:
+        model.ghost_floor.rows = width
+    rows = model.ghost_floor.rows
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    seen = {"filled": 0, "full past the row": 0, "cut": 0}
+    with pytest.warns(RuntimeWarning, match="a neighbour row was cut") if width else contextlib.nullcontext():
+        for _ in range(STEPS):
+            before = solver.guard_counts()["neighbors_cut"]
+            x = a.x.numpy()
+            solver.step(a, c, DT)
+            expected = _expected_stencils(model, x)
+            cj, cc = c.ghost_rows.numpy(), c.ghost_count.numpy()
+            cut = 0
+            for t, (kept, n_near, n_wide, filled, ties) in enumerate(expected):
+                assert not ties
+                got = cj[t, :cc[t]].tolist()
+                assert len(set(got)) == len(got) == min(len(kept), rows) and set(got) <= kept, t
+                cut += len(kept) > rows
+                seen["filled"] += filled and n_wide > 0
+                seen["full past the row"] += (not filled) and n_near <= rows < n_wide
+            seen["cut"] += cut
+            assert solver.guard_counts()["neighbors_cut"] - before == cut
+            a, c = c, a
+    assert seen["filled"] > 0, seen
+    if width is not None:
+        assert seen["cut"] > 0 and seen["full past the row"] > 0, seen

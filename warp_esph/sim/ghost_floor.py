@@ -199,6 +199,43 @@ def kernels(scalar) -> types.SimpleNamespace:
         p = x[i]
         out[i] = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
 
+    @wp.func
+    def collect(grid: wp.uint64, x: wp.array(dtype=vec3), slot: wp.array(dtype=wp.int32), body: wp.array(dtype=wp.int32),
+                k: int, t: int, p: vec3, r: scalar, rs: scalar, cj: wp.array2d(dtype=wp.int32)):
+        """The free particles of ``k``'s body within ``r`` of ``p`` into row ``t``, the first
+        as many as it holds, in the grid's order: how many it holds, how many there are and the
+        raw sum of the stencil weights (``rs``) of those within ``rs``."""
+        pf = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+        q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(r)))
+        rows = cj.shape[1]
+        j = int(0)
+        c = int(0)
+        n = int(0)
+        total = scalar(0.0)
+        while wp.hash_grid_query_next(q, j):
+            if slot[j] < 0 and body[j] == body[k]:
+                d2 = wp.length_sq(x[j] - p)
+                if d2 < r * r:
+                    n += 1
+                    if d2 < rs * rs:
+                        total += fn.stencil_weight(x[j], p, rs)
+                    if c < rows:
+                        cj[t, c] = j
+                        c += 1
+        return c, n, total
+
+    @wp.func
+    def keep_within(t: int, x: wp.array(dtype=vec3), p: vec3, r: scalar, cj: wp.array2d(dtype=wp.int32), count: int) -> int:
+        """Row ``t``'s first ``count`` candidates compacted in place to those within ``r`` of
+        ``p``, in their order; returns how many."""
+        c = int(0)
+        for i in range(count):
+            j = cj[t, i]
+            if wp.length_sq(x[j] - p) < r * r:
+                cj[t, c] = j
+                c += 1
+        return c
+
     @wp.kernel(enable_backward=False, module="unique")
     def stencil_candidates(
         grid: wp.uint64,
@@ -217,35 +254,29 @@ def kernels(scalar) -> types.SimpleNamespace:
     ):
         """The free particles of floor particle ``floor[t]``'s body within ``rs`` of its mirror
         point, or within ``reach`` for a slip ghost whose stencil is not full (``stencil_fill``)
-        (integers: the tape never sees the grid; docs/method.md, Warp pitfall 3)."""
+        (integers: the tape never sees the grid; docs/method.md, Warp pitfall 3). One query: a
+        slip ghost collects within ``reach`` (> ``rs``: the support radius is at least 1.5
+        spacings), summing the stencil's weight as it goes, and keeps those within ``rs`` where
+        the stencil is full. A grid query visits the cells it shares with a narrower one in the
+        same order, so the rows and the sum are a query's at ``rs`` to the bit. Only where the
+        ``reach`` set overflows a full stencil's row (not seen: the rows are a neighbour row
+        wide) is its own searched again, so a row is cut, and counted, where its own set
+        does not fit, as before."""
         t = wp.tid()
         k = floor[t]
         p = fn.mirror_point(x[k], offset[t])
-        pf = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
         r = rs
         if slip[t] != 0:
-            total = scalar(0.0)
-            q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(rs)))
-            j = int(0)
-            while wp.hash_grid_query_next(q, j):
-                if slot[j] < 0 and body[j] == body[k]:
-                    total += fn.stencil_weight(x[j], p, rs)
-            if fn.stencil_fill(total) > scalar(0.0):
-                r = reach
-        rows = cj.shape[1]
-        q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(r)))
-        j = int(0)
-        c = int(0)
-        cut = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if slot[j] < 0 and body[j] == body[k] and wp.length_sq(x[j] - p) < r * r:
-                if c < rows:
-                    cj[t, c] = j
-                    c += 1
-                else:
-                    cut = 1
+            r = reach
+        c, n, total = collect(grid, x, slot, body, k, t, p, r, rs, cj)
+        filled = fn.stencil_fill(total) > scalar(0.0)
+        if slip[t] != 0 and not filled:
+            if n <= cj.shape[1]:
+                c = keep_within(t, x, p, rs, cj, c)
+            else:
+                c, n, total = collect(grid, x, slot, body, k, t, p, rs, rs, cj)
         cc[t] = c
-        if cut != 0:
+        if n > cj.shape[1]:
             wp.atomic_add(counters, cut_index, 1)
 
     @wp.kernel(module="unique")
