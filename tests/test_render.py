@@ -466,6 +466,23 @@ def test_render_and_export_refusals_name_the_option_typed(tmp_path, capsys, opti
     assert sorted(os.listdir(tmp_path)) == ["cli.usdc"]
 
 
+@pytest.mark.parametrize("frames", [[], ["--frames", "all"], ["--frames", "0"]], ids=["default", "all", "0"])
+def test_render_columns_on_a_file_of_one_frame_says_so(tmp_path, capsys, frames):
+    """``--columns`` on a file that holds one frame is refused saying so, not told to choose
+    several: ``--frames all`` was told to give ``--frames all`` for several, which it had, and
+    the default's advice (``--frames all``) was refused the same way."""
+    from warp_esph.cli import main
+
+    path = tmp_path / "one.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=1)
+    capsys.readouterr()
+    assert main(["render", str(path), "-o", str(tmp_path / "a.png"), "--columns", "2", *frames]) == 2
+    err = capsys.readouterr().err
+    assert err == ("warp-esph: error: --columns = 2 is not allowed with one frame: it lays several frames out side by side, "
+                   "and the file holds one frame (frame 0); leave --columns out\n"), err
+    assert sorted(os.listdir(tmp_path)) == ["one.usdc"]
+
+
 def test_render_and_export_refuse_a_file_that_is_not_usd_by_its_name(tmp_path, capsys):
     """A scene file given where the USD output belongs was read by pxr, whose words named no
     format ("Cannot determine file format for @guess.toml@"): it is refused as not USD, with

@@ -1187,10 +1187,18 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         if len(chosen) == 1:
             # A sheet of one frame: '-o grid.png --columns 3' drew the last frame alone, as
             # without the option, and said it had written the picture asked for.
-            which = (f"{flag('frames')} = {checks.shorten(frames)!r} chooses one (frame {chosen[0]}); choose several" if given_frames
-                     else f"a .png without {flag('frames')} is the last frame alone (frame {chosen[0]}); give {flag('frames')} for several")
+            # A file of one frame has no several to choose: '--frames all' was told to give
+            # '--frames all' for several.
+            if len(data.frames) == 1:
+                which = f"the file holds one frame (frame {chosen[0]}); leave {flag('columns')} out"
+            elif given_frames:
+                which = (f"{flag('frames')} = {checks.shorten(frames)!r} chooses one (frame {chosen[0]}); choose several "
+                         f"(e.g. {flag('frames')} all)")
+            else:
+                which = (f"a .png without {flag('frames')} is the last frame alone (frame {chosen[0]}); give {flag('frames')} "
+                         f"for several (e.g. {flag('frames')} all)")
             raise ValueError(f"{flag('columns')} = {checks.shorten(columns)!r} is not allowed with one frame: it lays several frames "
-                             f"out side by side, and {which} (e.g. {flag('frames')} all)")
+                             f"out side by side, and {which}")
     sheet_columns = min(columns or 4, len(chosen))
     if kind == "png" and len(chosen) > 1:
         # One picture holds them all: refused before drawing where it would not fit in memory
