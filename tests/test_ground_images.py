@@ -30,6 +30,46 @@ def test_the_imaged_grounds_friction_picks_how_its_images_move():
     assert motion(0.0, images=False) == we.model.IMAGES_NONE == 0
 
 
+@pytest.mark.parametrize("built, written, refused", [
+    (0.0, 0.5, "plane_friction"), (0.3, 0.0, "plane_friction"), (0.3, 0.7, None),
+    (0.0, None, "plane_offset"), (0.3, None, "plane_normal")])
+def test_an_imaged_grounds_friction_or_plane_written_after_the_build_is_refused_at_the_step(built, written, refused):
+    """The images are made with the model: at rest or moving with their particles as the
+    ground's friction was positive or 0 (``Model.image_motion``), at the plane it was built at.
+    Written in place afterwards (a caller, an optimiser of ``plane_friction``'s gradient), a
+    frictionless imaged ground given a friction ran on frictionless, a rough one given
+    friction 0 ran rough, and a moved ground left its images under the old plane, all without
+    a word; the step now refuses each by name before any launch (``Model.check_image_plane``).
+    A positive friction changed to another positive one is the contact's and runs."""
+    b = we.SceneBuilder(spacing=DX)
+    b.add_box((0.0, 2.0 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_plane((1.0, 0.0, 0.0), -1.0)  # a plane before the ground: its row is found by its images
+    b.add_ground(0.0, friction=built, images=True)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    s.step(a, c, 1e-4)
+    if written is not None:
+        m.plane_friction.assign(np.array([0.2, written], dtype=np.float32))
+    elif refused == "plane_offset":
+        m.plane_offset.assign(np.array([-1.0, 0.005], dtype=np.float32))
+    else:
+        m.plane_normal.assign(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.1]], dtype=np.float32))
+    if refused is None:
+        s.step(a, c, 1e-4)
+        return
+    want = {"plane_friction": rf"model.plane_friction\[1\] = {written!r} is not allowed: the imaged ground was built "
+                              rf"with friction {built!r}, so its images (move|stand still).*add_ground\(friction={written!r}, "
+                              r"images=True\)",
+            "plane_offset": r"model.plane_offset\[1\] = 0.005 is not allowed: the imaged ground's images are made at "
+                            r"the plane it was built at \(normal \(0.0, 1.0, 0.0\), offset 0.0\)",
+            "plane_normal": r"model.plane_normal\[1\] = \(0.0, 1.0, 0.1\) is not allowed"}[refused]
+    before = c.x.numpy().copy()
+    with pytest.raises(ValueError, match=want):
+        s.step(a, c, 1e-4)
+    np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
+
+
 def _thrown_box(friction, images, v0=0.5, steps=125, viscosity=0.0):
     """A 4^3 elastic box (2 cm spacing, E 200 kPa, float64, the default solver) standing on
     the ground, given ``v0`` sideways, ``steps`` steps at half the stable step (0.01 s on the

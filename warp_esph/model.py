@@ -689,9 +689,68 @@ class Model(Unpicklable):
         #: imaged ground, else at rest.
         self.image_motion = (IMAGES_NONE if not imaged else IMAGES_MOVING if imaged[0].friction == 0.0
                              else IMAGES_AT_REST)
+        # The imaged plane's row of the plane arrays and its values as built (check_image_plane).
+        self._image_row = next((k for k, p in enumerate(planes) if getattr(p, "images", False)), None)
+        self._image_views = None
+        self._image_stage = None
+        self._image_built = None if self._image_row is None else self._image_plane_values()
         check_pressure_forces(materials, self.image_plane is not None)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
+
+    def _image_plane_values(self) -> np.ndarray:
+        """The imaged plane's friction, offset and normal as the plane arrays hold them now: views
+        on the CPU (kept while the arrays are the same ones), one transfer on a GPU."""
+        k = self._image_row
+        arrays = (self.plane_friction, self.plane_offset, self.plane_normal)
+        if self.device.is_cpu:
+            held = self._image_views
+            if held is None or any(a is not b for a, b in zip(held[0], arrays)):
+                held = self._image_views = (arrays, [a.numpy() for a in arrays])
+            f, off, n = held[1]
+            return np.concatenate(([f[k], off[k]], n[k]))
+        # One transfer into a buffer kept for it (each read of a device array waits for the device).
+        stage = self._image_stage
+        if stage is None:
+            stage = self._image_stage = wp.empty(5, dtype=self.scalar, device=self.device)
+        wp.copy(stage, self.plane_friction, dest_offset=0, src_offset=k, count=1)
+        wp.copy(stage, self.plane_offset, dest_offset=1, src_offset=k, count=1)
+        wp.copy(stage, self.plane_normal.view(self.scalar).flatten(), dest_offset=2, src_offset=3 * k, count=3)
+        return stage.numpy()
+
+    def check_image_plane(self) -> None:
+        """Refuse (``ValueError``) the imaged ground's friction, height or normal written in the
+        plane arrays after the build (``plane_friction``, ``plane_offset``, ``plane_normal``: a
+        caller or an optimiser of the friction's gradient writes them in place). The images are
+        made when the model is built: at that plane, and at rest over each step or moving with
+        their particles as its friction was positive or 0 (``image_motion``). A frictionless
+        imaged ground given a friction ran on frictionless, and a rough one given friction 0
+        ran the rough floor that ``add_ground`` refuses to call frictionless for no other
+        reason; a moved ground left its images under the old one. ``Solver.step`` calls it
+        before its first launch; a positive friction changed to another positive one is the
+        contact's alone and taken."""
+        if self._image_row is None:
+            return
+        now, built = self._image_plane_values(), self._image_built
+        k = self._image_row
+        def shown(v):  # the shortest text of the model's precision: 0.3, not 0.300000011921
+            return str(self.types.np_dtype(v)) if np.ndim(v) == 0 else "(" + ", ".join(shown(c) for c in v) + ")"
+
+        if (now[0] == 0.0) != (built[0] == 0.0):
+            moving = built[0] == 0.0
+            raise ValueError(
+                f"model.plane_friction[{k}] = {shown(now[0])} is not allowed: the imaged ground was built with "
+                f"friction {shown(built[0])}, " + (
+                    "so its images move with their particles (a frictionless floor), and a friction does not stop them"
+                    if moving else "so its images stand still over each step (a rough floor whatever its friction), "
+                    "and friction 0 does not make them move") + "; build the scene again with "
+                f"add_ground(friction={shown(now[0])}, images=True)")
+        if not np.array_equal(now[1:], built[1:]):
+            name, value = (f"plane_offset[{k}]", now[1]) if now[1] != built[1] else (f"plane_normal[{k}]", now[2:])
+            raise ValueError(
+                f"model.{name} = {shown(value)} is not allowed: the imaged ground's images are made at the plane it was "
+                f"built at (normal {shown(built[2:])}, offset {shown(built[1])}) and would stay there; build the scene "
+                f"again with the ground where it is to be")
 
     def image_args(self) -> list:
         """The kernels' arguments of the image plane: normal, offset, the images' least depth and

@@ -1044,6 +1044,7 @@ class Solver(Unpicklable):
         if m.tools is not None:
             # Before any launch: the tools' arrays as a caller or an optimiser left them.
             m.tools.check_arrays()
+        m.check_image_plane()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
