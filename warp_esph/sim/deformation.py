@@ -616,6 +616,23 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, applied
 
     @wp.func
+    def particle_f_for_image(F: mat33, n: vec3, images: int) -> mat33:
+        """A particle's ``F`` as its floor image carries it where the image's own fit does not
+        reach (``floor_image_blend``): ``F`` itself for images at rest (``images`` 1, a floor
+        continuing the material), its mirror ``R F R`` (``R = I - 2 n n^T``) for images moving
+        with their particles (``images`` 2): there the image is the particle's mirror, whose own
+        fit gives ``R dF R`` to its particle's ``dF``; blended towards ``F`` an image with few
+        particles within ``h`` carried an unmirrored stress, and an undamped elastic block
+        floating on the frictionless imaged ground gained sideways momentum and energy
+        (docs/physics.md, "The imaged ground is rough whatever its friction"). Linear and
+        self-adjoint in ``F``: its adjoint is itself."""
+        out = F
+        if images == 2:
+            R = wp.identity(n=3, dtype=scalar) - scalar(2.0) * wp.outer(n, n)
+            out = R * F * R
+        return out
+
+    @wp.func
     def floor_image_blend(own: mat33, F_new: mat33, wsum: scalar, h: scalar):
         """The image's new F, its own updated ``own`` and its particle's new ``F_new`` blended
         by ``floor_image_share`` of its pairs' weights ``wsum``, and that share."""
@@ -634,12 +651,14 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def floor_image_blend_adjoint(Gg: mat33, own: mat33, code: int, scale: scalar, D0: mat33, Fp: mat33,
-                                  adj_c: scalar, wsum: scalar, h: scalar):
+                                  adj_c: scalar, wsum: scalar, h: scalar, gn: vec3, images: int):
         """Adjoint of ``floor_image_blend`` in the weight sum ``wsum`` (``Gg`` the gradient of
         the blend, ``adj_c`` that of the share; the particle's new F as its update had it,
-        ``updated_or_kept``) and the share ``c``: returns ``(c, adj_wsum)``."""
+        ``updated_or_kept``, as the image carries it, ``particle_f_for_image``) and the share
+        ``c``: returns ``(c, adj_wsum)``."""
         c, dc = floor_image_share(wsum, h)
-        return c, (wp.ddot(Gg, own - updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
+        target = particle_f_for_image(updated_or_kept(code, scale, D0, Fp), gn, images)
+        return c, (wp.ddot(Gg, own - target) + adj_c) * dc
 
     @wp.func
     def floor_image_own_update_adjoint(
@@ -891,6 +910,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
         ImageSums=ImageSums, floor_image_own_update=floor_image_own_update,
         floor_image_blend=floor_image_blend, floor_image_blend_adjoint=floor_image_blend_adjoint,
+        particle_f_for_image=particle_f_for_image,
         floor_image_own_update_adjoint=floor_image_own_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         uncompensated_update=uncompensated_update,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
@@ -955,7 +975,7 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         ``plasticity.image_hardening_update``)."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
-        return df.floor_image_blend(own, F_new, sums.wsum, h)
+        return df.floor_image_blend(own, df.particle_f_for_image(F_new, gn, images), sums.wsum, h)
 
     @wp.func
     def floor_image_update_adjoint(
@@ -990,13 +1010,13 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         the fade ``scale``."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
-        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, sums.wsum, h)
+        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, sums.wsum, h, gn, images)
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):
             adj_Fg, adj_s = fn.floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, scale, sums,
                                                               Fg, c * Gg, applied, adj_wsum, adj_x, adj_y)
-        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
+        return df.particle_f_for_image((scalar(1.0) - c) * Gg, gn, images), adj_Fg, adj_s
 
     return types.SimpleNamespace(floor_image_update=floor_image_update,
                                  floor_image_update_adjoint=floor_image_update_adjoint)
