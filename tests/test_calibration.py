@@ -1619,6 +1619,24 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["interrupted"] == "the fit"
 
 
+def test_a_fit_interrupted_in_its_first_evaluation_says_nothing_is_written(tmp_path, capsys, dough_scene, monkeypatch):
+    """Ctrl-C in the first evaluation: no loss to keep, and the line said 'interrupted' alone,
+    not that no file was written."""
+    from warp_esph.cli import main
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    _interrupt_evaluation(monkeypatch, 1)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--no-progress", "--no-usd",
+                   "--output-dir", str(out)])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    assert err.splitlines()[-1] == ("warp-esph: interrupted: no evaluation had finished with a finite loss, so there is "
+                                    "no best point to keep: nothing is written"), err
+    assert not out.exists() or list(out.iterdir()) == []
+
+
 def test_an_interrupted_fit_counts_its_evaluations_as_its_summary_line_does(tmp_path, capsys, dough_scene, monkeypatch):
     """With a global stage, the interrupt's line 'interrupted after N evaluations' counted its
     samples and the descent's under one word, where the summary line of a finished fit says

@@ -467,7 +467,10 @@ def run_fit(args, out=None, err=None) -> int:
                 else:
                     log(f"{stopped} during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
                         f"{e.result.loss:.4g}) without them to {', '.join(written)}")
-        raise KeyboardInterrupt from None
+            raise KeyboardInterrupt from None
+        # Before a finite loss: the line said 'interrupted' alone, not that no file was written.
+        raise checks.interrupted("no evaluation had finished with a finite loss, so there is no best point to "
+                                 "keep: nothing is written") from None
     # The results first: a file that cannot be written (a full disk) lost them, the values
     # printed only after every file was written.
     print(f"fit {result.termination}", file=out)
