@@ -598,6 +598,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "--device", "tpu"], ["--device", "tpu"]),
         (["run", "-o", "out.obj"], ["out.obj", "extension"]),
         (["run", "missing_scene.toml"], ["missing_scene.toml", "No such file"]),
+        # A built-in scene's name with '.toml', no such file here: the scene is named bare.
+        (["run", "dough_drop.toml"], ["'dough_drop.toml': No such file", "'dough_drop' is a built-in scene: give its name "
+                                      "alone, 'dough_drop'"]),
         (["run", "-o", "/nonexistent_dir_xyz/out.usdc", "--scale", "0.3"], ["/nonexistent_dir_xyz"]),
         (["frobnicate"], ["frobnicate"]),
         (["run", "--solver-fit", "quadratic"], ["--solver-fit = 'quadratic'", "'linear', 'curvature_corrected'"]),

@@ -684,6 +684,13 @@ def _load(name_or_path, scale) -> Scene:
     if text in SCENES:
         return SCENES[text](scale=scale)
     if text.lower().endswith(".toml") or os.sep in text or (os.altsep and os.altsep in text) or os.path.exists(text):
+        stem = text[:-len(".toml")] if text.lower().endswith(".toml") else None
+        if stem in SCENES and not os.path.exists(text):
+            # 'run dough_drop.toml' read as a file nobody wrote: the built-in scene is named bare.
+            try:
+                return load_scene_file(text, scale)
+            except ValueError as e:
+                raise ValueError(f"{e}; {stem!r} is a built-in scene: give its name alone, {stem!r}") from None
         return load_scene_file(text, scale)
     # A bare name is a built-in scene's; a file is read by its path alone.
     raise _unknown(text, text + ".toml" if os.path.isfile(text + ".toml") else None)
