@@ -983,6 +983,38 @@ def test_cli_joint_experiments_file(tmp_path, dough_scene):
                  "--output-dir", str(out), *common]) == 2
 
 
+def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp_path, capsys, monkeypatch,
+                                                                              two_materials_scene):
+    """Two experiments fitting the same body of one run's USD at a frame both choose counted
+    its observations twice without a word, where one experiment giving the file twice is
+    refused; the file's other body, or another frame, is another observation and passes."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    scene, run, exps = tmp_path / "two.toml", tmp_path / "run.usdc", tmp_path / "e.json"
+    scene.write_text(two_materials_scene)
+    assert main(["run", str(scene), "-o", str(run), "--frames", "2", "--no-progress"]) == 0
+
+    def stand_in(experiments, *args, **kwargs):
+        raise ValueError(f"stopped by the test before the first evaluation of {len(experiments)} experiments")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    for body, frames, refused in (("a", "2", True), ("b", "2", False), ("a", "1", False)):
+        exps.write_text(json.dumps([{"scene": "two.toml", "target": "run.usdc", "target_body": body,
+                                     "target_frames": frames}]))
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(run), "--target-body", "a", "--target-frames", "2",
+                     "--experiments", str(exps), "--no-progress", "--no-usd", "--output-dir", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        if refused:
+            assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{run}' (body 'a') is not allowed at frame 2: "
+                           "the command line's --target observes the same file alike there, so its observations would "
+                           "count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one "
+                           "experiment (two experiments may share a file for different bodies or tools)\n"), err
+        else:
+            assert err.endswith("stopped by the test before the first evaluation of 2 experiments\n"), err
+
+
 def test_fit_json_records_each_experiments_solver_settings(tmp_path, dough_scene):
     """A joint fit's ``solver_initial`` and ``solver`` in fit.json recorded the first scene's
     solver settings for every experiment: an ``--experiments`` scene of its own ``[solver]
@@ -995,7 +1027,8 @@ def test_fit_json_records_each_experiments_solver_settings(tmp_path, dough_scene
     other.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0) + "\n[solver]\nhourglass = 0.1\n")
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress"]) == 0
-    (tmp_path / "exps.json").write_text(json.dumps([{"scene": "other.toml", "target": "run.usdc", "target_frames": "2"}]))
+    # Frame 1 of the file here, frame 2 there: the same frame in both would count twice (refused).
+    (tmp_path / "exps.json").write_text(json.dumps([{"scene": "other.toml", "target": "run.usdc", "target_frames": "1"}]))
     out = tmp_path / "joint"
     assert main(["fit", str(truth), "--target", str(tmp_path / "run.usdc"), "--target-frames", "2", "--params", "mu",
                  "--experiments", str(tmp_path / "exps.json"), "--output-dir", str(out), "--iterations", "0",

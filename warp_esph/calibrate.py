@@ -281,6 +281,7 @@ def run_fit(args, out=None, err=None) -> int:
     # choice was refused after the experiments before it had built theirs, launching kernels.
     chosen = [load(where, spec, targets_only=True) for where, spec in specs]
     exps = [load(where, spec, read_targets=read) for (where, spec), read in zip(specs, chosen)]
+    _refuse_shared_observations(exps, [where for where, _ in specs])
     # A noise nothing reads: refused, not ignored. --noise is metres, read by position, cloud
     # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
     # their own, and a force-only fit had dropped '--noise 0.05' (meant as newtons) without a word.
@@ -740,6 +741,37 @@ def _chosen_frames(t, fspec, name: str):
     return _numbered_frames(fspec, name)
 
 
+def _frames_said(frames) -> str:
+    """'frame 2' or 'frames 1, 2, ...' (the first eight, then how many in all)."""
+    shown = ", ".join(map(str, frames[:8])) + (f", ... ({len(frames)} in all)" if len(frames) > 8 else "")
+    return f"{'frame' if len(frames) == 1 else 'frames'} {shown}"
+
+
+def _refuse_shared_observations(exps, wheres) -> None:
+    """Refuse one file observed alike by two experiments (the same body of a run's USD, the
+    same tool's force log) at a frame both fit: its observations there would count twice, as
+    within one experiment (``_refuse_repeated_frames``). Another body or tool of the file is
+    another observation. ``wheres``: each experiment's prefix ('' for the command line's)."""
+    seen: dict[tuple, list] = {}
+    for i, e in enumerate(exps):
+        for k, observed in enumerate(e.observed):
+            if observed is None:
+                continue
+            for j, other_k, other_frames in seen.get(observed, []):
+                both = sorted(set(e.target_frames[k]) & set(other_frames))
+                if both:
+                    _, body, tool = observed
+                    of = (f" (body {body!r})" if body is not None else "") + (f" (tool {tool!r})" if tool is not None else "")
+                    first = wheres[j].rstrip(": ") or "the command line's --target"
+                    name = "target" if wheres[i] else "--target"
+                    raise ValueError(
+                        f"{wheres[i]}{name} = {checks.shown_path(e.targets[k])}{of} is not allowed at {_frames_said(both)}: "
+                        f"{first} observes the same file{' alike' if of else ''} there, so its observations would count "
+                        "twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one experiment "
+                        "(two experiments may share a file for different bodies or tools)")
+            seen.setdefault(observed, []).append((i, k, e.target_frames[k]))
+
+
 def _refuse_repeated_frames(entries, where: str, key) -> None:
     """Refuse one file given as two targets whose frames overlap: each frame's observations would
     count twice. ``entries``: (the target's index, its path, the frames' choice as given or None,
@@ -757,10 +789,9 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
                 def said(spec):
                     return "left out (the default)" if spec is None else repr(checks.shorten(spec))
 
-                shown = ", ".join(map(str, both[:8])) + (f", ... ({len(both)} in all)" if len(both) > 8 else "")
                 raise ValueError(
-                    f"{where}{name} = {checks.shown_path(path)} is not allowed twice at {'frame' if len(both) == 1 else 'frames'} "
-                    f"{shown} ({name} #{j + 1} and #{k + 1} are one file, and {fname} {said(other_spec)} and {said(fspec)} both "
+                    f"{where}{name} = {checks.shown_path(path)} is not allowed twice at {_frames_said(both)} "
+                    f"({name} #{j + 1} and #{k + 1} are one file, and {fname} {said(other_spec)} and {said(fspec)} both "
                     f"choose {'it' if len(both) == 1 else 'them'}): its observations there would count twice, and the "
                     f"diagnostics' standard errors shrink by 1/sqrt(2); give the file once, with {fname} naming every frame "
                     "to fit")
@@ -1096,6 +1127,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
                                  readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)
                                                                    for kind, _, t in loaded],
+                                 # What each target observes: the file, and its body or tool.
+                                 observed=[None if kind == "silhouette" else (os.path.realpath(str(path)), t.body, t.tool)
+                                           for kind, path, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  geometric=geometric, forces="forces" in file_kinds, force_noise=force_noise,
                                  noise=None if noise is None else checks.noise(f"{where}noise", noise))
