@@ -247,6 +247,27 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
         assert_one_line_error(capsys.readouterr().err, named, "is not allowed with --resume: the checkpoint's run decides it")
 
 
+def test_hourglass_on_a_material_that_can_flow_is_warned_of_once(tmp_path, capsys):
+    """``--hourglass 0.5`` on a dough box ran without a word, though the control pulls a flowed
+    body back towards its rest shape (docs/physics.md, "Hourglass modes"); it warns once,
+    naming the body, and runs. An elastic box with the control says nothing."""
+    for preset, warned in (("dough", True), ("rubber", False)):
+        scene = tmp_path / f"{preset}.toml"
+        scene.write_text(box_on_ground("tiny", 2, "soft", preset, "1.5e4"))
+        capsys.readouterr()
+        assert main(["run", str(scene), "-o", str(tmp_path / f"{preset}.usdc"), "--hourglass", "0.5", "--no-progress"]) == 0
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if "warning" in line]
+        if warned:
+            assert lines == ["warp-esph: warning: the hourglass control (strength c = 0.5) runs on bodies whose material "
+                             "can flow plastically ('box0': a finite yield_stress and flow_rate > 0): it measures the "
+                             "motion against the rest positions, so it pulls a flowed body back towards its rest shape "
+                             "and holds its flow back; it is for elastic solids: leave it off (hourglass = 0, what "
+                             "fit = 'auto' runs for them)"], err
+        else:
+            assert lines == [], err
+
+
 def test_fit_weight_from_scene_file_cli_and_resume(tmp_path, capsys):
     """``[solver] fit_weight`` naming the weight that is not the default changes the frames of a
     deforming run; ``--fit-weight`` naming the default over it gives the frames of the file

@@ -255,6 +255,31 @@ def test_hourglass_control_leaves_affine_motion_alone_conserves_momentum_and_is_
         we.Solver(model, hourglass=-0.1)
 
 
+def test_hourglass_control_on_a_material_that_can_flow_warns_once_when_it_can():
+    """An explicit strength on a body that can flow ran without a word, though the control
+    holds the flow back (docs/physics.md, "Hourglass modes"): the step warns once per solver,
+    naming the bodies, and only once a material can flow (a fit may turn ``flow_rate`` on
+    after the solver was made); an elastic model with the control, or a plastic one without
+    it, says nothing."""
+    import warnings
+
+    model = _block_model(n=(3, 3, 3), material=we.Material(mu=1e4, lam=1e4, yield_stress=50.0, flow_rate=0.0))
+    a, b = model.state(), model.state()
+    solver = we.Solver(model, fit="linear", hourglass=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.step(a, b, 1e-5)  # flow_rate 0: elastic
+        we.Solver(model, fit="linear").step(a, b, 1e-5)
+    model.flow_rate.assign(np.array([10.0]))
+    with pytest.warns(RuntimeWarning, match=r"^the hourglass control \(strength c = 0\.5\) runs on bodies whose material "
+                                            r"can flow plastically \('box0': .* holds its flow back"):
+        solver.step(a, b, 1e-5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.step(b, a, 1e-5)  # once per solver
+        we.Solver(model, fit="linear").step(a, b, 1e-5)  # without the control
+
+
 def test_linear_momentum_conserved_and_angular_momentum_measured():
     """Isolated body, pressure on, no gravity or colliders: sum(m v) exact to round-off, and
     with the default (variational) elastic force sum(m x x v) too.

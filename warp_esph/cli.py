@@ -250,7 +250,8 @@ def _add_solver_arguments(parser) -> None:
                              "scene's [solver] contact, else continuous")
     parser.add_argument("--hourglass", metavar="C",
                         help="strength (0 to 1000) of the hourglass control of the fit's zero-energy modes, for elastic solids "
-                             "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
+                             "under concentrated loads (0.1 holds a pressed sphere indenter; warned of where a material can flow, whose flow "
+                             "it holds back); 0: off; default: the scene's "
                              "[solver] hourglass, else 0.05 where the auto fit chose curvature_corrected and 0 otherwise")
     parser.add_argument("--fit-weight", metavar="NAME",
                         help="weights of the incremental fit: biweight (keeps a flowing material's stress through large "

@@ -860,11 +860,18 @@ class Model(Unpicklable):
         if any(m.deformation != "incremental" or m.elastic_force != "variational" for m in chosen):
             return False
 
-        def answer(rows):
-            rows = dict(zip(self.MATERIAL_FIELDS, rows[:, materials]))
-            return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
+        return self._answer(("elastic_only", materials.start, materials.stop, materials.step),
+                            lambda rows: not bool(np.any(self._can_flow(rows)[materials])))
 
-        return self._answer(("elastic_only", materials.start, materials.stop, materials.step), answer)
+    def flowing_materials(self) -> tuple[int, ...]:
+        """The materials that can flow plastically now: a finite ``yield_stress`` and a
+        ``flow_rate`` not <= 0 in the current parameter arrays (``parameter_values``)."""
+        return self._answer(("flowing_materials",), lambda rows: tuple(int(i) for i in np.flatnonzero(self._can_flow(rows))))
+
+    def _can_flow(self, rows: np.ndarray) -> np.ndarray:
+        """Per material of the parameter rows (``_read_parameters``): whether it can flow."""
+        rows = dict(zip(self.MATERIAL_FIELDS, rows))
+        return np.isfinite(rows["yield_stress"]) & ~(rows["flow_rate"] <= 0.0)
 
     def _answer(self, question: tuple, answer):
         """``answer(rows)`` of the parameter rows (``_read_parameters``), kept with the rows'

@@ -297,7 +297,9 @@ class Solver(Unpicklable):
     strength ``c`` of the control of the fit's zero-energy modes (``hourglass.py``;
     docs/physics.md, "Hourglass modes"): for elastic solids (a held sphere indenter keeps its
     force with ``c = 0.1``); it measures the motion against the rest positions, so it would
-    pull a plastically flowed body back towards its rest shape.
+    pull a plastically flowed body back towards its rest shape: a strength above 0 where a
+    material can flow (``Model.flowing_materials``) warns once (a ``RuntimeWarning`` at the
+    first such step, naming the bodies) and runs.
 
     ``yield_with_pressure`` (default False: the paper's yield test on the stored ``F`` alone)
     adds each particle's SPH pressure stress, the virial of its pressure pair forces over its
@@ -450,6 +452,7 @@ class Solver(Unpicklable):
         self._warned_non_finite = False
         self._caller_checking = 0  # caller_checks() depth
         self._warned_worlds_kept = False
+        self._warned_hourglass_flow = False
         #: Steps taken since construction, replays of a rollout's backward pass included (as
         #: ``guard_counts``): a count of work, not a fact about any state.
         self.step_count = 0
@@ -851,6 +854,24 @@ class Solver(Unpicklable):
             + "; step does not read the particles back, so check a run's states where it reads them "
             "(simulate.DivergenceMonitor, or np.isfinite(state.x.numpy()))", RuntimeWarning, stacklevel=4)
 
+    def _warn_hourglass_flow(self):
+        """Once: the hourglass control runs where a material can flow. It measures the motion
+        against the rest positions, which plastic flow leaves behind, so it holds the flow back
+        (docs/physics.md, "Hourglass modes"): an opt-in strength on a plastic body ran without
+        a word, though the control is for elastic solids. Asked at each step until it warns:
+        a fit may make a material flow after the solver was made."""
+        m = self.model
+        flowing = m.flowing_materials()
+        if not flowing:
+            return
+        self._warned_hourglass_flow = True
+        names = [b.name for b in m.bodies if b.material in flowing or b.floor_material in flowing]
+        warnings.warn(f"the hourglass control (strength c = {self.hourglass:g}) runs on bodies whose material can flow "
+                      f"plastically ({', '.join(map(repr, names))}: a finite yield_stress and flow_rate > 0): it measures "
+                      f"the motion against the rest positions, so it pulls a flowed body back towards its rest shape and "
+                      f"holds its flow back; it is for elastic solids: leave it off (hourglass = 0, what fit = 'auto' "
+                      f"runs for them)", RuntimeWarning, stacklevel=4)
+
     def _warn_cut(self):
         # One small read per step until the first cut (the Verlet check reads too); on the CPU
         # through a view kept while the counters are the same array (a view a step cost more
@@ -1052,6 +1073,8 @@ class Solver(Unpicklable):
             # Read once for the check and the path (_runs_rest), only where the path hangs on it.
             flowed = state_in.has_flowed() if chose_rest and state_in.rest_model is False else None
             dt = self._check_dt(dt, state_in, self.hourglass, 3, flowed)
+            if self.hourglass > 0.0 and not self._warned_hourglass_flow:
+                self._warn_hourglass_flow()
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
             # carry the loss's slope in both from 0, where a fit may start them, which a skipped
