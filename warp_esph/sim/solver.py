@@ -1073,7 +1073,9 @@ class Solver(Unpicklable):
             # Read once for the check and the path (_runs_rest), only where the path hangs on it.
             flowed = state_in.has_flowed() if chose_rest and state_in.rest_model is False else None
             dt = self._check_dt(dt, state_in, self.hourglass, 3, flowed)
-            if self.hourglass > 0.0 and not self._warned_hourglass_flow:
+            # Not asked where "auto" chose the corrected fit: it did so because nothing can flow
+            # (a question more a step of every elastic default run).
+            if self.hourglass > 0.0 and not self._warned_hourglass_flow and not (self._auto and self._curved):
                 self._warn_hourglass_flow()
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
