@@ -212,7 +212,10 @@ def test_the_command_takes_a_cloud_coverage_per_target(tmp_path, capsys, dough_s
         assert main([*fit, *extra, "--output-dir", str(tmp_path / name)]) == 0, capsys.readouterr().err
         losses[name] = json.loads((tmp_path / name / "fit.json").read_text())["loss"]
     assert losses["each"] < 1e-20 < 1e-6 < losses["full"], losses
-    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(scene), "target": ["top.xyz", "all.xyz"],
+    # Copies: one file observed by both experiments would count its observations twice (refused).
+    np.savetxt(tmp_path / "top2.xyz", _top_half(last))
+    np.savetxt(tmp_path / "all2.xyz", last)
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(scene), "target": ["top2.xyz", "all2.xyz"],
                                                     "cloud_coverage": ["partial", "full"]}]))
     assert main([*fit, "--cloud-coverage", "partial", "--cloud-coverage", "full", "--experiments",
                  str(tmp_path / "exp.json"), "--output-dir", str(tmp_path / "exp")]) == 0, capsys.readouterr().err
