@@ -763,6 +763,38 @@ def test_a_force_curve_the_model_cannot_follow_is_not_reported_determined():
             assert d.residual_rms[0] > 3.0 * noise
 
 
+def test_one_tools_force_log_in_two_experiments_at_a_shared_frame_is_refused(tmp_path, capsys, monkeypatch, dough_scene):
+    """The same tool's force log in the command line's experiment and an ``--experiments``
+    entry, at a frame both fit, counted its readings twice without a word; at other frames it
+    passes (to the fit, stood in for here)."""
+    from warp_esph import fit as fit_module  # noqa: PLC0415
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{3.0 * k},0" for k in range(3)])
+
+    def stand_in(experiments, *args, **kwargs):
+        raise ValueError(f"stopped by the test with {len(experiments)} experiments")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    experiments = tmp_path / "exp.json"
+    for frames, refused in (("1,2", True), ("1", False)):
+        experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv", "target_frames": frames}]))
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(log), "--target-frames", "2", "--experiments", str(experiments),
+                     "--iterations", "0", "--no-usd", "--no-progress", "--params", "yield_stress",
+                     "--output-dir", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        if refused:
+            assert err.endswith(f"{experiments}: experiment #1: target = '{log}' (tool 'plane0') is not allowed at frame 2: "
+                                "the command line's --target observes the same file alike there, so its observations "
+                                "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in "
+                                "one experiment (two experiments may share a file for different bodies or tools)\n"), err
+        else:
+            assert err.endswith("stopped by the test with 2 experiments\n"), err
+
+
 def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refused_where_nothing_reads_it(
         tmp_path, capsys, dough_scene):
     """``--noise`` is metres, read by position, cloud and mesh targets: a force-only fit had
