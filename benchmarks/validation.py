@@ -524,10 +524,15 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         return G * min(1.0, (k * dt) / gravity_ramp) if gravity_ramp > 0.0 else G
 
     def sample(state, k):
+        out = record(state, k)
+        # After the reading: the mirror's kick is the next step's, not this state's velocity.
         if mirror is not None:
             mirror(state, gravity_after(k), dt)
         elif gravity_ramp > 0.0:
             model.gravity = (0.0, -gravity_after(k), 0.0)
+        return out
+
+    def record(state, k):
         if k % every and k != steps:
             return
         x = state.x.numpy().astype(np.float64)[free]
