@@ -410,7 +410,9 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
                 aspect: float = 1.0, dtype=None, requires_grad: bool = False, fit_weight: str = DEFAULT_FIT_WEIGHT):
     """``slump``'s scene (its arguments, its docstring): ``(model, free, mu, Y)``, the model in
     ``dtype`` (default float32; ``requires_grad`` for a taped run), the mask of its free
-    particles, the shear modulus and the yield stress."""
+    particles, the shear modulus and the yield stress. With ``floor="mirror"`` the model has
+    no gravity of its own and ``free`` is the upper half: a run needs ``_Mirror`` between its
+    steps, as ``slump`` does."""
     wp, we = _we()
     _check_floor(floor, SLUMP_FLOORS)
     R0 = H0 / (2.0 * aspect)
