@@ -250,8 +250,9 @@ class _Mirror:
     gravity is 0, and ``__call__`` (after each step, and once before the first) makes every
     per-particle field of the lower half the mirror image of the upper's (positions and
     vectors with y negated, matrices ``R M R``, scalars copied): a flowing packing breaks
-    the symmetry from round-off within a second, and particles then cross the plane (measured:
-    from 0.4 s in float32, 0.9 s in float64, 40-56 of 832 by 7 s at 8 across, S = 0.2). It then
+    the symmetry from round-off within a second, and particles then cross the plane (measured
+    at 8 across, S = 0.2: from 0.4 s in float32 and 1.0 s in float64, 30-56 of the 832 from
+    0.6 s on in float32; docs/physics.md, "The slip ghost floor"). It then
     gives the next step gravity ``g`` towards the plane as a velocity kick, ``v_y -= g dt
     sign(y)``, which symplectic Euler adds as it would the model's gravity."""
 
