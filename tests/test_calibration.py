@@ -12,6 +12,7 @@ import math
 import os
 import pathlib
 import re
+import shutil
 import signal
 import warnings
 
@@ -275,7 +276,9 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     device = 2 * one.need(least)[0]
     assert longer.need(longer.least())[0] > device
     monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
-    (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))
+    # A copy of the target: the same file as the command line's would be refused as counted twice.
+    np.save(tmp_path / "t2.npy", np.zeros((11, 64, 3)))
+    (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t2.npy", "frames": 200}]))
     assert main(argv + ["--experiments", str(tmp_path / "e.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {tmp_path / 'e.json'}: experiment #1: frames = 200 is "
@@ -1947,7 +1950,9 @@ def test_an_earlier_fits_json_does_not_stay_beside_a_fit_written_with_o_elsewher
     assert main([*common, "--iterations", "1", "-o", str(out / "fit.json")]) == EXIT_NOT_CONVERGED
     assert json.loads((out / "fit.json").read_text())["iterations"] == 1
     # An experiments file of that name in the folder is an input: refused, not removed.
-    (out / "fit.json").write_text(json.dumps([{"scene": str(guess), "target": str(target)}]))
+    # A copy of the target: the command line's own file would be refused as counted twice first.
+    shutil.copyfile(target, tmp_path / "t2.npz")
+    (out / "fit.json").write_text(json.dumps([{"scene": str(guess), "target": str(tmp_path / "t2.npz")}]))
     before = (out / "fit.json").read_text()
     capsys.readouterr()
     assert main([*common, "--iterations", "0", "-o", str(elsewhere), "--experiments", str(out / "fit.json")]) == 2

@@ -733,8 +733,9 @@ class Model(Unpicklable):
             return
         now, built = self._image_plane_values(), self._image_built
         k = self._image_row
-        def shown(v):  # the shortest text of the model's precision: 0.3, not 0.300000011921
-            return str(self.types.np_dtype(v)) if np.ndim(v) == 0 else "(" + ", ".join(shown(c) for c in v) + ")"
+        # A method, not a closure: a recursive closure made each step's call a reference cycle
+        # (the garbage test of a taped rollout counts them).
+        shown = self._shown_plane_value
 
         if (now[0] == 0.0) != (built[0] == 0.0):
             moving = built[0] == 0.0
@@ -751,6 +752,12 @@ class Model(Unpicklable):
                 f"model.{name} = {shown(value)} is not allowed: the imaged ground's images are made at the plane it was "
                 f"built at (normal {shown(built[2:])}, offset {shown(built[1])}) and would stay there; build the scene "
                 f"again with the ground where it is to be")
+
+    def _shown_plane_value(self, v) -> str:
+        """The shortest text of a plane value in the model's precision: 0.3, not 0.300000011921."""
+        if np.ndim(v) == 0:
+            return str(self.types.np_dtype(v))
+        return "(" + ", ".join(self._shown_plane_value(c) for c in v) + ")"
 
     def image_args(self) -> list:
         """The kernels' arguments of the image plane: normal, offset, the images' least depth and
