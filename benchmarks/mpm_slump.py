@@ -19,9 +19,12 @@ quadratic B-spline weights on a uniform grid of spacing ``dx``:
 * P2G: each particle scatters mass ``m_p`` and momentum ``m_p v_p + (m_p C_p - dt V0 (4/dx^2)
   tau_p) (x_i - x_p)`` (``tau_p`` the total Kirchhoff stress, ``C_p`` the APIC affine velocity
   matrix, which is the particle's velocity gradient);
-* grid: ``v_i = p_i / m_i + dt g``; nodes at ``y <= 0`` are the floor: no-slip (all velocity
-  set to zero, "sticky", the slump's default), slip (``v_y = 0`` only, the column check) or
-  Coulomb (``--floor-friction``); the domain's
+* grid: ``v_i = p_i / m_i + dt g``; nodes at ``y <= 0`` are the floor: sticky (all velocity
+  set to zero, the slump's default: it glues, holding the material down as well as up, which a
+  no-slip reference is by convention), or a contact that only pushes, slip (a downward ``v_y``
+  set to zero, the column check) or Coulomb (``--floor-friction``: with it the tangential
+  velocity loses at most friction x the normal one taken), a node moving up being free in both
+  (before 2026-12-07 slip and Coulomb also took an upward ``v_y``: a floor that pulls); the domain's
   side and top walls are sticky (the material never reaches them: the run stops if it does);
 * G2P: ``v_p = sum w v_i``, ``C_p = (4/dx^2) sum w v_i (x_i - x_p)^T``, ``x_p += dt v_p``,
   ``F_p <- (I + dt C_p) F_p``, then the return mapping below.
@@ -185,12 +188,15 @@ def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gra
     if j <= FLOOR_PAD:
         if floor_friction < 0.0:
             vel = wp.vec3(0.0)
-        else:
-            # Coulomb: the floor takes the normal velocity and, with it, at most friction x that
-            # much of the tangential one (the impulse ratio is the force ratio).
+        elif vel[1] < 0.0:
+            # Slip / Coulomb is a contact: it only pushes. It takes an inward normal velocity and,
+            # with it, at most friction x that much of the tangential one (the impulse ratio is
+            # the force ratio); a node moving away is left free. Taking the outward velocity too
+            # lets the floor pull: at rest the node row at y = 0 then pushes 1.25 x the pile's
+            # weight and the row below pulls 0.25 x it (docs/physics.md).
             tangential = wp.vec3(vel[0], 0.0, vel[2])
             speed = wp.length(tangential)
-            if vel[1] < 0.0 and speed > 0.0:
+            if speed > 0.0:
                 tangential = tangential * (wp.max(0.0, speed + floor_friction * vel[1]) / speed)
             vel = tangential
     if i < wall or i >= ni - wall or k < wall or k >= nk - wall or j >= nj - wall:
