@@ -615,7 +615,8 @@ def table(rows):
             "R/R0 | top rate (% H0/s) | KE (M g H0) | at rest | 1-D h/H0 | particle solver 12 / 16 across | wall (s) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in sorted(rows, key=lambda r: (r["aspect"], r["S"], r["flow_rate"] == 0, r.get("gravity_ramp_s", 0),
-                                         r.get("floor", "sticky") != "sticky", r["res_cells_per_H0"])):
+                                         r.get("floor", "sticky") != "sticky", r.get("floor", "sticky"),
+                                         r["res_cells_per_H0"])):
         ps = PARTICLE_SOLVER_PCT.get(r["S"]) if r["aspect"] == 1.0 else None
         plast = "Bingham, flow rate %g /s" % r["flow_rate"] if r["flow_rate"] > 0 else "rate-independent"
         if r.get("gravity_ramp_s", 0) > 0:

@@ -91,7 +91,11 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
     report's verdict stays "no" and says so with its numbers (docs/validation.md, the plug);
     an MPM on the other base, a coarser-only reading, or one that keeps its plug changes
     nothing."""
-    def mpm(S, cells, f, e, floor="slip"):
+    from benchmarks.validation_report import CONTINUUM_BASE
+
+    slip = CONTINUUM_BASE["particles"]  # the pulling slip MPM floor, until the one that pushes covers every S
+
+    def mpm(S, cells, f, e, floor=slip):
         return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
                 "at_rest": True, "duration": 8.0, "plug_particles": 448, "plug_unyielded_fraction": f,
                 "plug_plastic_strain": e}
@@ -100,8 +104,8 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
     continuum = {"slumps": [mpm(0.2, 12, 0.0, 22.0), mpm(0.3, 12, 0.36, 3.4), mpm(0.3, 16, 0.3, 3.0),
                             mpm(0.5, 12, 1.0, 0.0)]}
     _, got, verdict, _ = _plug_row(plugs, continuum)
-    assert verdict == "no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a slip base misses it too: S = 0.2, S = 0.3)", verdict
-    assert "the continuum (MPM, slip base) by the same criterion: S = 0.2 at H0 / 12: 0 % of it below 0.99 Y, 22 yield strains" in got, got
+    assert verdict == f"no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a {slip} base misses it too: S = 0.2, S = 0.3)", verdict
+    assert f"the continuum (MPM, {slip} base) by the same criterion: S = 0.2 at H0 / 12: 0 % of it below 0.99 Y, 22 yield strains" in got, got
     assert "S = 0.3 at H0 / 12/16: 30-36 % of it below 0.99 Y, 3-3.4 yield strains" in got, got
     bare = _plug_row(plugs)
     assert bare[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)" and "continuum" not in bare[1], bare
@@ -143,7 +147,7 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
     import json
 
     from benchmarks import validation_report
-    from benchmarks.validation_report import continuum_slumps, one_d_height
+    from benchmarks.validation_report import CONTINUUM_BASE, continuum_slumps, one_d_height
 
     def pile(S, n, share, floor="particles"):
         return {"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": floor,
@@ -153,12 +157,14 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
                 "plug_particles": 0, "plug_unyielded_fraction": float("nan"), "radius_over_R0": 2.0,
                 "radius_over_spread_theory": 0.9, "time_history": [0.0, 8.0], "h_history": [1.0, share], "run": 0}
 
-    def mpm(S, cells, share, floor="slip", at_rest=True):
+    slip = CONTINUUM_BASE["particles"]  # the pulling slip MPM floor, until the one that pushes covers every S
+
+    def mpm(S, cells, share, floor=slip, at_rest=True):
         return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
                 "thickness_over_H0": share * one_d_height(S), "at_rest": at_rest, "duration": 8.0}
 
     continuum = {"slumps": [mpm(S, 16, 0.85) for S in (0.1, 0.2, 0.3)] + [mpm(0.2, 32, 0.5, at_rest=False)]}
-    assert continuum_slumps(continuum)["slip"][0.2] == (16, pytest.approx(0.85 * one_d_height(0.2)), True)
+    assert continuum_slumps(continuum)[slip][0.2] == (16, pytest.approx(0.85 * one_d_height(0.2)), True)
     (tmp_path / "mpm_slump.json").write_text(json.dumps(continuum))
     for coarse, fine, verdict in ((0.80, 0.85, "yes"), (0.85, 0.95, "no")):
         rows = [pile(S, 8, coarse) for S in (0.1, 0.2, 0.3)] + [pile(S, 12, fine) for S in (0.1, 0.2, 0.3)]
