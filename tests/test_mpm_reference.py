@@ -134,7 +134,8 @@ def test_slump_reads_its_plug_by_the_particle_suites_criterion():
     the top S H0 / 2 within R0 / 2 of the axis) so the continuum is held to the same target
     (docs/validation.md, the plug). 4 cells over H0 on a slip floor, 1 s: the stiff S = 0.5
     pile keeps its plug (measured: 24 particles, none yielded), the S = 0.2 one flows through
-    it (12 particles, all at yield, 14 yield strains)."""
+    it (12 particles, all at yield, 18 yield strains; 14 on the slip floor that pulled, before
+    2026-12-07)."""
     stiff = mpm_slump.slump(0.5, res=4, duration=1.0, max_duration=1.0, flow_rate=200.0, floor_friction=0.0)
     weak = mpm_slump.slump(0.2, res=4, duration=1.0, max_duration=1.0, flow_rate=200.0, floor_friction=0.0)
     assert stiff["plug_particles"] > 0 and weak["plug_particles"] > 0
