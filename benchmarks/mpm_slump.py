@@ -684,7 +684,8 @@ def main(argv=None):
                     help="0: rate-independent plasticity; else the Bingham relaxation rate (1/s)")
     ap.add_argument("--ramp", type=_cli.nonnegative_float, default=None, help="gravity ramped from 0 over this time (s); 0: at once")
     ap.add_argument("--floor-friction", type=_cli.finite_float, default=-1.0,
-                    help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction")
+                    help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction "
+                         "(slip and Coulomb only push)")
     ap.add_argument("--column", action="store_true")
     ap.add_argument("--squeeze", action="store_true")
     ap.add_argument("--near-yield-column", action="store_true",
