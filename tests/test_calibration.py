@@ -1002,17 +1002,21 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
         raise ValueError(f"stopped by the test before the first evaluation of {len(experiments)} experiments")
 
     monkeypatch.setattr(fit_module, "fit", stand_in)
-    for body, frames, refused in (("a", "2", True), ("b", "2", False), ("a", "1", False)):
-        exps.write_text(json.dumps([{"scene": "two.toml", "target": "run.usdc", "target_body": body,
-                                     "target_frames": frames}]))
+    # A target without a body observes every body of the file: body 'a' too (fitted twice
+    # without a word while the check compared the body's names, None against 'a').
+    for mine, body, frames, refused in (("a", "a", "2", True), ("a", "b", "2", False), ("a", "a", "1", False),
+                                        ("a", None, "2", True), (None, "b", "2", True), (None, "b", "1", False)):
+        exps.write_text(json.dumps([{"scene": "two.toml", "target": "run.usdc", "target_frames": frames,
+                                     **({} if body is None else {"target_body": body})}]))
         capsys.readouterr()
-        assert main(["fit", str(scene), "--target", str(run), "--target-body", "a", "--target-frames", "2",
-                     "--experiments", str(exps), "--no-progress", "--no-usd", "--output-dir", str(tmp_path / "out")]) == 2
+        assert main(["fit", str(scene), "--target", str(run), *([] if mine is None else ["--target-body", mine]),
+                     "--target-frames", "2", "--experiments", str(exps), "--no-progress", "--no-usd",
+                     "--output-dir", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         if refused:
-            assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{run}' (body 'a') is not allowed at frame 2: "
-                           "the command line's --target observes the same file alike there, so its observations would "
-                           "count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one "
+            assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{run}' (body '{mine or body}') is not allowed at "
+                           "frame 2: the command line's --target observes the same file alike there, so its observations "
+                           "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one "
                            "experiment (two experiments may share a file for different bodies or tools)\n"), err
         else:
             assert err.endswith("stopped by the test before the first evaluation of 2 experiments\n"), err

@@ -747,21 +747,32 @@ def _frames_said(frames) -> str:
     return f"{'frame' if len(frames) == 1 else 'frames'} {shown}"
 
 
+def _bodies_observed(t) -> frozenset | None:
+    """The bodies a target observes: its one body, or every body of a run's USD read whole
+    (``Target.bodies``); None for a file that holds no bodies."""
+    if t.body is not None:
+        return frozenset([t.body])
+    return None if t.bodies is None else frozenset(name for name, _ in t.bodies)
+
+
 def _refuse_shared_observations(exps, wheres) -> None:
-    """Refuse one file observed alike by two experiments (the same body of a run's USD, the
-    same tool's force log) at a frame both fit: its observations there would count twice, as
-    within one experiment (``_refuse_repeated_frames``). Another body or tool of the file is
-    another observation. ``wheres``: each experiment's prefix ('' for the command line's)."""
+    """Refuse one file observed alike by two experiments (a body of a run's USD both observe,
+    a run's USD read whole observing every body of it; the same tool's force log) at a frame
+    both fit: its observations there would count twice, as within one experiment
+    (``_refuse_repeated_frames``). Another body or tool of the file is another observation.
+    ``wheres``: each experiment's prefix ('' for the command line's)."""
     seen: dict[tuple, list] = {}
     for i, e in enumerate(exps):
         for k, observed in enumerate(e.observed):
             if observed is None:
                 continue
-            for j, other_k, other_frames in seen.get(observed, []):
+            real, bodies, tool = observed
+            for j, other_k, other_bodies, other_frames in seen.get((real, tool), []):
+                shared = None if bodies is None else sorted(bodies & other_bodies)
                 both = sorted(set(e.target_frames[k]) & set(other_frames))
-                if both:
-                    _, body, tool = observed
-                    of = (f" (body {body!r})" if body is not None else "") + (f" (tool {tool!r})" if tool is not None else "")
+                if both and shared != []:
+                    of = ((f" (bod{'y' if len(shared) == 1 else 'ies'} {', '.join(map(repr, shared))})" if shared else "")
+                          + (f" (tool {tool!r})" if tool is not None else ""))
                     first = wheres[j].rstrip(": ") or "the command line's --target"
                     name = "target" if wheres[i] else "--target"
                     raise ValueError(
@@ -769,7 +780,7 @@ def _refuse_shared_observations(exps, wheres) -> None:
                         f"{first} observes the same file{' alike' if of else ''} there, so its observations would count "
                         "twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one experiment "
                         "(two experiments may share a file for different bodies or tools)")
-            seen.setdefault(observed, []).append((i, k, e.target_frames[k]))
+            seen.setdefault((real, tool), []).append((i, k, bodies, e.target_frames[k]))
 
 
 def _refuse_repeated_frames(entries, where: str, key) -> None:
@@ -1127,8 +1138,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
                                  readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)
                                                                    for kind, _, t in loaded],
-                                 # What each target observes: the file, and its body or tool.
-                                 observed=[None if kind == "silhouette" else (os.path.realpath(str(path)), t.body, t.tool)
+                                 # What each target observes: the file, its bodies (a run's USD read whole
+                                 # observes every body of it) and its tool.
+                                 observed=[None if kind == "silhouette" else (os.path.realpath(str(path)), _bodies_observed(t),
+                                                                              t.tool)
                                            for kind, path, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  geometric=geometric, forces="forces" in file_kinds, force_noise=force_noise,
