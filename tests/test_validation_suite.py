@@ -902,6 +902,62 @@ def test_mirror_slump_gives_its_gravity_once_a_step():
     assert 0.98 < r["ke_history"][0] / closed <= 1.0, r["ke_history"][0] / closed
 
 
+def test_mirror_plane_is_a_frictionless_wall_that_pushes_only_where_the_images_reach():
+    """``slump(floor="mirror")``'s plane (``validation._Mirror``) is an exact frictionless wall:
+    the upper half of the 4-across S = 0.2 cylinder, lifted a spacing off the plane (its
+    images out of reach, 3 dx > h), sheared (F with xy, xz and zy terms) and sliding, falls
+    freely, its y-momentum ``p0 - M g t`` to round-off (gravity once a step, nothing from the
+    images' mass), then lands, flows (plastic strain past 10 yield strains) and is pushed back
+    by its images; through all of it its tangential momentum is kept to round-off (the images'
+    pair forces cancel sideways only where their v and F are the mirror's: with F mirrored as
+    ``R F`` rather than ``R F R`` it moved by 3e-4 of M u at landing, with F copied 7e-7,
+    measured), and no particle crosses the plane."""
+    import warp as wp
+    import warp_esph as we
+
+    model, upper, mu, Y = validation.slump_model(0.2, 4, floor=validation.MIRROR, dtype=wp.float64)
+    n, dx, g = int(upper.sum()), model.spacing, validation.G
+    x0 = model.particle_x0.copy()
+    x0[:n, 1] += dx
+    x0[n:, 1] -= dx
+    model.particle_x0 = x0
+    rng = np.random.default_rng(7)
+    u = np.array([0.05, 0.0, -0.03])
+    v = rng.normal(scale=0.02, size=(n, 3)) + u
+    v[:, 1] = 0.0
+    model.particle_v0 = np.concatenate([v, v * np.array([1.0, -1.0, 1.0])])
+    solver, mirror = we.Solver(model), validation._Mirror(model, n)
+    a, b = model.state(), model.state()
+    F = a.F.numpy()
+    F[:n] = np.eye(3) + np.array([[0.0, 0.02, 0.01], [0.0, 0.0, 0.0], [0.01, 0.015, 0.0]])
+    a.F.assign(F)
+    dt = 0.9 * model.stable_dt()
+    m = model.particle_mass.numpy()[:n]
+    M = m.sum()
+
+    def momentum(state):
+        return (m[:, None] * state.v.numpy()[:n]).sum(axis=0)
+
+    p0 = momentum(a)
+    mirror(a, g, dt)
+    free_steps = 0
+    for k in range(1, 81):
+        reached = 2.0 * a.x.numpy()[:n, 1].min() < model.support_radius  # an image within h
+        solver.step(a, b, dt)
+        a, b = b, a
+        p = momentum(a)
+        assert np.abs(p - p0)[[0, 2]].max() < 1e-12 * M * np.abs(u).max(), (k, p - p0)
+        pushed = (p[1] - p0[1] + M * g * k * dt) / (M * g * dt)  # the images' impulse over M g dt
+        if not reached:
+            assert abs(pushed) < 1e-10, (k, pushed)
+            free_steps += 1
+        mirror(a, g, dt)
+    assert 30 < free_steps < 60, free_steps
+    assert pushed > 10.0, pushed
+    assert a.x.numpy()[:n, 1].min() > 0.0
+    assert a.alpha.numpy()[:n].max() > 10.0 * Y / (2.0 * mu)  # it flowed: 40 yield strains
+
+
 @pytest.mark.parametrize("aspect", [0.0, -2.0, float("nan")])
 def test_slump_refuses_an_aspect_that_is_not_positive_by_name(aspect):
     with pytest.raises(ValueError, match=f"aspect = {aspect!r}"):
