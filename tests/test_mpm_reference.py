@@ -76,9 +76,13 @@ def test_coulomb_floor_decelerates_a_sliding_block_at_friction_times_g():
     assert lost == pytest.approx(0.25 * mpm_slump.G * t, rel=0.03)
 
 
-def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic():
+@pytest.mark.parametrize("friction", [0.0, 0.25])
+def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic(friction):
     """The slip floor is a contact: a stiff block on it given an upward speed leaves it as a free
-    body, its centre of mass at y0 + v0 t - g t^2 / 2 and its momentum (v0 - g t) M. A floor that
+    body, its centre of mass at y0 + v0 t - g t^2 / 2 and its momentum (v0 - g t) M. The Coulomb
+    floor (``friction`` > 0) is the same contact, its friction only where it pushes: a block
+    leaving it sideways keeps its sideways speed (a friction on the nodes moving up, the
+    formula's ``speed + friction v_y`` with v_y > 0, sped it up). A floor that
     also takes an upward node velocity (the one before 2026-12-07) holds the block's bottom and
     pulls: it measured a rise of 0.0014 of the ballistic one and the block moving down at 1.29 x
     the ballistic speed, where this floor reads 0.997 and 0.9999 (docs/physics.md, "What the rested pile's forces carry": at rest that pull is a couple that
@@ -90,9 +94,10 @@ def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic():
     s = 0.5 * dx
     pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
     mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
-    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + 4 * dx, floor_friction=0.0)
+    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + 4 * dx, floor_friction=friction)
     v = np.zeros((len(pts), 3), np.float32)
     v[:, 1] = v0
+    v[:, 0] = v0 if friction > 0.0 else 0.0
     sim.v = wp.array(v, dtype=wp.vec3)
     while sim.t < duration:
         sim.step()
@@ -100,6 +105,7 @@ def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic():
     rise = float(sim.x.numpy()[:, 1].mean() - pts[:, 1].mean())
     assert rise == pytest.approx(v0 * t - 0.5 * g * t * t, rel=0.01), rise
     assert float(sim.v.numpy()[:, 1].mean()) == pytest.approx(v0 - g * t, rel=1e-3)
+    assert float(sim.v.numpy()[:, 0].mean()) == pytest.approx(v[0, 0], abs=1e-5 * v0)
 
 
 def test_near_yield_column_spreads_its_base_as_the_1d_analysis():
