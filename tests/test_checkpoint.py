@@ -11,10 +11,6 @@ import warp as wp
 import warp_esph as we
 from warp_esph.checkpoint import load_state, read_checkpoint, save_state
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 
 def _model(images=False):
@@ -449,6 +445,7 @@ def test_a_refused_resume_leaves_the_models_materials_as_they_were(tmp_path):
     assert other.mu.numpy()[0] == 3e4 and other.materials[0].mu == 3e4
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_a_checkpoint_saved_without_a_solver_records_the_settings_of_the_solver_that_wrote_the_state(tmp_path):
     """Saved without ``solver=``, a checkpoint recorded no settings: a run with the hourglass
     control set by hand (``Solver.hourglass = 0.1``) resumed under ``load_state(...,
@@ -470,6 +467,7 @@ def test_a_checkpoint_saved_without_a_solver_records_the_settings_of_the_solver_
     assert "solver" not in load_state(fresh, other, solver=we.Solver(other, fit="linear"))[1]
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_a_checkpoint_of_a_runs_start_frame_records_that_runs_solver(tmp_path):
     """``simulate`` from a state another solver wrote (the control set by hand, 0.1): a callback's
     checkpoint of the start frame recorded that solver's settings, and a resume with the run's

@@ -11,10 +11,6 @@ import warp_esph as we
 from warp_esph import tools
 from warp_esph.scenes import get_scene
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 
 def _run(path):
@@ -65,6 +61,7 @@ def _replay_run(replayed: bool, dtype, hourglass: float, forward_only: bool = Tr
     return [a.numpy() for a in (out.x, out.v, out.F)], np.array(press), s.guard_counts()
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 @pytest.mark.parametrize("dtype,hourglass", [(wp.float32, 0.0), (wp.float64, 0.1)])
 def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourglass):
     """``Model.launches`` (sim/replay.py) repacks only the arguments that changed since the
@@ -79,6 +76,7 @@ def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourgla
     assert g1 == g0
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 @pytest.mark.parametrize("dtype,hourglass", [(wp.float32, 0.0), (wp.float64, 0.1)])
 def test_forward_only_kernels_give_the_very_states_of_the_kernels_with_adjoints(dtype, hourglass):
     """An untaped launch runs the kernel compiled without its adjoint (``replay.forward_only``):

@@ -19,10 +19,6 @@ from energy_fd import (central_gradient, continued_stvk_energy, corotated_energy
 from warp_esph import tools
 from warp_esph.scenes import FIG8_PLASTIC_MIN_SCALE, FIGURE_SCENES, SCENES
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 SPACING = 0.02
 # The bound on |f + dE/dx| / max |dE/dx| of a variational force against the central differences of its
@@ -650,6 +646,7 @@ def test_the_rest_model_fits_whole_where_the_incremental_fit_fades_an_ill_condit
     assert sum(incremental.guard_counts().values()) == 0
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 @pytest.mark.parametrize("yield_stress, flows", [(0.0, False), (1.0e9, False), (100.0, True)])
 def test_the_rest_model_keeps_its_plastic_f_exactly_where_nothing_flows(yield_stress, flows):
     """Float32, a stretched 4x4x3 block of the rest model ringing for 60 steps: where no flow

@@ -42,10 +42,6 @@ from taped_loss import random_weights, taped_gradients, taped_rollout_loss, unta
 from warp_esph import tools
 from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 #: The fit weight a model gets only by name (poly6, the paper's eq. 7, since the biweight became
 #: the default): every case but the ``*other_weight*`` ones runs the default, so without these
@@ -185,6 +181,7 @@ CHECKED_ELSEWHERE = {("ghost_slip_floor", "rest")}
 
 @pytest.mark.parametrize("case, scene", [(case, scene) for case in sorted(CASES) for scene in ("rest", "thrown")
                                          if (case, scene) not in CHECKED_ELSEWHERE])
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_gradients_of_the_remaining_step_options_match_central_differences(case, scene):
     """The tape's gradient in a material parameter (``lam`` at rest, where the stress is near
     0 and ``mu`` reaches the loss by 1e-10 only; ``mu`` thrown) and in the initial velocity of
@@ -310,6 +307,7 @@ def _table_kernels() -> set:
     return {name for cells in rows for cell in cells for name in re.findall(r"`([a-z_]+\.(?!py`)[a-z_]+)`", cell)}
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_every_kernel_of_a_taped_step_is_in_the_coverage_table():
     """Two taped float64 steps (and their backward pass) of each of ``_TABLE_SCENES`` launch only
     kernels docs/method.md's coverage table names: a new kernel on the step's path needs a
@@ -347,6 +345,7 @@ def test_every_kernel_of_a_taped_step_is_in_the_coverage_table():
         assert f"def {function}(" in source.read_text(), name
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_the_central_differences_untaped_runs_are_the_taped_runs_to_the_bit():
     """The central differences here and in the other gradient tests run their rollouts without
     a tape (``taped_loss.untaped_rollout_loss``: two states in turn, no gradient arrays), so
@@ -377,6 +376,7 @@ WORLD_CASES = ["corotated_unfused", "hourglass_paper", "hourglass_images", "othe
                "other_weight_rest_paper", "other_weight_additive", "pinned_floor_elastic"]
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 @pytest.mark.parametrize("case", WORLD_CASES)
 def test_each_worlds_mu_gradient_on_the_other_step_paths_matches_central_differences(case):
     """Two worlds of different materials in one model (``finalize(worlds=2)``), thrown onto

@@ -17,10 +17,6 @@ from warp_esph.sim.guards import COUNT_FADE
 from warp_esph.sim.neighbors import MIN_NEIGHBORS
 from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 STEPS = 5
 DT = 1.0e-3
@@ -412,6 +408,7 @@ def _hourglass_model(params=None, **kw):
     return m
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_hourglass_control_gradients_match_central_differences(weights):
     """``Solver(hourglass=c)`` (``hourglass.py``, Warp's generated adjoint; it reads the
     stored F and mu) against central differences in ``mu`` and an initial velocity (one taped
@@ -1436,6 +1433,7 @@ def _resting_loss(model, case, w, grad_of=None, steps=8):
     return loss.numpy()[0], grads, states
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 @pytest.mark.parametrize("case", sorted(AT_REST))
 def test_gradients_at_rest_on_the_ground_match_central_differences(case):
     """Each option from rest on a floor (F = I with its singular values nearly repeated all

@@ -16,10 +16,6 @@ from warp_esph.scenes import (DEFAULT_SCENE, FIGURE_SCENES, SCENES, Scene, get_s
                               load_scene_file)
 from warp_esph.simulate import simulate
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 DOCS = pathlib.Path(__file__).resolve().parent.parent / "docs"
 #: The everyday scenes (a few thousand particles); the paper's figure scenes, at the
@@ -408,6 +404,7 @@ def test_solver_table_sets_the_fit_weight_of_the_model_and_its_worlds(tmp_path):
         SceneBuilder(fit_weight="cubic")
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 # Its bodies are coarse on purpose (a tiny scene, or one torn apart): the run's under-resolution warning is expected.
 @pytest.mark.filterwarnings("ignore:the deformation fit was skipped:RuntimeWarning")
 def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp_path):

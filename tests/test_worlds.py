@@ -16,10 +16,6 @@ import warp_esph as we
 from warp_esph import losses
 from warp_esph.rollout import PARAMETERS, Rollout
 
-# Some tests here run the hourglass control on bodies that can flow on purpose (its gradients,
-# its replay, its settings carried): the solver's warning that the control holds a flow back
-# (Solver._warn_hourglass_flow, asserted in test_physics and test_cli) is expected there.
-pytestmark = pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 
 DT = 1.0e-3
 STEPS = 12
@@ -621,6 +617,7 @@ def test_each_worlds_loss_roundoff_is_its_run_alones():
         assert both[w] == pytest.approx(alone.loss_roundoff()[0], rel=1e-9, abs=0.0)
 
 
+@pytest.mark.filterwarnings("ignore:the hourglass control .* can flow:RuntimeWarning")
 def test_split_materials_keeps_tools_and_solver_options():
     """A split model keeps the tools (with their current parameters), the pinned sets and
     the model's hourglass control: it runs as its source does, reactions included."""
