@@ -1003,10 +1003,14 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
 
     monkeypatch.setattr(fit_module, "fit", stand_in)
     # A target without a body observes every body of the file: body 'a' too (fitted twice
-    # without a word while the check compared the body's names, None against 'a').
-    for mine, body, frames, refused in (("a", "a", "2", True), ("a", "b", "2", False), ("a", "a", "1", False),
-                                        ("a", None, "2", True), (None, "b", "2", True), (None, "b", "1", False)):
-        exps.write_text(json.dumps([{"scene": "two.toml", "target": "run.usdc", "target_frames": frames,
+    # without a word while the check compared the body's names, None against 'a'). A hard
+    # link is the file too (another real path: it passed).
+    os.link(run, tmp_path / "again.usdc")
+    for mine, body, frames, refused, name in (("a", "a", "2", True, "run"), ("a", "b", "2", False, "run"),
+                                              ("a", "a", "1", False, "run"), ("a", None, "2", True, "run"),
+                                              (None, "b", "2", True, "run"), (None, "b", "1", False, "run"),
+                                              ("a", "a", "2", True, "again")):
+        exps.write_text(json.dumps([{"scene": "two.toml", "target": f"{name}.usdc", "target_frames": frames,
                                      **({} if body is None else {"target_body": body})}]))
         capsys.readouterr()
         assert main(["fit", str(scene), "--target", str(run), *([] if mine is None else ["--target-body", mine]),
@@ -1014,7 +1018,7 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
                      "--output-dir", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         if refused:
-            assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{run}' (body '{mine or body}') is not allowed at "
+            assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{tmp_path / name}.usdc' (body '{mine or body}') is not allowed at "
                            "frame 2: the command line's --target observes the same file alike there, so its observations "
                            "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one "
                            "experiment (two experiments may share a file for different bodies or tools)\n"), err
@@ -3184,13 +3188,18 @@ def test_a_target_given_twice_is_refused_not_counted_twice(tmp_path, capsys, dou
 
     guess, run = _dough_guess_and_target(tmp_path, dough_scene)
     monkeypatch.chdir(tmp_path)
+    # Other names of the one file: a symbolic link, and a hard link (the same inode, another
+    # real path: it was fitted twice).
+    os.symlink("run.usdc", tmp_path / "alias.usdc")
+    os.link(run, tmp_path / "again.usdc")
     common = ["--iterations", "0", "--no-progress", "--no-diagnostics", "--no-usd", "--output-dir", str(tmp_path / "o")]
     for extra in (["--target", str(run), "--target", str(run)], ["--target", "run.usdc", "--target", "./run.usdc"],
+                  ["--target", "run.usdc", "--target", "alias.usdc"], ["--target", "run.usdc", "--target", "again.usdc"],
                   ["--target", "run.usdc", "--target", "run.usdc", "--target-frames", "2,3", "--target-frames", "2,3"]):
         capsys.readouterr()
         assert main(["fit", str(guess), *extra, *common]) == 2, extra
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-        assert len(err) == 1 and re.search(r"^warp-esph: error: --target = '[^']*run\.usdc' is not allowed twice \(--target "
+        assert len(err) == 1 and re.search(r"^warp-esph: error: --target = '[^']*(run|alias|again)\.usdc' is not allowed twice \(--target "
                                            r"#1 and #2 are one file( at the same frames)?\): its observations would count twice", err[0]), (extra, err)
     assert not (tmp_path / "o").exists()
     capsys.readouterr()

@@ -747,6 +747,17 @@ def _frames_said(frames) -> str:
     return f"{'frame' if len(frames) == 1 else 'frames'} {shown}"
 
 
+def _file_identity(path):
+    """What makes two target paths one file: its device and inode where it exists, so that a
+    hard link is the file it links (its real path is another: it was fitted twice), as a
+    symbolic link or another spelling of the path is; else its real path."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return os.path.realpath(str(path))
+    return st.st_dev, st.st_ino
+
+
 def _bodies_observed(t) -> frozenset | None:
     """The bodies a target observes: its one body, or every body of a run's USD read whole
     (``Target.bodies``); None for a file that holds no bodies."""
@@ -789,11 +800,11 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
     the frames or None: not known yet), in the order given. Frames shared in part count twice as much as the same
     frames do, so they are refused too: the choice of frames is one option of one target."""
     name, fname = key("target"), key("target_frames")
-    seen: dict[str, list] = {}
+    seen: dict = {}
     for k, path, fspec, frames in entries:
         if frames is None:
             continue
-        real = os.path.realpath(str(path))
+        real = _file_identity(path)
         for j, other_spec, other in seen.get(real, []):
             both = sorted(set(frames) & set(other))
             if both:
@@ -849,13 +860,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # share some frames, once the frames are read (_refuse_repeated_frames).
     given = {}
     for k, path in enumerate(targets):
-        first = given.setdefault((os.path.realpath(str(path)), None if fspecs[k] is None else str(fspecs[k])), k)
+        first = given.setdefault((_file_identity(path), None if fspecs[k] is None else str(fspecs[k])), k)
         if first != k:
             name = key("target")
             raise ValueError(f"{where}{name} = {checks.shown_path(path)} is not allowed twice ({name} #{first + 1} and "
                              f"#{k + 1} are one file{'' if fspecs[k] is None else ' at the same frames'}): its observations "
                              "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give each file once")
-    real = [os.path.realpath(str(path)) for path in targets]
+    real = [_file_identity(path) for path in targets]
     repeated = {k for k in range(len(targets)) if real.count(real[k]) > 1}
 
     def read(path, fspec):
@@ -1140,7 +1151,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                                                    for kind, _, t in loaded],
                                  # What each target observes: the file, its bodies (a run's USD read whole
                                  # observes every body of it) and its tool.
-                                 observed=[None if kind == "silhouette" else (os.path.realpath(str(path)), _bodies_observed(t),
+                                 observed=[None if kind == "silhouette" else (_file_identity(path), _bodies_observed(t),
                                                                               t.tool)
                                            for kind, path, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
