@@ -108,6 +108,40 @@ def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic(friction):
     assert float(sim.v.numpy()[:, 0].mean()) == pytest.approx(v[0, 0], abs=1e-5 * v0)
 
 
+def test_coulomb_floor_node_loses_friction_times_the_normal_speed_it_takes_and_never_reverses():
+    """``grid_update``'s floor rows (nodes at y <= 0) on their own, no gravity or damping: a node
+    moving into the floor loses its normal velocity and friction x that much of its tangential
+    speed, along its direction, down to 0 and never past it (a friction larger than the
+    tangential speed left stops it, where the formula unclamped sends it back); a node moving
+    away, or one above the floor, keeps its velocity; the sticky floor (friction < 0) takes all."""
+    import numpy as np
+    import warp as wp
+
+    pad = int(mpm_slump.FLOOR_PAD)
+    v_in = [(0.3, -0.2, 0.4), (0.03, -0.2, 0.04), (0.3, 0.2, 0.4)]  # tangential 0.5 / 0.05, normal -0.2 / +0.2
+
+    def update(vel, friction, j):
+        gm = np.zeros((1, pad + 2, 1), np.float32)
+        gm[0, j, 0] = 2.0
+        gmv = np.zeros((1, pad + 2, 1, 3), np.float32)
+        gmv[0, j, 0] = 2.0 * np.array(vel, np.float32)  # momentum: the kernel divides by the mass
+        gm, gmv = wp.array(gm, dtype=float), wp.array(gmv, dtype=wp.vec3)
+        wp.launch(mpm_slump.grid_update, dim=gm.shape, inputs=[gm, gmv, wp.vec3(0.0, 0.0, 0.0), 1e-3, 1.0, friction, 0])
+        return gmv.numpy()[0, j, 0].astype(np.float64)
+
+    mu = 0.5
+    t = np.array(v_in[0])[[0, 2]]
+    s = np.linalg.norm(t)
+    out = update(v_in[0], mu, pad)
+    assert out[1] == 0.0
+    assert out[[0, 2]] == pytest.approx(t * (s - mu * 0.2) / s, rel=1e-6)  # 0.5 -> 0.4, same direction
+    assert np.array_equal(update(v_in[1], mu, pad), [0.0, 0.0, 0.0])  # 0.05 < 0.1: stopped, not reversed
+    assert update(v_in[2], mu, pad) == pytest.approx(v_in[2], rel=1e-6)  # leaving: free
+    assert update(v_in[0], mu, pad + 1) == pytest.approx(v_in[0], rel=1e-6)  # above the floor
+    assert update(v_in[0], 0.0, 0)[[0, 2]] == pytest.approx(t, rel=1e-6)  # slip: tangential kept
+    assert np.array_equal(update(v_in[2], -1.0, pad), [0.0, 0.0, 0.0])  # sticky
+
+
 def test_near_yield_column_spreads_its_base_as_the_1d_analysis():
     """The particle suite's near-yield column in the continuum (3 cells, 6 particles across, on
     a slip floor, the same flow rule, ramp and relaxation; 36 axial periods): its yielded base
