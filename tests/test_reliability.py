@@ -3123,6 +3123,34 @@ def test_a_pin_region_whose_face_is_at_a_layers_value_takes_the_layer(tmp_path):
     assert len(load_scene_file(path).builder.pins[0].indices) == 9
 
 
+def test_a_box_far_from_the_origin_has_its_layers_and_a_pin_region_at_one_takes_it():
+    """1e5 m out one float64 rounding of a coordinate is 1.5e-11 m, 3e-9 of a 0.005 spacing,
+    past the 1e-9 spacings that the lattice's count and a pin region's face allowed: a box 5
+    spacings across there had 4 layers, and a face at a layer's value as written (to 4
+    decimals) missed it in 203 of 1000 faces at random places (docs/tools.md). Both now add a
+    few float64 roundings at the coordinates' size (``meshes.coordinate_round_off``): 5
+    layers, and a region from or up to each layer's value takes it and what lies beyond; a
+    face 1e-9 m past a layer (70 roundings there) still leaves it out."""
+    from warp_esph import tools
+
+    b = we.SceneBuilder(spacing=0.005)
+    b.add_box((100000.1, 0.1, 0.0), (0.025, 0.015, 0.015), we.Material.preset("rubber"), name="blk")
+    x = np.concatenate(b._points)[:, 0]
+    layers = np.unique(x)
+    assert len(layers) == 5
+    for k, layer in enumerate(layers):
+        face = round(100000.09 + 0.005 * k, 4)
+        assert abs(face - layer) < 1e-10  # the layer's value as written
+        up = tools.select_particles(b, region=((face, -1, -1), (2e5, 1, 1)), name="up")
+        down = tools.select_particles(b, region=((0, -1, -1), (face, 1, 1)), name="down")
+        np.testing.assert_array_equal(up, np.flatnonzero(x >= layer - 1e-6))
+        np.testing.assert_array_equal(down, np.flatnonzero(x <= layer + 1e-6))
+        assert len(up) == 9 * (5 - k) and len(down) == 9 * (k + 1)
+        if k < 4:
+            past = tools.select_particles(b, region=((face + 1e-9, -1, -1), (2e5, 1, 1)), name="past")
+            assert len(past) == 9 * (4 - k)
+
+
 def test_a_rollouts_frames_out_of_order_or_twice_are_refused_not_reordered():
     """``Rollout(frames=[3, 1])`` was sorted without a word: ``forward`` returned step 1's
     positions first and ``backward([g3, g1])`` took them as ``[g1, g3]``, the gradient of

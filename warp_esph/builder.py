@@ -24,7 +24,7 @@ from .sim.fields import precision_problem as field_precision_problem
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material, _following_force
-from .meshes import lattice_points
+from .meshes import lattice_counts, lattice_points
 from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, material_precision_problem, wider_precision
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
@@ -232,7 +232,7 @@ class SceneBuilder:
     def _check_lattice_size(self, lo, hi, name: str, value):
         # Refuse before allocating: a typo in a size must not exhaust memory.
         with np.errstate(over="ignore"):  # a product past the float range is inf: refused below, no numpy warning
-            cells = np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / self.spacing + 1e-9))
+            cells = np.prod(lattice_counts(lo, hi, self.spacing))
         if cells > MAX_PARTICLES_PER_BODY:
             raise ValueError(
                 f"{name} = {checks.shorten(value)!r} is not allowed: at spacing {self.spacing:g} the body would need {cells:.3g} "

@@ -58,6 +58,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
+from .meshes import coordinate_round_off
 from .sim import colliders
 from .sim.integrate import funcs as integrate_funcs, static_collider_struct, struct as static_struct
 from .sim.replay import kept_through_backward
@@ -1769,7 +1770,9 @@ def allocate_state(model, state, requires_grad: bool):
 
 # --------------------------------------------------------------------------- selection
 #: How far outside a pin's ``region`` (in spacings) a particle is still taken: round-off of the
-#: lattice's coordinates, not a margin (a face 1e-9 m off a layer at spacing 0.01 still leaves it out).
+#: lattice's coordinates, not a margin (a face 1e-9 m off a layer at spacing 0.01 still leaves it
+#: out). Far from the origin the coordinates' own round-off is added
+#: (``meshes.coordinate_round_off``: a few float64 roundings at their magnitude).
 REGION_TOLERANCE = 1e-9
 
 
@@ -1816,8 +1819,11 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
         # A face written at a lattice layer's value takes that layer: the lattice's coordinates
         # carry round-off (0.1 - 0.04 is 0.06000000000000001), and a face at 0.06 had left the
         # bottom layer out while a face at the top layer's value took it (a quarter of such faces
-        # missed their layer). The lattice's own count takes the same 1e-9 spacings.
-        tol = REGION_TOLERANCE * builder.spacing
+        # missed their layer). The lattice's own count takes the same 1e-9 spacings. Far out the
+        # coordinates' own round-off passes that (at |x| = 1e5, 1.5e-11 m a rounding, 1.5e-9 of a
+        # 0.01 spacing: three in four faces so written missed their layer); it is float64's, as
+        # the builder's coordinates are in either precision.
+        tol = REGION_TOLERANCE * builder.spacing + coordinate_round_off(points)
         mask &= np.all((points >= lo - tol) & (points <= hi + tol), axis=1)
     if where is not None:
         mask &= checks.selection("where", where, points, "rest_positions")
