@@ -3,6 +3,7 @@ conservation, elastic return and plastic set, yield onset, settlement under grav
 the kernels, the guards, and a long drop onto the ground."""
 
 import contextlib
+import dataclasses
 import math
 
 import numpy as np
@@ -278,6 +279,47 @@ def test_hourglass_control_on_a_material_that_can_flow_warns_once_when_it_can():
         warnings.simplefilter("error")
         solver.step(b, a, 1e-5)  # once per solver
         we.Solver(model, fit="linear").step(a, b, 1e-5)  # without the control
+
+
+def test_hourglass_flow_question_is_asked_once_per_change_of_the_parameters(monkeypatch):
+    """The warning above asked whether a material can flow at every step until it warned, so
+    each step of an elastic body with the control asked it for ever. It is asked at the first
+    step, then only where the step's read of the parameter arrays found them changed since:
+    by ``set_material`` to another elastic material (asked, silent), by a write in place that
+    turns the flow on (asked, warns once), and never after the warning."""
+    import warnings
+
+    elastic = we.Material(mu=1e4, lam=1e4, yield_stress=50.0, flow_rate=0.0)
+    model = _block_model(n=(3, 3, 3), material=elastic)
+    a, b = model.state(), model.state()
+    solver = we.Solver(model, fit="linear", hourglass=0.5)
+    asked = []
+    ask = type(model).flowing_materials
+    monkeypatch.setattr(type(model), "flowing_materials", lambda self: asked.append(1) or ask(self))
+
+    def steps(k):
+        nonlocal a, b
+        for _ in range(k):
+            solver.step(a, b, 1e-5)
+            a, b = b, a
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        steps(3)
+        assert len(asked) == 1
+        model.set_material(0, dataclasses.replace(elastic, yield_stress=60.0))
+        steps(3)
+        assert len(asked) == 2
+    model.flow_rate.assign(np.array([10.0]))
+    with pytest.warns(RuntimeWarning, match=r"^the hourglass control \(strength c = 0\.5\) runs on bodies whose material "
+                                            r"can flow plastically \('box0'"):
+        steps(1)
+    assert len(asked) == 3
+    model.flow_rate.assign(np.array([20.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        steps(3)
+    assert len(asked) == 3
 
 
 def test_linear_momentum_conserved_and_angular_momentum_measured():

@@ -565,6 +565,7 @@ class Model(Unpicklable):
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
+        self._held_bytes = None  # their bytes (_parameters_key), where they are a read's
         self._image_args = None  # image_args' list, made once: the plane and spacing are fixed
         self._image_reaction_rows = None  # integrate.launch_floor_image_reaction's row arguments, made once
         self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
@@ -884,13 +885,16 @@ class Model(Unpicklable):
         """``answer(rows)`` of the parameter rows (``_read_parameters``), kept with the rows'
         bytes: asked again of the same bytes, the answer kept. A step asks ``elastic_only``
         twice and ``sph_active`` once at parameters that seldom change (about 20 us a step of
-        the fit example's 0.55 ms at 142 particles, docs/performance.md)."""
-        rows = self._read_parameters()
-        raw = rows.tobytes()
+        the fit example's 0.55 ms at 142 particles, docs/performance.md). Inside
+        ``_parameters_read_once`` the bytes are its read's, taken once."""
+        rows, raw = None, self._held_bytes
+        if raw is None:
+            rows = self._read_parameters()
+            raw = rows.tobytes()
         kept = self._row_answers.get(question)
         if kept is not None and kept[0] == raw:
             return kept[1]
-        value = answer(rows)
+        value = answer(self._read_parameters() if rows is None else rows)
         self._row_answers[question] = (raw, value)
         return value
 
@@ -1259,18 +1263,27 @@ class Model(Unpicklable):
             wp.copy(stage, arr, dest_offset=k * n, count=n)
         return stage.numpy().reshape(len(arrays), n).copy()
 
+    def _parameters_key(self) -> bytes:
+        """The parameter arrays' values as bytes: inside ``_parameters_read_once`` those of its
+        read (no read again), else a read's. What was decided of equal bytes holds (``_answer``;
+        the solver's hourglass warning asks whether a material can flow only when they
+        changed), whoever wrote the arrays: a caller in place, ``set_material``, a fit."""
+        held = self._held_bytes
+        return held if held is not None else self._read_parameters().tobytes()
+
     @contextlib.contextmanager
     def _parameters_read_once(self):
         """Inside, every question about the parameter arrays (``elastic_only``,
         ``sph_active``, ``stable_dt``, ``parameter_values``) is answered from one read made on
         entry: the start of ``Solver.step`` asks all three, and nothing writes the arrays
         there."""
-        self._held_parameters = None
+        self._held_parameters = self._held_bytes = None
         self._held_parameters = self._read_parameters()
+        self._held_bytes = self._held_parameters.tobytes()  # once for every question (_answer)
         try:
             yield
         finally:
-            self._held_parameters = None
+            self._held_parameters = self._held_bytes = None
 
     def parameter_values(self) -> dict[str, np.ndarray]:
         """The current per-material parameters (``MATERIAL_FIELDS``), read from the arrays
@@ -1615,12 +1628,12 @@ class Model(Unpicklable):
         # ``kept``: the start keeps the incremental composition (``keeps_incremental``). The
         # path (fit, control, rest model) is the one ``rows`` choose: a fit's trial values
         # (``fit._Values.stable_step``) were judged by the values the arrays held.
-        held = self._held_parameters
-        self._held_parameters = rows
+        held = self._held_parameters, self._held_bytes
+        self._held_parameters, self._held_bytes = rows, rows.tobytes()
         try:
             return self._stable_dt_of(courant, hourglass, rows, world, fit, kept)
         finally:
-            self._held_parameters = held
+            self._held_parameters, self._held_bytes = held
 
     def _stable_dt_of(self, courant, hourglass, rows, world, fit, kept) -> float:
         full = self._parameter_values(rows)

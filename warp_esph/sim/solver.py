@@ -453,6 +453,7 @@ class Solver(Unpicklable):
         self._caller_checking = 0  # caller_checks() depth
         self._warned_worlds_kept = False
         self._warned_hourglass_flow = False
+        self._hourglass_flow_asked = None  # the model's _parameters_key when the flow was last asked
         #: Steps taken since construction, replays of a rollout's backward pass included (as
         #: ``guard_counts``): a count of work, not a fact about any state.
         self.step_count = 0
@@ -858,9 +859,11 @@ class Solver(Unpicklable):
         """Once: the hourglass control runs where a material can flow. It measures the motion
         against the rest positions, which plastic flow leaves behind, so it holds the flow back
         (docs/physics.md, "Hourglass modes"): an opt-in strength on a plastic body ran without
-        a word, though the control is for elastic solids. Asked at each step until it warns:
-        a fit may make a material flow after the solver was made."""
+        a word, though the control is for elastic solids. Asked until it warns, at each step
+        whose parameter arrays changed since it was last asked (a fit, ``set_material`` or a
+        caller's write may make a material flow after the solver was made)."""
         m = self.model
+        self._hourglass_flow_asked = m._parameters_key()
         flowing = m.flowing_materials()
         if not flowing:
             return
@@ -1074,8 +1077,10 @@ class Solver(Unpicklable):
             flowed = state_in.has_flowed() if chose_rest and state_in.rest_model is False else None
             dt = self._check_dt(dt, state_in, self.hourglass, 3, flowed)
             # Not asked where "auto" chose the corrected fit: it did so because nothing can flow
-            # (a question more a step of every elastic default run).
-            if self.hourglass > 0.0 and not self._warned_hourglass_flow and not (self._auto and self._curved):
+            # (a question more a step of every elastic default run); elsewhere asked again only
+            # of parameters changed since (this step's read tells), not every step for ever.
+            if (self.hourglass > 0.0 and not self._warned_hourglass_flow and not (self._auto and self._curved)
+                    and self._hourglass_flow_asked != m._parameters_key()):
                 self._warn_hourglass_flow()
             # Under a tape of a model with gradients the SPH terms run also where every pressure
             # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
