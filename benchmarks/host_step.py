@@ -10,7 +10,9 @@ Scenes: a dough cube (``--side`` particles a side, 2 cm lattice) falling onto th
 0.3 m/s (``ground``), under a keyframed box press (``press``), a ``Scripted`` sphere above it
 (``scripted``), with its bottom layer pinned (``pinned``), all float32; and float64 runs taped
 as a fit runs them, ``--taped-steps`` steps into new states on one ``wp.Tape`` per block
-(``taped-ground``, ``taped-press``). The kernels' time is measured around their entry points,
+(``taped-ground``, ``taped-press``); an elastic (``rubber``) cube with the linear fit and the
+hourglass control, which asks whether a material can flow (``hourglass``), and the dough cube
+on an imaged ground, whose plane the step checks (``imaged``). The kernels' time is measured around their entry points,
 so it holds only for launches that call them directly (the CPU path; every launch of these
 scenes). To compare two trees, run this in each, alternately, several times: these machines
 are shared, and one run's best block moves by 10-20 %. Not a test.
@@ -23,7 +25,9 @@ import time
 from benchmarks import _cli
 
 PROG = "python -m benchmarks.host_step"
-SCENES = ("ground", "press", "scripted", "pinned", "taped-ground", "taped-press")
+SCENES = ("ground", "press", "scripted", "pinned", "taped-ground", "taped-press", "hourglass", "imaged")
+#: The solver's options of a scene (default: none).
+SOLVER_OPTIONS = {"hourglass": {"fit": "linear", "hourglass": 0.1}}
 
 
 def _model(scene: str, side: int):
@@ -37,9 +41,9 @@ def _model(scene: str, side: int):
     dx = 0.02
     s = side * dx
     b = we.SceneBuilder(spacing=dx)
-    b.add_box(center=(0.0, 0.06 + s / 2, 0.0), size=(s, s, s), material=we.Material.preset("dough"),
-              velocity=(0.0, -0.3, 0.0))
-    b.add_ground(height=0.0, friction=0.5)
+    b.add_box(center=(0.0, 0.06 + s / 2, 0.0), size=(s, s, s),
+              material=we.Material.preset("rubber" if kind == "hourglass" else "dough"), velocity=(0.0, -0.3, 0.0))
+    b.add_ground(height=0.0, friction=0.5, images=kind == "imaged")
     if kind == "press":
         b.add_tool("box", half_extents=(0.2, 0.02, 0.2), motion=tools.Keyframes(
             times=(0.0, 1.0), positions=((0.0, 0.06 + s + 0.05, 0.0), (0.0, 0.06 + s / 2, 0.0))))
@@ -78,7 +82,7 @@ def measure(scene: str, side: int, steps: int, taped_steps: int, blocks: int, wa
     replay._packed_arguments = timed_packed
     try:
         model = _model(scene, side)
-        solver = we.Solver(model)
+        solver = we.Solver(model, **SOLVER_OPTIONS.get(scene, {}))
         dt = 0.5 * model.stable_dt()
         if scene.startswith("taped-"):
             n = taped_steps

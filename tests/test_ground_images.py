@@ -70,6 +70,40 @@ def test_an_imaged_grounds_friction_or_plane_written_after_the_build_is_refused_
     np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
 
 
+def test_the_imaged_plane_is_checked_on_the_values_read_with_the_parameters(monkeypatch):
+    """``check_image_plane`` read the plane arrays at every step, on a GPU a transfer of its own
+    (each read of a device array waits for the device). The step's one read of the parameter
+    arrays now brings them (on a GPU copied into the same buffer, ``Model._read_staged``, run
+    here on the CPU in place of its views, ``_staged_reads``): a step reads none of its own, the values read are
+    the arrays' (the imaged ground in row 1, after another plane), and a write is still refused
+    at the next step; called outside a step, the check reads them itself."""
+    b = we.SceneBuilder(spacing=DX)
+    b.add_box((0.0, 2.0 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_plane((1.0, 0.0, 0.0), -1.0)
+    b.add_ground(0.0, friction=0.3, images=True)
+    m = b.finalize()
+    monkeypatch.setattr(m, "_staged_reads", True, raising=False)
+    own = []
+    values = m._image_plane_values
+    monkeypatch.setattr(m, "_image_plane_values", lambda: own.append(1) or values())
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    for _ in range(3):
+        s.step(a, c, 1e-4)
+        a, c = c, a
+    assert own == []
+    rows, plane = m._read_staged()
+    np.testing.assert_array_equal(plane, np.array([0.3, 0.0, 0.0, 1.0, 0.0], dtype=np.float32))
+    np.testing.assert_array_equal(rows, np.stack([getattr(m, f).numpy() for f in m.MATERIAL_FIELDS]))
+    m.plane_offset.assign(np.array([-1.0, 0.005], dtype=np.float32))
+    with pytest.raises(ValueError, match=r"^model.plane_offset\[1\] = 0.005 is not allowed"):
+        s.step(a, c, 1e-4)
+    assert own == []
+    with pytest.raises(ValueError, match=r"^model.plane_offset\[1\] = 0.005 is not allowed"):
+        m.check_image_plane()
+    assert own == [1]
+
+
 def _thrown_box(friction, images, v0=0.5, steps=125, viscosity=0.0):
     """A 4^3 elastic box (2 cm spacing, E 200 kPa, float64, the default solver) standing on
     the ground, given ``v0`` sideways, ``steps`` steps at half the stable step (0.01 s on the

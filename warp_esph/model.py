@@ -502,6 +502,10 @@ class State(Unpicklable):
 #: spacings: half a spacing, where a floor of particles has its top layer.
 IMAGE_MIN_DEPTH = 0.5
 
+#: The imaged plane's values that ``Model.check_image_plane`` compares with the build's:
+#: friction, offset and the normal's three components.
+IMAGE_PLANE_VALUES = 5
+
 #: The kernels' ``images`` argument (``Model.image_args``): no image plane; images at rest over
 #: each step in the fits (a rough floor, the ground's ``friction > 0``); images that move with
 #: their particles over the step (a frictionless floor, ``friction = 0``;
@@ -563,6 +567,9 @@ class Model(Unpicklable):
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
         self._row_answers = {}  # _answer's last answer to each question, with the parameter rows' bytes it read
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
+        # Whether _read_parameters copies into it on the device and reads that (a GPU's), or
+        # reads the arrays through views (the CPU's).
+        self._staged_reads = not self.device.is_cpu
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
         self._held_bytes = None  # their bytes (_parameters_key), where they are a read's
@@ -694,6 +701,7 @@ class Model(Unpicklable):
         self._image_row = next((k for k, p in enumerate(planes) if getattr(p, "images", False)), None)
         self._image_views = None
         self._image_stage = None
+        self._image_read = None  # its values as the last staged read of the parameter arrays found them
         self._image_built = None if self._image_row is None else self._image_plane_values()
         check_pressure_forces(materials, self.image_plane is not None)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
@@ -713,11 +721,17 @@ class Model(Unpicklable):
         # One transfer into a buffer kept for it (each read of a device array waits for the device).
         stage = self._image_stage
         if stage is None:
-            stage = self._image_stage = wp.empty(5, dtype=self.scalar, device=self.device)
-        wp.copy(stage, self.plane_friction, dest_offset=0, src_offset=k, count=1)
-        wp.copy(stage, self.plane_offset, dest_offset=1, src_offset=k, count=1)
-        wp.copy(stage, self.plane_normal.view(self.scalar).flatten(), dest_offset=2, src_offset=3 * k, count=3)
+            stage = self._image_stage = wp.empty(IMAGE_PLANE_VALUES, dtype=self.scalar, device=self.device)
+        self._stage_image_plane(stage, 0)
         return stage.numpy()
+
+    def _stage_image_plane(self, stage: wp.array, at: int) -> None:
+        """Copy the imaged plane's friction, offset and normal (``IMAGE_PLANE_VALUES``) into
+        ``stage`` from ``at``, on the device."""
+        k = self._image_row
+        wp.copy(stage, self.plane_friction, dest_offset=at, src_offset=k, count=1)
+        wp.copy(stage, self.plane_offset, dest_offset=at + 1, src_offset=k, count=1)
+        wp.copy(stage, self.plane_normal.view(self.scalar).flatten(), dest_offset=at + 2, src_offset=3 * k, count=3)
 
     def check_image_plane(self) -> None:
         """Refuse (``ValueError``) the imaged ground's friction, height or normal written in the
@@ -728,11 +742,18 @@ class Model(Unpicklable):
         imaged ground given a friction ran on frictionless, and a rough one given friction 0
         ran the rough floor that ``add_ground`` refuses to call frictionless for no other
         reason; a moved ground left its images under the old one. ``Solver.step`` calls it
-        before its first launch; a positive friction changed to another positive one is the
-        contact's alone and taken."""
+        before its first launch, on the values read with the step's one read of the parameter
+        arrays (``_parameters_read_once``: on a GPU in the same transfer, none of their own);
+        called outside a step it reads them. A positive friction changed to another positive
+        one is the contact's alone and taken."""
         if self._image_row is None:
             return
-        now, built = self._image_plane_values(), self._image_built
+        # Inside _parameters_read_once the last read is its own (each other returns its rows).
+        held = self._image_read if self._held_parameters is not None else None
+        now = held if held is not None else self._image_plane_values()
+        built = self._image_built
+        if now.tobytes() == built.tobytes():
+            return
         k = self._image_row
         # A method, not a closure: a recursive closure made each step's call a reference cycle
         # (the garbage test of a taped rollout counts them).
@@ -1244,24 +1265,39 @@ class Model(Unpicklable):
         transfer: on a GPU they are copied on the device into one buffer first, since each
         read of a device array waits for the device and the step asks every step
         (``stable_dt``, ``sph_active``); the buffer has no gradient, so a recording tape takes
-        no note of the copies. On the CPU the arrays' own memory is read through views."""
+        no note of the copies. On the CPU the arrays' own memory is read through views. On a
+        GPU an imaged ground's plane values come in the same transfer (``_image_read``), which
+        ``check_image_plane`` compares in a step without a transfer of its own."""
         if self._held_parameters is not None:
             return self._held_parameters.copy()
+        if self._staged_reads:
+            rows, self._image_read = self._read_staged()
+            return rows
+        # A CPU array's numpy() is a view of its memory: nothing to transfer, and views kept
+        # while the arrays are the same ones cost less than the copies of _read_staged. The
+        # imaged plane's values are read through views as well, by check_image_plane.
         arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
-        if self.device.is_cpu:
-            # A CPU array's numpy() is a view of its memory: nothing to transfer, and views
-            # kept while the arrays are the same ones cost less than the copies below.
-            key = pointer_key(arrays)
-            if self._parameter_views is None or self._parameter_views[0] != key:
-                self._parameter_views = (key, [a.numpy() for a in arrays])
-            return np.stack(self._parameter_views[1])
+        key = pointer_key(arrays)
+        if self._parameter_views is None or self._parameter_views[0] != key:
+            self._parameter_views = (key, [a.numpy() for a in arrays])
+        return np.stack(self._parameter_views[1])
+
+    def _read_staged(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """``_read_parameters`` on a GPU: the arrays, and the imaged plane's values (None without
+        one), copied on the device into one buffer, read in one transfer."""
+        arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
         n = arrays[0].shape[0]
+        end = len(arrays) * n
+        size = end + (0 if self._image_row is None else IMAGE_PLANE_VALUES)
         stage = self._parameter_stage
-        if stage is None or stage.shape[0] != len(arrays) * n or stage.dtype != arrays[0].dtype:
-            stage = self._parameter_stage = wp.empty(len(arrays) * n, dtype=arrays[0].dtype, device=self.device)
+        if stage is None or stage.shape[0] != size or stage.dtype != arrays[0].dtype:
+            stage = self._parameter_stage = wp.empty(size, dtype=arrays[0].dtype, device=self.device)
         for k, arr in enumerate(arrays):
             wp.copy(stage, arr, dest_offset=k * n, count=n)
-        return stage.numpy().reshape(len(arrays), n).copy()
+        if self._image_row is not None:
+            self._stage_image_plane(stage, end)
+        out = stage.numpy()
+        return out[:end].reshape(len(arrays), n).copy(), None if self._image_row is None else out[end:].copy()
 
     def _parameters_key(self) -> bytes:
         """The parameter arrays' values as bytes: inside ``_parameters_read_once`` those of its

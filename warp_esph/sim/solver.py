@@ -1068,9 +1068,9 @@ class Solver(Unpicklable):
         if m.tools is not None:
             # Before any launch: the tools' arrays as a caller or an optimiser left them.
             m.tools.check_arrays()
-        m.check_image_plane()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
+            m.check_image_plane()  # on the imaged plane's values read with them
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
             # Read once for the check and the path (_runs_rest), only where the path hangs on it.
