@@ -742,10 +742,10 @@ class Model(Unpicklable):
         imaged ground given a friction ran on frictionless, and a rough one given friction 0
         ran the rough floor that ``add_ground`` refuses to call frictionless for no other
         reason; a moved ground left its images under the old one. ``Solver.step`` calls it
-        before its first launch, on the values read with the step's one read of the parameter
-        arrays (``_parameters_read_once``: on a GPU in the same transfer, none of their own);
-        called outside a step it reads them. A positive friction changed to another positive
-        one is the contact's alone and taken."""
+        before its first launch: on a GPU on the values that the step's one read of the
+        parameter arrays brings in its transfer (``_parameters_read_once``; none of their own),
+        on the CPU through views of the arrays, as a call outside a step reads them. A positive
+        friction changed to another positive one is the contact's alone and taken."""
         if self._image_row is None:
             return
         # Inside _parameters_read_once the last read is its own (each other returns its rows).
