@@ -3151,6 +3151,24 @@ def test_a_box_far_from_the_origin_has_its_layers_and_a_pin_region_at_one_takes_
             assert len(past) == 9 * (4 - k)
 
 
+def test_a_box_mesh_far_from_the_origin_has_the_layers_of_the_box():
+    """A mesh is sampled on the lattice of its bounding box taken relative to its centre, where
+    the box's faces are near the origin but carry the round-off of where the mesh lies: a box
+    mesh 5 spacings across placed 1e5 m out (either side) had 4 layers, 36 particles where
+    ``add_box`` of the same box has 45. Counted with the round-off of the mesh's place
+    (``meshes.lattice_counts``' ``reach``) it has the box's particles, lattice for lattice."""
+    from warp_esph import tools
+
+    points, triangles = tools.box_mesh((0.0125, 0.0075, 0.0075))
+    for cx in (100000.1, -100000.1):
+        b = we.SceneBuilder(spacing=0.005)
+        b.add_mesh((points, triangles), we.Material.preset("rubber"), translation=(cx, 0.1, 0.0))
+        b.add_box((cx, 0.1, 0.0), (0.025, 0.015, 0.015), we.Material.preset("rubber"))
+        mesh, box = b._points
+        assert len(box) == 45
+        np.testing.assert_allclose(mesh, box, rtol=0.0, atol=1e-9)
+
+
 def test_a_rollouts_frames_out_of_order_or_twice_are_refused_not_reordered():
     """``Rollout(frames=[3, 1])`` was sorted without a word: ``forward`` returned step 1's
     positions first and ``backward([g3, g1])`` took them as ``[g1, g3]``, the gradient of

@@ -564,23 +564,28 @@ def coordinate_round_off(magnitude):
     return COORDINATE_ROUNDINGS * float(np.finfo(np.float64).eps) * np.abs(magnitude)
 
 
-def lattice_counts(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
+def lattice_counts(lo: np.ndarray, hi: np.ndarray, dx: float, reach=None) -> np.ndarray:
     """How many whole dx cells fit in [lo, hi] per axis (floats: inf past the float range).
     An extent a whole number of cells by round-off counts them all: 1e-9 cells near the origin
-    (0.1 - 0.04 is 0.06000000000000001), ``coordinate_round_off`` of the faces farther out."""
+    (0.1 - 0.04 is 0.06000000000000001), ``coordinate_round_off`` of the faces farther out.
+    ``reach``: the magnitude of the coordinates whose round-off the faces carry, where they
+    were moved near the origin after it (``sample_inside``); None: the faces' own."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    slack = 1e-9 + coordinate_round_off(np.maximum(np.abs(lo), np.abs(hi))) / dx
+    if reach is None:
+        reach = np.maximum(np.abs(lo), np.abs(hi))
+    slack = 1e-9 + coordinate_round_off(reach) / dx
     return np.floor((hi - lo) / dx + slack)
 
 
-def lattice_points(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
-    """Lattice points centred in the box [lo, hi], one per whole dx^3 cell that fits.
+def lattice_points(lo: np.ndarray, hi: np.ndarray, dx: float, reach=None) -> np.ndarray:
+    """Lattice points centred in the box [lo, hi], one per whole dx^3 cell that fits
+    (``lattice_counts``, ``reach`` as there).
 
     Every body is sampled this way: each particle stands for one cell of material, so a
     shape thinner than one cell along an axis gets no particles.
     """
     extent = hi - lo
-    counts = np.maximum(lattice_counts(lo, hi, dx).astype(int), 0)
+    counts = np.maximum(lattice_counts(lo, hi, dx, reach).astype(int), 0)
     start = lo + 0.5 * (extent - (counts - 1) * dx)
     axes = [start[k] + dx * np.arange(counts[k]) for k in range(3)]
     g = np.meshgrid(*axes, indexing="ij")
@@ -613,9 +618,11 @@ def sample_inside(points, triangles, spacing: float, device=None) -> np.ndarray:
     tri = tri.astype(np.int32)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     # Work relative to the box centre: float32 keeps ~7 digits of the offset, not of the
-    # absolute position, so a mesh far from the origin is classified as accurately.
+    # absolute position, so a mesh far from the origin is classified as accurately. Its box
+    # is counted with the round-off of where it lies: relative to the centre it carries it
+    # still (a box mesh 5 spacings across 1e5 m out had 4 layers in 20 places of 20).
     centre = 0.5 * (lo + hi)
-    grid = lattice_points(lo - centre, hi - centre, dx)
+    grid = lattice_points(lo - centre, hi - centre, dx, reach=np.maximum(np.abs(lo), np.abs(hi)))
     dev = wp.get_device(device)
     mesh = wp.Mesh(
         points=wp.array((pts - centre).astype(np.float32), dtype=wp.vec3f, device=dev),
