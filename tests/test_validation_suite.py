@@ -752,6 +752,24 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     _stops_below_and_flows_above("particles")
 
 
+def test_the_particle_floor_holds_by_the_yield_stress_not_by_a_friction_coefficient():
+    """The test above slides the strip at tan(theta) = 0.23 (1.3 tau_y at a critical angle of
+    10 degrees); with tau_y set for 30 degrees the same floor holds it at tan(theta) = 0.44,
+    0.8 tau_y. So the floor is no Coulomb wall: what lets the material slide over it is the
+    base's shear stress against the yield stress, whatever the normal load (docs/physics.md,
+    "The particle floor's friction"). Measured (0.6 s): -0.02 mm/s; the ground collider with
+    Coulomb friction 0.3 in its place lets the strip run at 650 mm/s. Held too at 0.9 tau_y
+    and tan(theta) 0.82 (45 degrees, 1.0 s); at 1.3 tau_y it slides at 9-15 mm/s at 30 and
+    45 degrees (Bingham 3.7)."""
+    r = validation.incline(load=0.8, floor="particles", walls="centres", critical_angle=30.0, **THIN_LAYER)
+    assert r["finite"]
+    assert math.tan(math.radians(r["theta_deg"])) > 0.4, r["theta_deg"]
+    # The scale of the test above: the Bingham surface speed at 1.3 tau_y, 3.67 mm/s at any
+    # critical angle (the plastic viscosity mu / flow_rate grows with tau_y as the slope does).
+    scale = 3.67e-3
+    assert abs(r["top_speed"]) < 0.03 * scale, (r["top_speed"], scale)
+
+
 def test_thin_layer_on_an_elastic_particle_floor_is_held_where_the_plastic_floor_lets_it_flow():
     """``add_particle_floor(elastic=True)``: a floor that does not flow holds the material
     within a support radius of it (two of the strip's three layers at h = 2 dx), so the strip
