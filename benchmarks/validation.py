@@ -33,6 +33,7 @@ move when that choice changes; a run with none cannot (the count errs on the ful
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import pathlib
@@ -95,17 +96,29 @@ class _FirstStep(Exception):
 _first_step_only = False
 
 
-def _solver(model, **kwargs):
-    """``warp_esph.Solver(model, **kwargs)`` that also counts, over its steps, the particle-steps
-    whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``), on the
-    model's device; ``_row_fields`` reads the counts into a case's result."""
-    wp, we = _we()
+@functools.cache
+def _count_full_rows_kernel():
+    """The kernel ``_solver``'s solvers count full rows with, made once per process: made in
+    each ``_solver`` call it was hashed again each time (about 13 ms a case under load, 5 s of
+    the 398 scenes ``first_step`` builds) and loaded as a module of its own at each run's first
+    step."""
+    wp, _ = _we()
 
     @wp.kernel(module="unique")
     def count_full_rows(count: wp.array(dtype=wp.int32), width: int, total: wp.array(dtype=wp.int64)):
         i = wp.tid()
         if count[i] >= width:
             wp.atomic_add(total, 0, wp.int64(1))
+
+    return count_full_rows
+
+
+def _solver(model, **kwargs):
+    """``warp_esph.Solver(model, **kwargs)`` that also counts, over its steps, the particle-steps
+    whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``), on the
+    model's device; ``_row_fields`` reads the counts into a case's result."""
+    wp, we = _we()
+    count_full_rows = _count_full_rows_kernel()
 
     class RowCountingSolver(we.Solver):
         particle_steps = 0
