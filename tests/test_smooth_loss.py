@@ -639,8 +639,10 @@ def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside(taped_bas
     """What bends the imaged scan above (docs/physics.md, "The imaged landing's bends"): the
     images push the landed bottom layer back up, so particles the touchdown share left inside
     the plane leave it in the next step, some slower than their band ``d0 / dt``
-    (``colliders.inside_band``), where their lift-off is rounded (measured: 9 particles in
-    step 25, two of them at 0.006 and 0.23 of their band). On the plain ground the landed
+    (``colliders.inside_band``), where their lift-off is rounded (measured: one particle in
+    step 25, at 0.56 of its band; two, at 1.30 and 0.073, before the rough floor's images kept
+    their own F, docs/physics.md, "Where the imaged ground's images store no energy"; nine
+    when the test was written). On the plain ground the landed
     layer stays down: none of its particles that start a step inside leaves with an outward
     speed (of 168 such particle-steps)."""
     for images in (False, True):
@@ -653,7 +655,7 @@ def test_only_the_imaged_ground_lifts_landed_particles_off_from_inside(taped_bas
             assert not leaving.any(), np.argwhere(leaving)
             continue
         band = -y[:-1] / DT
-        assert leaving.sum() >= 2, np.argwhere(leaving)
+        assert leaving.sum() >= 1, np.argwhere(leaving)
         assert (vy[1:][leaving] < band[leaving]).sum() >= 1, (vy[1:][leaving], band[leaving])
 
 

@@ -402,7 +402,8 @@ class State(Unpicklable):
         self.alpha_image_flowed = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad) if images else None
         self.image_stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
         #: How much of each image's state is its own rather than its particle's
-        #: (``deformation.floor_image_share``, written by the fit's update; 0 without images).
+        #: (``deformation.floor_image_share``, written by the fit's update: 1 for images at
+        #: rest; 0 without images).
         self.image_share = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)

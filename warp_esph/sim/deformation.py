@@ -560,17 +560,23 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return sums
 
     @wp.func
-    def floor_image_share(wsum: scalar, h: scalar):
+    def floor_image_share(wsum: scalar, h: scalar, images: int):
         """How much of a floor image's F is its own (``floor_image_update``) and the slope of
-        that share in ``wsum``, the weights of the particles within ``h`` of the image:
-        ``t^2 (3 - 2 t)``, ``t = min(wsum / w(h / 2), 1)``. 0 with zero slope for an image with
+        that share in ``wsum``, the weights of the particles within ``h`` of the image.
+        Images at rest (``images`` 1): 1, whatever ``wsum``: a floor at rest keeps its own F,
+        as a particle floor's pinned particles do, and an image with no particle near it keeps
+        it unchanged (its fit sees no motion). Blended towards its particle's, the image
+        stored a share of a work its force did not do, and an undamped block hovering with its
+        bottom layer 0.6-1 spacings over the plane gained energy (docs/physics.md, "Where the
+        imaged ground's images store no energy"). Images moving with their particles (2):
+        ``t^2 (3 - 2 t)``, ``t = min(wsum / w(h / 2), 1)``: 0 with zero slope for an image with
         no particle near it, 1 once its pairs weigh as one at half the support (a resting
         bottom layer's image has its own particle there)."""
         w_ref = fw.w_c(scalar(0.25) * h * h, h, fw.coef(h))
         t = wsum / w_ref
         c = scalar(1.0)
         dc = scalar(0.0)
-        if t < scalar(1.0):
+        if t < scalar(1.0) and images == 2:
             c, dct = smoothstep(t)
             dc = dct / w_ref
         return c, dc
@@ -618,8 +624,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def particle_f_for_image(F: mat33, n: vec3, images: int) -> mat33:
         """A particle's ``F`` as its floor image carries it where the image's own fit does not
-        reach (``floor_image_blend``): ``F`` itself for images at rest (``images`` 1, a floor
-        continuing the material), its mirror ``R F R`` (``R = I - 2 n n^T``) for images moving
+        reach (``floor_image_blend``): ``F`` itself for images at rest (``images`` 1, whose
+        share is 1: unread), its mirror ``R F R`` (``R = I - 2 n n^T``) for images moving
         with their particles (``images`` 2): there the image is the particle's mirror, whose own
         fit gives ``R dF R`` to its particle's ``dF``; blended towards ``F`` an image with few
         particles within ``h`` carried an unmirrored stress, and an undamped elastic block
@@ -633,11 +639,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out
 
     @wp.func
-    def floor_image_blend(own: mat33, F_new: mat33, wsum: scalar, h: scalar):
+    def floor_image_blend(own: mat33, F_new: mat33, wsum: scalar, h: scalar, images: int):
         """The image's new F, its own updated ``own`` and its particle's new ``F_new`` blended
-        by ``floor_image_share`` of its pairs' weights ``wsum``, and that share."""
-        c, dc = floor_image_share(wsum, h)
-        return F_new + c * (own - F_new), c
+        by ``floor_image_share`` of its pairs' weights ``wsum``, and that share: ``own`` itself
+        (not to round-off) where the share is 1."""
+        c, dc = floor_image_share(wsum, h, images)
+        out = own
+        if c < scalar(1.0):
+            out = F_new + c * (own - F_new)
+        return out, c
 
     @wp.func
     def updated_or_kept(code: int, scale: scalar, D0: mat33, Fp: mat33) -> mat33:
@@ -656,7 +666,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         the blend, ``adj_c`` that of the share; the particle's new F as its update had it,
         ``updated_or_kept``, as the image carries it, ``particle_f_for_image``) and the share
         ``c``: returns ``(c, adj_wsum)``."""
-        c, dc = floor_image_share(wsum, h)
+        c, dc = floor_image_share(wsum, h, images)
         target = particle_f_for_image(updated_or_kept(code, scale, D0, Fp), gn, images)
         return c, (wp.ddot(Gg, own - target) + adj_c) * dc
 
@@ -968,14 +978,15 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         ``floor_image_displacement_sums`` and ``floor_image_moment``), faded as ``i``'s
         (``scale``), updates its own flowed ``Fg``, so that the work of its energy (the
         fit's ``image_map``) is stored as a particle's is (docs/physics.md, "The floor
-        images' energy is not stored"). An image with no particle near it does no work and
-        carries its particle's new F, ``F_new``; between the two, by ``floor_image_share``
+        images' energy is not stored"). An image at rest keeps its own F wherever it is (a
+        floor at rest); an image moving with ``i`` with no particle near it carries its
+        particle's new F, ``F_new``, mirrored, and between the two, by ``floor_image_share``
         of its pairs' weights, smooth as they enter its support. Returns the image's new F and
         that share (``State.image_share``: the image's hardening is blended by it too,
         ``plasticity.image_hardening_update``)."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
-        return df.floor_image_blend(own, df.particle_f_for_image(F_new, gn, images), sums.wsum, h)
+        return df.floor_image_blend(own, df.particle_f_for_image(F_new, gn, images), sums.wsum, h, images)
 
     @wp.func
     def floor_image_update_adjoint(

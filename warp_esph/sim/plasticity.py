@@ -429,11 +429,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         alpha_image_out: wp.array(dtype=scalar),
     ):
         """Each floor image's hardening after the step: its own flowed one where the image is
-        its own (``State.image_share`` 1), its particle's where it has no particle near it
-        (0), blended between, as the fit's update blends its F."""
+        its own (``State.image_share`` 1: every image at rest), its particle's where it has no
+        particle near it (0, a moving image), blended between, as the fit's update blends its F."""
         i = wp.tid()
-        a = alpha[i]
-        alpha_image_out[i] = a + share[i] * (alpha_image_flowed[i] - a)
+        a = alpha_image_flowed[i]
+        if share[i] < scalar(1.0):
+            a = alpha[i] + share[i] * (a - alpha[i])
+        alpha_image_out[i] = a
 
     vec3 = T.vec3
     fl = funcs(scalar)
