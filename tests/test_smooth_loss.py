@@ -548,9 +548,16 @@ def test_the_pair_repulsion_smooths_the_landing_scan_at_the_default_pressure_sti
     in the viscosity: gradients 1.064 down to 0.944 of the centre's, each neighbour 1.2-1.5 %
     below the last but the end's 0.61 %, so the steps' own changes within 0.58 % (poly6's
     0.41 %), where a step (a kink or a jump: 11 % above) shows as one neighbour step far off
-    the others; increments within 0.085 % of the trapezoid."""
+    the others; increments within 0.085 % of the trapezoid.
+
+    The scan runs the middle 5 of the 11 values (-0.4 % to +0.4 %; 5 runs instead of 11, the
+    suite's cost): measured without the repulsion there (``pair_repulsion = 0``), poly6's
+    gradients read 0.982-1.071 of the centre's, neighbours up to 4.3 % apart, the steps' own
+    changes up to 1.5 %: each of the three bounds fails (over all 11: 0.982-1.327, 11.0 %,
+    2.5 %). The biweight without the repulsion passes (over all 11 too: 0.997-1.033, 1.1 %,
+    0.61 %): its case asserts the repulsion's bend is smooth, not that it is needed."""
     ratios, grads = _scan_against_trapezoid("viscosity", None, params={"pressure_stiffness": 1.0, "pair_repulsion": 2.0},
-                                            fit_weight=fit_weight)
+                                            points=range(3, 8), fit_weight=fit_weight)
     assert np.abs(ratios - 1.0).max() < 0.01, np.round(ratios, 4)
     assert np.abs(np.diff(grads)).max() < 0.02, np.round(grads, 3)
     assert np.abs(np.diff(grads, 2)).max() < 0.01, np.round(grads, 3)
