@@ -9,10 +9,12 @@ Before the fix of static friction in ``colliders.respond`` (docs/physics.md, "Th
 (0.046 % H0/s from 2.5 to 3 s, h/H0 0.535, measured at a24ecff; 0.02 % and
 0.539 on an older tree: at 8 dx the pile slumps less than the 1-D theory).
 
-The test reads it at 2 s (the suite's cost; it ran 3 s): measured at ab956e2f, 0.0025 % H0/s
-from 1.5 to 2 s and h/H0 0.5252 (0.00058 % and 0.5251 from 2.5 to 3 s; 0.084 % from 1 to
-1.5 s). With the static friction's position correction in ``colliders.respond`` dropped (the
-fix's mutation) the top sinks 3.3 % H0/s from 1.5 to 2 s (h/H0 0.428).
+Why 3 s (measured at ab956e2f): with the default biweight fit weight the pile is at rest
+sooner, 0.0025 % H0/s from 1.5 to 2 s (h/H0 0.5252; 0.00058 % from 2.5 to 3 s), but the
+test holds for either fit weight, and with poly6 the top still sinks 0.29 % H0/s from 1.5 to
+2 s, 0.12 % from 2 to 2.5 s, 0.054 % from 2.5 to 3 s (h/H0 0.537). With the static
+friction's position correction in ``colliders.respond`` dropped (the fix's mutation) the
+biweight's top sinks 3.3 % H0/s from 1.5 to 2 s (h/H0 0.428).
 """
 
 import math
@@ -54,11 +56,11 @@ def _slump(n=8, dx=0.01, t_end=3.0, window=0.5):
 
 
 def test_slumped_cylinder_comes_to_rest():
-    h, sink = _slump(t_end=2.0)
+    h, sink = _slump()
     S = math.sqrt(1.5) * math.sqrt(2.0) * 0.1
     theory = S * (1.0 - math.log(S))
     # At rest: the top sinks below 0.1 % H0/s (issue 12's target).
-    assert sink < 1.0e-3, f"top still sinks {100 * sink:.2f} % H0/s at 2 s (h/H0 = {h:.3f})"
+    assert sink < 1.0e-3, f"top still sinks {100 * sink:.2f} % H0/s at 3 s (h/H0 = {h:.3f})"
     # 8 particles tall is coarse: within 15 % of the 1-D theory here (10 % is the target at
     # the finer resolutions of the validation suite).
     assert abs(h - theory) < 0.15 * theory, f"h/H0 = {h:.3f}, 1-D theory {theory:.3f}"
