@@ -490,7 +490,8 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
         # Seeded, the flutter's onset is set by its growth rate, not by when rounding first
         # excites it, and comes about twice as soon (half the steps). Measured at 86fec9d1
         # from 0.03 m/s: 3x after 1.71 and 1.25 s, 10x after 2.20 and 1.68 s; from 0.1 m/s
-        # 3x after 1.30 and 1.00 s (10x 1.72 and 1.44 s), which this reads (the suite's cost:
+        # 3x after 1.30 and 1.00 s (10x 1.72 and 1.44 s; with poly6 3x after 0.84 and 0.91 s,
+        # 10x after 1.08 and 1.12 s), which this reads (the suite's cost:
         # 59 % of the steps to 10x from 0.03 m/s). 3x is twice the largest gain the
         # variational force's composition drift reached over 3 s (1.52, above).
         _, t_full = _vibrate("paper", 1.0, 3.0, stop_at=3.0, jitter=0.1)
