@@ -675,18 +675,20 @@ def slump_yield_ratio(points: dict[float, float], height: float, S: float, log_s
     return 0.5 * (lo + hi) / S
 
 
-#: The continuum's base that each particle floor stands for (docs/validation.md, the notes):
-#: the plastic particle floor lets the pile slide as on a slip base; the ghost floor is no-slip.
-#: The slip base is still the MPM's floor that pulls (before 2026-12-07, ``mpm_slump``'s
-#: ``grid_update``): the only slip MPM with every S to 16 cells; the slip floor that only pushes
-#: rests lower (S = 0.2, 0.3 only, at 8 and 12 cells), to be revisited once it covers them.
-CONTINUUM_BASE = {"particles": "pulling slip", "ghost_particles": "sticky"}
+#: The continuum's base (an MPM ``floor`` of ``docs/mpm_slump.json``) that each particle floor
+#: is judged against, in the plug target, the recovered yield stress and its section
+#: (docs/validation.md, the notes, "Which continuum each floor is judged against"): the plastic
+#: particle floor lets the pile slide, so the frictionless slip floor that only pushes; the
+#: ghost floor holds it, so no-slip. Not "pulling slip" (before 2026-12-07), whose couple held
+#: the pile up as no wall does. The particle floor is not frictionless (it rests well above the
+#: slip continuum at S = 0.2), so its comparisons bound it from the slip side.
+CONTINUUM_BASE = {"particles": "slip", "ghost_particles": "sticky"}
 
 
 def continuum_slumps(mpm: dict | None) -> dict[str, dict[float, tuple[int, float, bool]]]:
     """The continuum's (MPM, ``docs/mpm_slump.json``) Bingham slumps of aspect 1 run for 6 s
-    or more: for each base and S the finest grid at rest, else the finest (the slip base's
-    S = 0.1 pile is near rest only, 2.6e-8 M g H0 at 16 s). ``{base: {S: (cells per H0,
+    or more: for each base and S the finest grid at rest, else the finest (a pile near rest
+    only, as the pulling slip floor's S = 0.1 at H0 / 16, 2.6e-8 M g H0 at 16 s). ``{base: {S: (cells per H0,
     thickness / H0, at rest)}}``."""
     out: dict[str, dict[float, tuple[int, float, bool]]] = {}
     for r in (mpm or {}).get("slumps", []):
@@ -999,8 +1001,9 @@ analysis neglects shear: a plug of thickness `S H0` dragged outward at its base 
 `R = R0 = H0 / 2`, so below that a 3-D pile need not keep one (docs/physics.md, the plug).
 The continuum reference of the notes (MPM), read by the same criterion on the particle
 suite's 24-across lattice (`dx = H0 / 12`, the same 224 / 448 / 672 particles in the region),
-keeps none either: at S = 0.2 none of the region below 0.99 Y after 19 / 22 yield strains
-(slip / no-slip floor), at S = 0.3 36 / 25 % after 3.4 / 5.6 (the particle piles at 24
+keeps none either: at S = 0.2 none of the region below 0.99 Y after 24 / 22 yield strains
+(slip / no-slip floor; the slip floor that only pushes, where the one that pulled read 19),
+at S = 0.3 38 / 25 % after 5.6 / 5.6 (pulling: 36 % after 3.4; the particle piles at 24
 across: 2 % after 21, 19 % after 4.0); at S = 0.5 all of it below, none yielded. Its region
 gains that strain as the pile spreads, not in the release (none through the first period;
 gravity ramped over 0.3 s still leaves 2.7 of the 3.2 yield strains at 3 s), and its axis
@@ -1153,10 +1156,14 @@ def write(results, out: pathlib.Path, meta: dict):
             "thickness. `validation_report.slump_yield_ratio` solves it on each resolution's measured piles (their "
             "ratio to the 1-D height, interpolated in S, times the 1-D height; interpolated in ln S instead, each "
             f"value against the continuum moves by at most {spread:.3f}, the last column). Y fitted / Y, against: the "
-            "1-D height S (1 - ln S), as if the material rested there; the Bingham continuum's pile on the base the "
-            "floor stands for (an independent explicit MLS-MPM, `benchmarks/mpm_slump.py`, `docs/mpm_slump.json`, "
-            "the same material and release; its finest grid at rest: the plastic particle floor lets a pile slide "
-            "as on the slip base, the ghost floor holds it as the no-slip one; the notes). A fitted yield stress "
+            "1-D height S (1 - ln S), as if the material rested there; the Bingham continuum's pile on the base each "
+            "floor is judged against (an independent explicit MLS-MPM, `benchmarks/mpm_slump.py`, "
+            "`docs/mpm_slump.json`, the same material and release; its finest grid at rest; `CONTINUUM_BASE`: "
+            + "; ".join(f"{f} against {b}" for f, b in CONTINUUM_BASE.items())
+            + "). The plastic particle floor lets a pile slide, and is judged against the frictionless floor that "
+            "only pushes, but it is not frictionless: where its piles rest above that continuum's, the fit reads "
+            "low; the ghost floor holds the base, as the no-slip one does (the notes, \"Which continuum each floor "
+            "is judged against\"). A fitted yield stress "
             "is the continuum's where the second column is near 1; the first says how far the 1-D formula, read "
             "on a 3-D pile, is from it.\n\n"
             + _table(["floor", "fit weight", "across", "S", "thickness/H0", "Y fitted / Y (1-D height)",

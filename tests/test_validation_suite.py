@@ -87,13 +87,12 @@ def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
 
 def test_the_plug_target_says_where_the_continuum_misses_it_too():
     """The continuum (MPM) read by the same plug criterion (``validation.plug_measures``) on
-    the base the particle floor stands for (slip): where it keeps no plug either, the
-    report's verdict stays "no" and says so with its numbers (docs/validation.md, the plug);
-    an MPM on the other base, a coarser-only reading, or one that keeps its plug changes
-    nothing."""
-    from benchmarks.validation_report import CONTINUUM_BASE
-
-    slip = CONTINUUM_BASE["particles"]  # the pulling slip MPM floor, until the one that pushes covers every S
+    the base the particle floor is judged against (the slip floor that only pushes): where it
+    keeps no plug either, the report's verdict stays "no" and says so with its numbers
+    (docs/validation.md, the plug); an MPM on another base (no-slip, or the slip floor that
+    pulled, which here keeps the S = 0.3 plug), a coarser-only reading, or one that keeps its
+    plug changes nothing."""
+    slip = "slip"
 
     def mpm(S, cells, f, e, floor=slip):
         return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
@@ -102,11 +101,11 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
 
     plugs = {(0.2, 24): (0.02, 21.0), (0.3, 24): (0.19, 4.0), (0.5, 24): (0.94, 0.03)}
     continuum = {"slumps": [mpm(0.2, 12, 0.0, 22.0), mpm(0.3, 12, 0.36, 3.4), mpm(0.3, 16, 0.3, 3.0),
-                            mpm(0.5, 12, 1.0, 0.0)]}
+                            mpm(0.5, 12, 1.0, 0.0), mpm(0.3, 24, 0.95, 0.2, floor="pulling slip")]}
     _, got, verdict, _ = _plug_row(plugs, continuum)
     assert verdict == f"no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a {slip} base misses it too: S = 0.2, S = 0.3)", verdict
     assert f"the continuum (MPM, {slip} base) by the same criterion: S = 0.2 at H0 / 12: 0 % of it below 0.99 Y, 22 yield strains" in got, got
-    assert "S = 0.3 at H0 / 12/16: 30-36 % of it below 0.99 Y, 3-3.4 yield strains" in got, got
+    assert "S = 0.3 at H0 / 12/16: 30-36 % of it below 0.99 Y, 3-3.4 yield strains" in got and "H0 / 12/16/24" not in got, got
     bare = _plug_row(plugs)
     assert bare[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)" and "continuum" not in bare[1], bare
     # The continuum keeps the plug at S = 0.3: nothing to say for it.
@@ -142,12 +141,13 @@ def test_the_yield_stress_a_slump_fit_recovers_inverts_the_measured_piles():
 def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_its_base(tmp_path):
     """The report's row "a yield stress fitted to a slump is the continuum's": the finest
     resolution of the particle floor's piles against the MPM's finest grid at rest on the slip
-    base (a finer grid not at rest is passed over), within 10 %; the section lists each
+    floor that only pushes (a finer grid not at rest is passed over, and so is the slip floor
+    that pulled, "pulling slip", finer and at another height here); the section lists each
     floor against its base."""
     import json
 
     from benchmarks import validation_report
-    from benchmarks.validation_report import CONTINUUM_BASE, continuum_slumps, one_d_height
+    from benchmarks.validation_report import continuum_slumps, one_d_height
 
     def pile(S, n, share, floor="particles"):
         return {"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": floor,
@@ -157,13 +157,14 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
                 "plug_particles": 0, "plug_unyielded_fraction": float("nan"), "radius_over_R0": 2.0,
                 "radius_over_spread_theory": 0.9, "time_history": [0.0, 8.0], "h_history": [1.0, share], "run": 0}
 
-    slip = CONTINUUM_BASE["particles"]  # the pulling slip MPM floor, until the one that pushes covers every S
+    slip = "slip"
 
     def mpm(S, cells, share, floor=slip, at_rest=True):
         return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
                 "thickness_over_H0": share * one_d_height(S), "at_rest": at_rest, "duration": 8.0}
 
-    continuum = {"slumps": [mpm(S, 16, 0.85) for S in (0.1, 0.2, 0.3)] + [mpm(0.2, 32, 0.5, at_rest=False)]}
+    continuum = {"slumps": [mpm(S, 16, 0.85) for S in (0.1, 0.2, 0.3)] + [mpm(0.2, 32, 0.5, at_rest=False)]
+                 + [mpm(S, 24, 0.95, floor="pulling slip") for S in (0.1, 0.2, 0.3)]}
     assert continuum_slumps(continuum)[slip][0.2] == (16, pytest.approx(0.85 * one_d_height(0.2)), True)
     (tmp_path / "mpm_slump.json").write_text(json.dumps(continuum))
     for coarse, fine, verdict in ((0.80, 0.85, "yes"), (0.85, 0.95, "no")):
@@ -176,7 +177,8 @@ def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_i
         if verdict == "yes":
             assert "S = 0.2 at 12 across 1.000" in target, target
         assert "## The yield stress a slump fit recovers" in text
-        assert f"| particles | {DEFAULT_WEIGHT} | 8 | 0.2 |" in text and "slip, H0 / 16 |" in text
+        assert f"| particles | {DEFAULT_WEIGHT} | 8 | 0.2 |" in text and "| slip, H0 / 16 |" in text
+        assert "pulling slip, H0" not in text and "particles against slip; ghost_particles against sticky" in text
 
 
 def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
