@@ -680,16 +680,17 @@ def slump_yield_ratio(points: dict[float, float], height: float, S: float, log_s
 #: (docs/validation.md, the notes, "Which continuum each floor is judged against"): the plastic
 #: particle floor lets the pile slide, so the frictionless slip floor that only pushes; the
 #: ghost floor holds it, so no-slip. Not "pulling slip" (before 2026-12-07), whose couple held
-#: the pile up as no wall does. The particle floor is not frictionless (it rests well above the
-#: slip continuum at S = 0.2), so its comparisons bound it from the slip side.
+#: the pile up as no wall does. The particle floor is not frictionless (its piles rest 6-37
+#: points of the 1-D height above the slip continuum's), so its comparisons with it say how far
+#: from frictionless it rests, not a miss to be closed there.
 CONTINUUM_BASE = {"particles": "slip", "ghost_particles": "sticky"}
 
 
 def continuum_slumps(mpm: dict | None) -> dict[str, dict[float, tuple[int, float, bool]]]:
     """The continuum's (MPM, ``docs/mpm_slump.json``) Bingham slumps of aspect 1 run for 6 s
     or more: for each base and S the finest grid at rest, else the finest (a pile near rest
-    only, as the pulling slip floor's S = 0.1 at H0 / 16, 2.6e-8 M g H0 at 16 s). ``{base: {S: (cells per H0,
-    thickness / H0, at rest)}}``."""
+    only, as the pulling slip floor's S = 0.1 at H0 / 16, 2.6e-8 M g H0 at 16 s).
+    ``{base: {S: (cells per H0, thickness / H0, at rest)}}``."""
     out: dict[str, dict[float, tuple[int, float, bool]]] = {}
     for r in (mpm or {}).get("slumps", []):
         if (r.get("aspect") != 1.0 or not str(r.get("plasticity", "")).startswith("Bingham")
