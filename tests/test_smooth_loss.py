@@ -610,8 +610,8 @@ def _scan_against_trapezoid(name, taped_base, images=False, points=range(11), pa
     return secants / (0.5 * (grads[1:] + grads[:-1])), grads / grads[points.index(5)]
 
 
-@pytest.mark.xfail(strict=True, reason="the imaged landing's loss bends steeply: its gradient moves by up to 13.9 % "
-                   "of the centre's between neighbours 0.2 % apart (bound 8 %; worst interval 1.75 % off the trapezoid, "
+@pytest.mark.xfail(strict=True, reason="the imaged landing's loss bends steeply: its gradient moves by up to 10.5 % "
+                   "of the centre's between neighbours 0.2 % apart (bound 8 %; worst interval 3.5 % off the trapezoid, "
                    "bound 2 %). Ten times finer it is C1 (within 0.65 %): the bends are the rounded lift-off of "
                    "bottom-layer particles the touchdown left inside the plane and the images push back up, over a "
                    "band d0 / dt of 1e-3 to 2e-2 m/s; a wider band spreads them over more of the layer and does not "
@@ -632,11 +632,15 @@ def test_no_jump_in_the_loss_through_the_imaged_ground(taped_base):
     bends").
 
     The scan runs the four of its 11 values where the gradient bends most, -0.4 % to +0.2 %
-    (three taped runs and the shared centre instead of ten and the centre): measured at all 11,
-    gradients 1.09, 1.19, 1.19, 1.22, 1.14, 1.00, 0.92, 0.91, 0.90, 0.86, 0.88 of the
-    centre's, so the steps of 8.3 % and 13.9 % into and out of -0.2 % lie in it (the only other
-    step past 8 %, 9.4 % between -1 % and -0.8 %, outside); increments 1.75 % off the
-    trapezoid at most there (1.83 % at +0.2 % to +0.4 %). Over the same four values the plain
+    (three taped runs and the shared centre instead of ten and the centre): measured at all 11
+    since the rough floor's images keep their own F (docs/physics.md, "Where the imaged
+    ground's images store no energy"), gradients 1.06, 1.08, 1.02, 0.92, 0.90, 1.00, 1.01,
+    0.98, 0.92, 0.87, 0.85 of the centre's, so the step of 10.5 % out of -0.2 % and the worst
+    interval, 3.5 % off the trapezoid from -0.4 % to -0.2 %, lie in it (the only other step
+    past 8 %, 10.0 % between -0.6 % and -0.4 %, outside; every other interval within 1.3 %).
+    Just before, the four values read 1.1 % off at most and steps of up to 8.5 %; when the test
+    was written, gradients 1.09-0.86 of the centre's, steps of 8.3 % and 13.9 % into and out
+    of -0.2 %, 1.75 % off. Over the same four values the plain
     ground's scan passes (``test_no_jump_in_the_loss_through_ground_contact``'s landing), so a
     mend of the steepest bend reads as an unexpected pass here."""
     _assert_smooth(*_scan_against_trapezoid("viscosity", taped_base, images=True, points=range(3, 7)))
