@@ -323,8 +323,12 @@ def test_run_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.usdc"\ntranslation = [0, 0.01, 0]\n'
         '[[tools]]\nshape = "mesh"\nfile = "cutter.usda"\nposition = [0, 2, 0]\n[[colliders]]\ntype = "ground"\n')
     mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "cutter.usda")}
+    # A hard link to the mesh is the mesh under another real path (compared by real path, it was overwritten).
+    os.link(tmp_path / "part.usdc", tmp_path / "linked.usdc")
     for extra, needle in (([], "the default output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of part.toml"),
-                          (["-o", str(tmp_path / "cutter.usda")], "it is the mesh of [[tools]] #1 of part.toml")):
+                          (["-o", str(tmp_path / "cutter.usda")], "it is the mesh of [[tools]] #1 of part.toml"),
+                          (["-o", "linked.usdc"], "--output = 'linked.usdc' is not allowed: it is the mesh of [[bodies]] #1 of "
+                                                  "part.toml")):
         assert main(["run", "part.toml", "--no-progress", *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
@@ -350,8 +354,15 @@ def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         write_usd(tmp_path / name, {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
     x0 = load_scene("part.toml").builder.finalize().particle_x0
     np.savez(tmp_path / "t.npz", positions=x0[None], frames=[1])
-    mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "out/fitted.usdc")}
+    # Hard links to the target and the mesh: each is that file under another real path (compared
+    # by real path, -o replaced it with the fit's JSON).
+    os.link(tmp_path / "t.npz", tmp_path / "t_link.json")
+    os.link(tmp_path / "part.usdc", tmp_path / "part_link.json")
+    mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "out/fitted.usdc", "t.npz")}
     for scene, extra, needle in (
+            ("part.toml", ["-o", "t_link.json"], "--output = 't_link.json' is not allowed: it is --target 't.npz' of this fit"),
+            ("part.toml", ["-o", "part_link.json"], "--output = 'part_link.json' is not allowed: it is the mesh of [[bodies]] #1 "
+                                                    "of part.toml"),
             ("part.toml", ["-o", "part.usdc"], "--output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of "
                                                "part.toml"),
             ("inside.toml", ["--output-dir", "out"], "--output-dir out: fitted.usdc = 'out/fitted.usdc' is not allowed: "

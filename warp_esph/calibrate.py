@@ -133,9 +133,10 @@ def _refuse_overwriting_inputs(outputs, inputs) -> None:
     read = {}
     for what, path in inputs:
         if os.path.isfile(path):
-            read.setdefault(os.path.realpath(path), (what, path))
+            read.setdefault(checks.file_identity(path), (what, path))
     for what, path in outputs:
-        hit = read.get(os.path.realpath(path))
+        # A hard link to an input is that file under another real path: -o written there replaced it.
+        hit = read.get(checks.file_identity(path))
         if hit is not None:
             raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it is {hit[0]} {checks.shown_path(hit[1])} of this fit, which the fit "
                              "would overwrite; write the results elsewhere")
@@ -747,17 +748,6 @@ def _frames_said(frames) -> str:
     return f"{'frame' if len(frames) == 1 else 'frames'} {shown}"
 
 
-def _file_identity(path):
-    """What makes two target paths one file: its device and inode where it exists, so that a
-    hard link is the file it links (its real path is another: it was fitted twice), as a
-    symbolic link or another spelling of the path is; else its real path."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return os.path.realpath(str(path))
-    return st.st_dev, st.st_ino
-
-
 def _bodies_observed(t) -> frozenset | None:
     """The bodies a target observes: its one body, or every body of a run's USD read whole
     (``Target.bodies``); None for a file that holds no bodies."""
@@ -804,7 +794,7 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
     for k, path, fspec, frames in entries:
         if frames is None:
             continue
-        real = _file_identity(path)
+        real = checks.file_identity(path)
         for j, other_spec, other in seen.get(real, []):
             both = sorted(set(frames) & set(other))
             if both:
@@ -860,13 +850,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # share some frames, once the frames are read (_refuse_repeated_frames).
     given = {}
     for k, path in enumerate(targets):
-        first = given.setdefault((_file_identity(path), None if fspecs[k] is None else str(fspecs[k])), k)
+        first = given.setdefault((checks.file_identity(path), None if fspecs[k] is None else str(fspecs[k])), k)
         if first != k:
             name = key("target")
             raise ValueError(f"{where}{name} = {checks.shown_path(path)} is not allowed twice ({name} #{first + 1} and "
                              f"#{k + 1} are one file{'' if fspecs[k] is None else ' at the same frames'}): its observations "
                              "would count twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give each file once")
-    real = [_file_identity(path) for path in targets]
+    real = [checks.file_identity(path) for path in targets]
     repeated = {k for k in range(len(targets)) if real.count(real[k]) > 1}
 
     def read(path, fspec):
@@ -1151,7 +1141,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                                                    for kind, _, t in loaded],
                                  # What each target observes: the file, its bodies (a run's USD read whole
                                  # observes every body of it) and its tool.
-                                 observed=[None if kind == "silhouette" else (_file_identity(path), _bodies_observed(t),
+                                 observed=[None if kind == "silhouette" else (checks.file_identity(path), _bodies_observed(t),
                                                                               t.tool)
                                            for kind, path, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),

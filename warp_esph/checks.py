@@ -1037,6 +1037,17 @@ def bare_path(p: str) -> str:
     return p.rstrip(os.sep + (os.altsep or "")) or p
 
 
+def file_identity(path):
+    """What makes two paths one file: its device and inode where it exists, so that a hard
+    link is the file it links (its real path is another), as a symbolic link or another
+    spelling of the path is; else its real path."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return os.path.realpath(path)
+    return st.st_dev, st.st_ino
+
+
 def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the

@@ -478,8 +478,9 @@ def _refuse_writing_over_inputs(scene, scene_arg, output: str, what: str) -> Non
     from . import checks  # noqa: PLC0415
 
     checks.output_place(what, output)
-    read = {os.path.realpath(path): source for source, path in scene.inputs}
-    source = read.get(os.path.realpath(output))
+    # By file identity: an output hard-linked to a mesh the scene reads is that mesh.
+    read = {checks.file_identity(path): source for source, path in scene.inputs}
+    source = read.get(checks.file_identity(output))
     if source is not None:
         raise ValueError(f"{what} = {checks.shown_path(output)} is not allowed: it is {source} of "
                          f"{checks.shown_path(os.fsdecode(scene_arg), False)}, which the run "
