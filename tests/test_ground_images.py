@@ -70,6 +70,31 @@ def test_an_imaged_grounds_friction_or_plane_written_after_the_build_is_refused_
     np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -0.5])
+@pytest.mark.parametrize("built", [0.0, 0.3])
+def test_an_imaged_grounds_friction_not_a_finite_number_at_least_0_is_refused_at_the_build_and_at_the_step(built, bad):
+    """``add_ground`` refuses a friction that is NaN, inf or negative by name; written into
+    ``plane_friction`` after the build, the step took it without a word on a rough imaged
+    ground (neither 0 nor changed from 0: ``check_image_plane``'s rule) and ran the contact on it,
+    and on a frictionless one advised building again with that friction. The step now refuses
+    it by name, before any launch."""
+    b = we.SceneBuilder(spacing=DX)
+    b.add_box((0.0, 2.0 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    with pytest.raises(ValueError, match=rf"^friction = {bad!r} is not allowed: must be "):
+        b.add_ground(0.0, friction=bad, images=True)
+    b.add_ground(0.0, friction=built, images=True)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    s.step(a, c, 1e-4)
+    m.plane_friction.assign(np.array([bad], dtype=np.float32))
+    before = c.x.numpy().copy()
+    with pytest.raises(ValueError, match=rf"^model.plane_friction\[0\] = {bad!r} is not allowed: the imaged ground's friction "
+                                         rf"is a finite number >= 0 \(built {built!r}; add_ground's friction\)$"):
+        s.step(a, c, 1e-4)
+    np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
+
+
 def test_the_imaged_plane_is_checked_on_the_values_read_with_the_parameters(monkeypatch):
     """``check_image_plane`` read the plane arrays at every step, on a GPU a transfer of its own
     (each read of a device array waits for the device). The step's one read of the parameter

@@ -746,7 +746,8 @@ class Model(Unpicklable):
         before its first launch: on a GPU on the values that the step's one read of the
         parameter arrays brings in its transfer (``_parameters_read_once``; none of their own),
         on the CPU through views of the arrays, as a call outside a step reads them. A positive
-        friction changed to another positive one is the contact's alone and taken."""
+        friction changed to another positive one is the contact's alone and taken; one that is
+        NaN, inf or negative is refused, as ``add_ground`` refuses it."""
         if self._image_row is None:
             return
         # Inside _parameters_read_once the last read is its own (each other returns its rows).
@@ -760,6 +761,11 @@ class Model(Unpicklable):
         # (the garbage test of a taped rollout counts them).
         shown = self._shown_plane_value
 
+        if not 0.0 <= now[0] < np.inf:
+            # NaN, inf or a negative friction passed the rule below (neither 0 nor changed from
+            # 0): the contact ran on it, where add_ground refuses it by name.
+            raise ValueError(f"model.plane_friction[{k}] = {shown(now[0])} is not allowed: the imaged ground's friction is a "
+                             f"finite number >= 0 (built {shown(built[0])}; add_ground's friction)")
         if (now[0] == 0.0) != (built[0] == 0.0):
             moving = built[0] == 0.0
             raise ValueError(
