@@ -990,8 +990,14 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
                                                                               two_materials_scene):
     """Two experiments fitting the same body of one run's USD at a frame both choose counted
     its observations twice without a word, where one experiment giving the file twice is
-    refused; the file's other body, or another frame, is another observation and passes."""
+    refused; the file's other body, or another frame, is another observation and passes.
+    The frames here are known from the command line and the file (chosen, or the frames a
+    run's USD stores): the refusal comes before any scene is built or kernel launched (it
+    came after every experiment's scene was built and its checks had run)."""
+    import warp
+
     from warp_esph import fit as fit_module
+    from warp_esph import scenes
     from warp_esph.cli import main
 
     scene, run, exps = tmp_path / "two.toml", tmp_path / "run.usdc", tmp_path / "e.json"
@@ -1006,16 +1012,25 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
     # without a word while the check compared the body's names, None against 'a'). A hard
     # link is the file too (another real path: it passed).
     os.link(run, tmp_path / "again.usdc")
+    def built(*args, **kwargs):
+        raise AssertionError("built or launched before the refusal")
+
+    # frames None: the experiment chooses none, and observes every frame the file stores.
     for mine, body, frames, refused, name in (("a", "a", "2", True, "run"), ("a", "b", "2", False, "run"),
                                               ("a", "a", "1", False, "run"), ("a", None, "2", True, "run"),
                                               (None, "b", "2", True, "run"), (None, "b", "1", False, "run"),
-                                              ("a", "a", "2", True, "again")):
-        exps.write_text(json.dumps([{"scene": "two.toml", "target": f"{name}.usdc", "target_frames": frames,
+                                              ("a", "a", "2", True, "again"), ("a", "a", None, True, "run")):
+        exps.write_text(json.dumps([{"scene": "two.toml", "target": f"{name}.usdc",
+                                     **({} if frames is None else {"target_frames": frames}),
                                      **({} if body is None else {"target_body": body})}]))
         capsys.readouterr()
-        assert main(["fit", str(scene), "--target", str(run), *([] if mine is None else ["--target-body", mine]),
-                     "--target-frames", "2", "--experiments", str(exps), "--no-progress", "--no-usd",
-                     "--output-dir", str(tmp_path / "out")]) == 2
+        with monkeypatch.context() as m:
+            if refused:
+                m.setattr(scenes, "load_scaled_scene", built)
+                m.setattr(warp, "launch", built)
+            assert main(["fit", str(scene), "--target", str(run), *([] if mine is None else ["--target-body", mine]),
+                         "--target-frames", "2", "--experiments", str(exps), "--no-progress", "--no-usd",
+                         "--output-dir", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         if refused:
             assert err == (f"warp-esph: error: {exps}: experiment #1: target = '{tmp_path / name}.usdc' (body '{mine or body}') is not allowed at "
@@ -1024,6 +1039,39 @@ def test_experiments_observing_one_body_of_one_file_at_one_frame_are_refused(tmp
                            "experiment (two experiments may share a file for different bodies or tools)\n"), err
         else:
             assert err.endswith("stopped by the test before the first evaluation of 2 experiments\n"), err
+
+
+def test_experiments_observing_one_file_at_the_last_frame_their_scenes_set_are_refused_once_the_frames_are_known(
+        tmp_path, capsys, monkeypatch, dough_scene):
+    """A positions file without frame numbers, no frames chosen, is observed at the run's last
+    frame, which the scene (or the experiment's ``frames``) sets: two experiments observing it
+    at the same last frame are refused once the scenes are built (the early pass cannot know
+    it); at other last frames it passes (to the fit, stood in for here)."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    scene, exps = tmp_path / "guess.toml", tmp_path / "e.json"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    np.save(tmp_path / "x.npy", load_scene(str(scene)).builder.finalize().particle_x0)
+
+    def stand_in(experiments, *args, **kwargs):
+        raise ValueError(f"stopped by the test with {len(experiments)} experiments")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    for frames, refused in ((None, True), (1, False)):
+        exps.write_text(json.dumps([{"scene": "guess.toml", "target": "x.npy", **({} if frames is None else {"frames": frames})}]))
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(tmp_path / "x.npy"), "--experiments", str(exps), "--params", "yield_stress",
+                     "--no-progress", "--no-usd", "--output-dir", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        if refused:
+            assert err.endswith(f"{exps}: experiment #1: target = '{tmp_path / 'x.npy'}' is not allowed at frame 2: the command "
+                                "line's --target observes the same file there, so its observations would count twice, and "
+                                "the diagnostics' standard errors shrink by 1/sqrt(2); give it in one experiment (two "
+                                "experiments may share a file for different bodies or tools)\n"), err
+        else:
+            assert err.endswith("stopped by the test with 2 experiments\n"), err
 
 
 def test_fit_json_records_each_experiments_solver_settings(tmp_path, dough_scene):
@@ -1463,7 +1511,9 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
     # which the command line never gave.
     for name, entry in (("frames0.json", {"frames": 0}), ("tframes0.json", {"target_frames": "0"}),
                         ("tbody.json", {"target": "good.npz", "target_body": "x"})):
-        (tmp_path / name).write_text(json.dumps([{"scene": "guess.toml", "target": "run.usdc", **entry}]))
+        # Another recording: run.usdc at every frame, observed again, is refused before any scene.
+        (tmp_path / name).write_text(json.dumps([{"scene": "guess.toml", "target": "other.usdc", **entry}]))
+    shutil.copy(run, tmp_path / "other.usdc")
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "fitted.usdc").write_bytes(run.read_bytes())
     before = {p: p.read_bytes() for p in (run, guess, tmp_path / "out" / "fitted.usdc")}

@@ -865,6 +865,9 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     (tmp_path / "s.toml").write_text(GOOD_TOML)
     run = tmp_path / "truth.usdc"
     assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    # The experiments observe another recording: the command line's file at every frame,
+    # observed again, is refused before any scene is read (they test the scenes' refusals).
+    shutil.copy(run, tmp_path / "other.usdc")
     capsys.readouterr()
     fit = ["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1"]
     (tmp_path / "fo" / "fitted.usdc").mkdir(parents=True)
@@ -891,19 +894,19 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, f"--experiments {tmp_path / 'exp.json'} is not valid JSON")
     # A negative weight would maximise that experiment's loss.
-    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "weight": -1}]))
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "other.usdc", "weight": -1}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "experiment #1: weight = -1 is not allowed: must be > 0")
     # Frame numbers as a JSON list are one choice per target: the refusal says how one target's
     # frames are written (it said only 'given 2 times for 1 target files').
-    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "target_frames": [1, 2]}]))
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "other.usdc", "target_frames": [1, 2]}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "experiment #1: target_frames is given 2 times for 1 target files: ",
                           'a list is one choice per target: frames 1, 2 of one target are "1,2"')
     # A material index out of range, or true (read as a body named 'True'): named by experiment.
     for chosen, words in ((5, "experiment #1: material 5 is not allowed: indices are 0..0"),
                           (True, "experiment #1: material = True is not allowed: give a material index or a body name")):
-        (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "material": chosen}]))
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "other.usdc", "material": chosen}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         assert_one_line_error(capsys.readouterr().err, words)
     # The scene file is named as the JSON wrote it, not by the path it resolves to beside the JSON
@@ -922,7 +925,7 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
                          ("sub/nope.toml", f"cannot read scene file 'sub/nope.toml' {looked}"),
                          ("sub/bad", "sub/bad: invalid TOML: "),
                          ("sub/nope", f"cannot read scene file 'sub/nope' {looked}")):
-        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "other.usdc"}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         captured = capsys.readouterr()
         assert_one_line_error(captured.err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words}")
@@ -937,12 +940,12 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     for scene, words in (("plain", ("scene = 'plain' is not allowed: unknown scene; the built-in scenes are ",
                                     f"scene file (relative to {tmp_path}, the folder of the --experiments file)")),
                          ("twice", ("twice: invalid TOML: ",))):
-        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "other.usdc"}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         assert_one_line_error(capsys.readouterr().err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words[0]}", *words[1:])
     monkeypatch.chdir(tmp_path)
     # An absolute path is named as written, and was looked for nowhere else.
-    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(tmp_path / "nope.toml"), "target": "truth.usdc"}]))
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(tmp_path / "nope.toml"), "target": "other.usdc"}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     err = capsys.readouterr().err
     assert_one_line_error(err, f"experiment #1: cannot read scene file '{tmp_path / 'nope.toml'}': No such file or directory")
@@ -954,7 +957,7 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
         assert main([*fit, "--material", chosen]) == 2
         assert_one_line_error(capsys.readouterr().err, words)
     # A key given twice kept the last value without a word (TOML refuses it).
-    (tmp_path / "exp.json").write_text('[{"scene": "s.toml", "target": "truth.usdc", "weight": 1, "weight": 2}]')
+    (tmp_path / "exp.json").write_text('[{"scene": "s.toml", "target": "other.usdc", "weight": 1, "weight": 2}]')
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "exp.json is not allowed: the key 'weight' appears twice in one object")
     assert not (tmp_path / "fit_tiny").exists()
@@ -970,6 +973,9 @@ def test_an_experiment_s_scene_is_named_as_the_json_wrote_it_where_its_resolved_
     (tmp_path / "s.toml").write_text(GOOD_TOML)
     run = tmp_path / "truth.usdc"
     assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    # The experiments observe another recording: the command line's file at every frame,
+    # observed again, is refused before any scene is read (they test the scenes' refusals).
+    shutil.copy(run, tmp_path / "other.usdc")
     capsys.readouterr()
     sub = "sub" + "d" * 100
     (tmp_path / sub).mkdir()
@@ -980,7 +986,7 @@ def test_an_experiment_s_scene_is_named_as_the_json_wrote_it_where_its_resolved_
                          (f"{sub}/bad.toml", f"{sub}/bad.toml: invalid TOML: "),
                          (f"{sub}/nope.toml", f"cannot read scene file '{sub}/nope.toml' {looked}")):
         assert len(str(tmp_path / scene)) > PATH_SHOWN_WHOLE >= len(scene)
-        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "other.usdc"}]))
         assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1",
                      "--experiments", str(tmp_path / "exp.json")]) == 2
         captured = capsys.readouterr()
@@ -1041,10 +1047,13 @@ def test_an_experiment_s_scene_looked_for_in_a_long_folder_names_the_folder_by_i
     (tmp_path / "s.toml").write_text(GOOD_TOML)
     run = tmp_path / "truth.usdc"
     assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    # The experiments observe another recording: the command line's file at every frame,
+    # observed again, is refused before any scene is read (they test the scenes' refusals).
+    shutil.copy(run, tmp_path / "other.usdc")
     capsys.readouterr()
     folder = tmp_path / ("a long folder " + "d" * PATH_SHOWN_WHOLE)
     folder.mkdir()
-    (folder / "exp.json").write_text(json.dumps([{"scene": scene, "target": str(run)}]))
+    (folder / "exp.json").write_text(json.dumps([{"scene": scene, "target": str(tmp_path / "other.usdc")}]))
     assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1",
                  "--experiments", str(folder / "exp.json")]) == 2
     captured = capsys.readouterr()

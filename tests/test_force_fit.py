@@ -6,6 +6,7 @@ from the ``<output>_tools.csv`` a previous ``warp-esph run`` wrote."""
 import json
 import math
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -766,9 +767,16 @@ def test_a_force_curve_the_model_cannot_follow_is_not_reported_determined():
 def test_one_tools_force_log_in_two_experiments_at_a_shared_frame_is_refused(tmp_path, capsys, monkeypatch, dough_scene):
     """The same tool's force log in the command line's experiment and an ``--experiments``
     entry, at a frame both fit, counted its readings twice without a word; at other frames it
-    passes (to the fit, stood in for here)."""
+    passes (to the fit, stood in for here). The frames chosen, it is refused before any scene
+    is built or kernel launched."""
+    import warp  # noqa: PLC0415
+
     from warp_esph import fit as fit_module  # noqa: PLC0415
+    from warp_esph import scenes  # noqa: PLC0415
     from warp_esph.cli import main  # noqa: PLC0415
+
+    def built(*args, **kwargs):
+        raise AssertionError("built or launched before the refusal")
 
     scene = tmp_path / "guess.toml"
     scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
@@ -782,9 +790,13 @@ def test_one_tools_force_log_in_two_experiments_at_a_shared_frame_is_refused(tmp
     for frames, refused in (("1,2", True), ("1", False)):
         experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv", "target_frames": frames}]))
         capsys.readouterr()
-        assert main(["fit", str(scene), "--target", str(log), "--target-frames", "2", "--experiments", str(experiments),
-                     "--iterations", "0", "--no-usd", "--no-progress", "--params", "yield_stress",
-                     "--output-dir", str(tmp_path / "out")]) == 2
+        with monkeypatch.context() as m:
+            if refused:
+                m.setattr(scenes, "load_scaled_scene", built)
+                m.setattr(warp, "launch", built)
+            assert main(["fit", str(scene), "--target", str(log), "--target-frames", "2", "--experiments", str(experiments),
+                         "--iterations", "0", "--no-usd", "--no-progress", "--params", "yield_stress",
+                         "--output-dir", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         if refused:
             assert err.endswith(f"{experiments}: experiment #1: target = '{log}' (tool 'plane0') is not allowed at frame 2: "
@@ -824,7 +836,9 @@ def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refus
     assert ("--noise = 0.05 is not allowed: it is the noise of position, point-cloud and mesh targets (m), and the "
             "targets are forces; give a force log's noise in newtons as --force-noise") in err, err
     experiments = tmp_path / "exp.json"
-    experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv", "noise": 0.05}]))
+    # Another log: log.csv at every frame, observed again, is refused before any scene.
+    shutil.copy(log, tmp_path / "other.csv")
+    experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "other.csv", "noise": 0.05}]))
     err = refused("--target", str(log), "--experiments", str(experiments))
     assert "experiment #1: noise = 0.05 is not allowed: it is the noise of position, point-cloud and mesh" in err, err
     # A position target beside the log reads --noise; --force-noise without a log is refused.

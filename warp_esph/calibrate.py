@@ -280,9 +280,16 @@ def run_fit(args, out=None, err=None) -> int:
 
     # Every experiment's targets whose frames are chosen, before any scene: an experiment's
     # choice was refused after the experiments before it had built theirs, launching kernels.
-    chosen = [load(where, spec, targets_only=True) for where, spec in specs]
-    exps = [load(where, spec, read_targets=read) for (where, spec), read in zip(specs, chosen)]
-    _refuse_shared_observations(exps, [where for where, _ in specs])
+    # A file that two experiments name is read then too, and one observed alike by both at
+    # frames known so far refused (the frames a scene sets, once it is built, below): it was
+    # refused after every scene was built and their kernels had run.
+    named = [{checks.file_identity(path) for path in _targets_of(spec)} for _, spec in specs]
+    shared = {real for i, mine in enumerate(named) for real in mine if any(real in other for other in named[i + 1:])}
+    chosen = [load(where, spec, targets_only=True, shared=shared) for where, spec in specs]
+    wheres = [where for where, _ in specs]
+    _refuse_shared_observations([observed for _, observed in chosen], wheres)
+    exps = [load(where, spec, read_targets=read) for (where, spec), (read, _) in zip(specs, chosen)]
+    _refuse_shared_observations([list(zip(e.targets, e.observed, e.target_frames)) for e in exps], wheres)
     # A noise nothing reads: refused, not ignored. --noise is metres, read by position, cloud
     # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
     # their own, and a force-only fit had dropped '--noise 0.05' (meant as newtons) without a word.
@@ -756,32 +763,39 @@ def _bodies_observed(t) -> frozenset | None:
     return None if t.bodies is None else frozenset(name for name, _ in t.bodies)
 
 
-def _refuse_shared_observations(exps, wheres) -> None:
+def _targets_of(spec) -> list:
+    """An experiment's targets: its one ``target`` or its list."""
+    return list(spec["target"]) if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
+
+
+def _refuse_shared_observations(observations, wheres) -> None:
     """Refuse one file observed alike by two experiments (a body of a run's USD both observe,
     a run's USD read whole observing every body of it; the same tool's force log) at a frame
     both fit: its observations there would count twice, as within one experiment
     (``_refuse_repeated_frames``). Another body or tool of the file is another observation.
+    ``observations``: each experiment's targets as (path, what it observes: its file identity,
+    bodies and tool, or None for silhouettes; its frames, or None where not known yet);
     ``wheres``: each experiment's prefix ('' for the command line's)."""
     seen: dict[tuple, list] = {}
-    for i, e in enumerate(exps):
-        for k, observed in enumerate(e.observed):
-            if observed is None:
+    for i, mine in enumerate(observations):
+        for path, observed, frames in mine:
+            if observed is None or frames is None:
                 continue
             real, bodies, tool = observed
-            for j, other_k, other_bodies, other_frames in seen.get((real, tool), []):
+            for j, other_bodies, other_frames in seen.get((real, tool), []):
                 shared = None if bodies is None else sorted(bodies & other_bodies)
-                both = sorted(set(e.target_frames[k]) & set(other_frames))
+                both = sorted(set(frames) & set(other_frames))
                 if both and shared != []:
                     of = ((f" (bod{'y' if len(shared) == 1 else 'ies'} {', '.join(map(repr, shared))})" if shared else "")
                           + (f" (tool {tool!r})" if tool is not None else ""))
                     first = wheres[j].rstrip(": ") or "the command line's --target"
                     name = "target" if wheres[i] else "--target"
                     raise ValueError(
-                        f"{wheres[i]}{name} = {checks.shown_path(e.targets[k])}{of} is not allowed at {_frames_said(both)}: "
+                        f"{wheres[i]}{name} = {checks.shown_path(path)}{of} is not allowed at {_frames_said(both)}: "
                         f"{first} observes the same file{' alike' if of else ''} there, so its observations would count "
                         "twice, and the diagnostics' standard errors shrink by 1/sqrt(2); give it in one experiment "
                         "(two experiments may share a file for different bodies or tools)")
-            seen.setdefault((real, tool), []).append((i, k, bodies, e.target_frames[k]))
+            seen.setdefault((real, tool), []).append((i, bodies, frames))
 
 
 def _refuse_repeated_frames(entries, where: str, key) -> None:
@@ -811,10 +825,12 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
 
 
 def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, *, targets_only=False,
-                read_targets=None):
+                shared=frozenset(), read_targets=None):
     """One experiment of the command: scene, model (jittered), targets, loss, time step.
-    ``targets_only``: only its targets whose frames are chosen, read (by index), before any
-    scene is built; ``read_targets``: those, read so before."""
+    ``targets_only``: only its targets whose frames are chosen, or whose file (by
+    ``checks.file_identity``) is in ``shared`` or given twice, read before any scene is built:
+    those (by index) and what each observes (``_refuse_shared_observations``' entries, frames
+    None where the scene sets them); ``read_targets``: those, read so before."""
     import types  # noqa: PLC0415
 
     def key(name):
@@ -825,7 +841,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     scale_name = f"{where}{key('scale')}"
     scale = checks.positive(scale_name, spec["scale"])
-    targets = spec["target"] if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
+    targets = _targets_of(spec)
     tframes = spec.get("target_frames")
     if isinstance(tframes, (list, tuple)) and not tframes:
         raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(tframes)!r} is not allowed: it chooses no frame; give "
@@ -886,11 +902,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # A file given more than once is read too, its frames compared before the scene's.
     early = read_targets if read_targets is not None else {
         k: read(path, fspecs[k]) for k, path in enumerate(targets)
-        if not cameras and (fspecs[k] is not None or k in repeated) and os.path.isfile(path)}
+        if not cameras and (fspecs[k] is not None or k in repeated or real[k] in shared) and os.path.isfile(path)}
     if targets_only:
-        _refuse_repeated_frames([(k, path, fspecs[k], _chosen_frames(early[k], fspecs[k], f"{where}{key('target_frames')}"))
-                                 for k, path in enumerate(targets) if k in early and k in repeated], where, key)
-        return early
+        known = {k: _chosen_frames(t, fspecs[k], f"{where}{key('target_frames')}") for k, t in early.items()}
+        _refuse_repeated_frames([(k, path, fspecs[k], known[k]) for k, path in enumerate(targets) if k in early and k in repeated],
+                                where, key)
+        return early, [(targets[k], (real[k], _bodies_observed(t), t.tool), known[k]) for k, t in early.items()]
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.

@@ -1045,6 +1045,8 @@ def file_identity(path):
         st = os.stat(path)
     except OSError:
         return os.path.realpath(path)
+    except ValueError:  # a NUL in it: no file, which its reader refuses by name ('embedded null byte' named none)
+        return os.fspath(path)
     return st.st_dev, st.st_ino
 
 
