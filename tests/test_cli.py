@@ -893,6 +893,11 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     (tmp_path / "exp.json").write_bytes(b"\xda\x00\xff garbage")
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, f"--experiments {tmp_path / 'exp.json'} is not valid JSON")
+    # A missing target is named with its experiment, as its other refusals are (it named none).
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "missing.usdc"}]))
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"{tmp_path / 'exp.json'}: experiment #1: target file "
+                                                   f"{tmp_path / 'missing.usdc'} does not exist")
     # A negative weight would maximise that experiment's loss.
     (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "other.usdc", "weight": -1}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

@@ -254,8 +254,9 @@ def run_fit(args, out=None, err=None) -> int:
     def load(where, spec, **how):
         try:
             return _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, **how)
-        except ValueError as e:
-            # Every refusal of an experiment of the file names it (fps, dt, a target's).
+        except (ValueError, FileNotFoundError) as e:
+            # Every refusal of an experiment of the file names it (fps, dt, a target's; a
+            # missing target's too, which named no experiment).
             said = str(e)
             message = said[len(where):] if where and said.startswith(where) else said
             written = spec.get("scene_as_written")
@@ -275,7 +276,7 @@ def run_fit(args, out=None, err=None) -> int:
                     message = (f"{unread} (looked for relative to {checks.shown_path(spec['scene_folder'], False)}, the folder of the "
                                f"--experiments file){message[len(unread):]}")
             if where and f"{where}{message}" != said:
-                raise ValueError(f"{where}{message}") from None
+                raise type(e)(f"{where}{message}") from None
             raise
 
     # Every experiment's targets whose frames are chosen, before any scene: an experiment's
