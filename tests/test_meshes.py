@@ -766,3 +766,26 @@ def test_a_mesh_the_reader_refuses_is_said_by_the_readers_words_not_its_exceptio
     assert read_reason(KeyError("points")) == "no 'points'"
     assert read_reason(EOFError()) == "it ends early"
     assert read_reason(ValueError("  ")) == "its reader gave no reason"
+
+
+def test_file_identity_reads_inode_0_as_no_identity(tmp_path, monkeypatch):
+    """``checks.file_identity`` compares device and inode, which Python's ``os.stat`` promises
+    identify a file only where the inode is not 0: on a file system that numbers none, every
+    file read (dev, 0) and two distinct targets were one file (refused as given twice), an
+    output any input. Such a file is its real path, as a missing one is."""
+    from warp_esph import checks
+
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    a.write_bytes(b"a")
+    b.write_bytes(b"b")
+    os.link(a, tmp_path / "hard.npz")
+    assert checks.file_identity(a) == checks.file_identity(tmp_path / "hard.npz") != checks.file_identity(b)
+    real_stat = os.stat
+
+    def no_inodes(path, *args, **kwargs):
+        st = real_stat(path, *args, **kwargs)
+        return os.stat_result((st.st_mode, 0, *tuple(st)[2:]))
+
+    monkeypatch.setattr(os, "stat", no_inodes)
+    assert checks.file_identity(a) != checks.file_identity(b)
+    assert checks.file_identity(a) == checks.file_identity(str(tmp_path / "." / "a.npz"))  # its real path

@@ -1040,13 +1040,18 @@ def bare_path(p: str) -> str:
 def file_identity(path):
     """What makes two paths one file: its device and inode where it exists, so that a hard
     link is the file it links (its real path is another), as a symbolic link or another
-    spelling of the path is; else its real path."""
+    spelling of the path is; else its real path, as where the file system numbers no inode
+    (``st_ino`` 0, which Python promises identifies a file only where it is not 0)."""
     try:
         st = os.stat(path)
     except OSError:
         return os.path.realpath(path)
     except ValueError:  # a NUL in it: no file, which its reader refuses by name ('embedded null byte' named none)
         return os.fspath(path)
+    if st.st_ino == 0:
+        # Every file of such a system reads inode 0: two distinct files were one (a target
+        # refused as given twice, an output as an input).
+        return os.path.realpath(path)
     return st.st_dev, st.st_ino
 
 
