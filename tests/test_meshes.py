@@ -1,5 +1,6 @@
 """Mesh loading, checking and inside-sampling (warp_esph.meshes) and SceneBuilder.add_mesh."""
 
+import json
 import math
 import os
 import pathlib
@@ -323,17 +324,20 @@ def test_run_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.usdc"\ntranslation = [0, 0.01, 0]\n'
         '[[tools]]\nshape = "mesh"\nfile = "cutter.usda"\nposition = [0, 2, 0]\n[[colliders]]\ntype = "ground"\n')
     mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "cutter.usda")}
-    # A hard link to the mesh is the mesh under another real path (compared by real path, it was overwritten).
-    os.link(tmp_path / "part.usdc", tmp_path / "linked.usdc")
     for extra, needle in (([], "the default output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of part.toml"),
-                          (["-o", str(tmp_path / "cutter.usda")], "it is the mesh of [[tools]] #1 of part.toml"),
-                          (["-o", "linked.usdc"], "--output = 'linked.usdc' is not allowed: it is the mesh of [[bodies]] #1 of "
-                                                  "part.toml")):
+                          (["-o", str(tmp_path / "cutter.usda")], "it is the mesh of [[tools]] #1 of part.toml")):
         assert main(["run", "part.toml", "--no-progress", *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
         assert needle in err and "which the run would overwrite; give another --output" in err, err
         assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes  # both meshes as they were
+    # A hard link to the mesh is written as a file of its own (the output's name is replaced): the
+    # mesh keeps its data, and the run was refused as writing over it.
+    os.link(tmp_path / "part.usdc", tmp_path / "linked.usdc")
+    assert main(["run", "part.toml", "--no-progress", "-o", "linked.usdc"]) == 0
+    capsys.readouterr()
+    assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes
+    assert (tmp_path / "linked.usdc").read_bytes() != mesh_bytes["part.usdc"]
     assert main(["run", "part.toml", "--no-progress", "-o", "run.usdc"]) == 0  # and the scene still runs
 
 def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypatch, capsys):
@@ -354,15 +358,8 @@ def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         write_usd(tmp_path / name, {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
     x0 = load_scene("part.toml").builder.finalize().particle_x0
     np.savez(tmp_path / "t.npz", positions=x0[None], frames=[1])
-    # Hard links to the target and the mesh: each is that file under another real path (compared
-    # by real path, -o replaced it with the fit's JSON).
-    os.link(tmp_path / "t.npz", tmp_path / "t_link.json")
-    os.link(tmp_path / "part.usdc", tmp_path / "part_link.json")
     mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "out/fitted.usdc", "t.npz")}
     for scene, extra, needle in (
-            ("part.toml", ["-o", "t_link.json"], "--output = 't_link.json' is not allowed: it is --target 't.npz' of this fit"),
-            ("part.toml", ["-o", "part_link.json"], "--output = 'part_link.json' is not allowed: it is the mesh of [[bodies]] #1 "
-                                                    "of part.toml"),
             ("part.toml", ["-o", "part.usdc"], "--output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of "
                                                "part.toml"),
             ("inside.toml", ["--output-dir", "out"], "--output-dir out: fitted.usdc = 'out/fitted.usdc' is not allowed: "
@@ -374,6 +371,14 @@ def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         assert needle in err and "which the fit would overwrite; write the results elsewhere" in err, err
         assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes  # the meshes as they were
     assert not (tmp_path / "out" / "fit.json").exists()
+    # Hard links to the target and the mesh are written as files of their own (-o's name is
+    # replaced): both keep their data, and the fit was refused as writing over them.
+    for link, of in (("t_link.json", "t.npz"), ("part_link.json", "part.usdc")):
+        os.link(tmp_path / of, tmp_path / link)
+        assert main(["fit", "part.toml", "--target", "t.npz", "--params", "yield_stress", "--iterations", "0",
+                     "--no-progress", "--no-diagnostics", "-o", link]) == 0, capsys.readouterr().err
+        assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes
+        assert isinstance(json.loads((tmp_path / link).read_text()), dict), link  # the fit's JSON
 
 
 def test_fit_refusing_an_output_that_is_a_mesh_its_scene_reads_names_a_long_scene_path_by_its_ends(tmp_path, capsys):

@@ -133,10 +133,11 @@ def _refuse_overwriting_inputs(outputs, inputs) -> None:
     read = {}
     for what, path in inputs:
         if os.path.isfile(path):
-            read.setdefault(checks.file_identity(path), (what, path))
+            read.setdefault(os.path.realpath(path), (what, path))
     for what, path in outputs:
-        # A hard link to an input is that file under another real path: -o written there replaced it.
-        hit = read.get(checks.file_identity(path))
+        # By real path, not file identity: every output replaces its name (os.replace), so a
+        # hard link to an input is written as a file of its own and the input keeps its data.
+        hit = read.get(os.path.realpath(path))
         if hit is not None:
             raise ValueError(f"{what} = {checks.shown_path(path)} is not allowed: it is {hit[0]} {checks.shown_path(hit[1])} of this fit, which the fit "
                              "would overwrite; write the results elsewhere")

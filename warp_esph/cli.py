@@ -478,9 +478,10 @@ def _refuse_writing_over_inputs(scene, scene_arg, output: str, what: str) -> Non
     from . import checks  # noqa: PLC0415
 
     checks.output_place(what, output)
-    # By file identity: an output hard-linked to a mesh the scene reads is that mesh.
-    read = {checks.file_identity(path): source for source, path in scene.inputs}
-    source = read.get(checks.file_identity(output))
+    # By real path, not file identity: the run replaces the output's name (os.replace), so a
+    # hard link to a mesh is written as a file of its own and the mesh the scene reads is kept.
+    read = {os.path.realpath(path): source for source, path in scene.inputs}
+    source = read.get(os.path.realpath(output))
     if source is not None:
         raise ValueError(f"{what} = {checks.shown_path(output)} is not allowed: it is {source} of "
                          f"{checks.shown_path(os.fsdecode(scene_arg), False)}, which the run "
