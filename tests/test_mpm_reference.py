@@ -48,25 +48,33 @@ def test_sustained_squeeze_carries_the_bingham_stress_to_large_strain():
     assert rows[-1]["bingham_over_sigma_y"] > 1.3  # the rate term is a third of the load by the end
 
 
+def _stiff_block_on_the_floor(friction, velocity, headroom_cells, duration):
+    """An 8 x 4 x 8 stiff elastic block resting on the MPM's floor (``floor_friction``), all its
+    particles given ``velocity`` = (sideways, up), run for ``duration``: the simulation and the
+    block's starting points."""
+    import numpy as np
+    import warp as wp
+
+    dx = 0.005
+    s = 0.5 * dx
+    pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
+    mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
+    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + headroom_cells * dx, floor_friction=friction)
+    v = np.zeros((len(pts), 3), np.float32)
+    v[:, 0], v[:, 1] = velocity
+    sim.v = wp.array(v, dtype=wp.vec3)
+    while sim.t < duration:
+        sim.step()
+    return sim, pts
+
+
 def test_coulomb_floor_decelerates_a_sliding_block_at_friction_times_g():
     """The slump's floor options (docs/validation.md, the MPM note: slip against no-slip): a
     stiff block sliding on the floor keeps its speed on a slip floor and loses friction x g per
     second on a Coulomb one (the floor nodes' tangential impulse is capped by friction x their
     normal one)."""
-    import numpy as np
-    import warp as wp
-
     def slide(friction, v0=0.2, duration=0.02):
-        dx = 0.005
-        s = 0.5 * dx
-        pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
-        mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
-        sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + 2 * dx, floor_friction=friction)
-        v = np.zeros((len(pts), 3), np.float32)
-        v[:, 0] = v0
-        sim.v = wp.array(v, dtype=wp.vec3)
-        while sim.t < duration:
-            sim.step()
+        sim, _ = _stiff_block_on_the_floor(friction, (v0, 0.0), 2, duration)
         return float(sim.v.numpy()[:, 0].mean()), sim.t
 
     v, _ = slide(0.0)
@@ -87,25 +95,14 @@ def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic(friction):
     pulls: it measured a rise of 0.0014 of the ballistic one and the block moving down at 1.29 x
     the ballistic speed, where this floor reads 0.997 and 0.9999 (docs/physics.md, "What the rested pile's forces carry": at rest that pull is a couple that
     holds the slip pile up)."""
-    import numpy as np
-    import warp as wp
-
-    dx, v0, duration = 0.005, 0.2, 0.02
-    s = 0.5 * dx
-    pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
-    mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
-    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + 4 * dx, floor_friction=friction)
-    v = np.zeros((len(pts), 3), np.float32)
-    v[:, 1] = v0
-    v[:, 0] = v0 if friction > 0.0 else 0.0
-    sim.v = wp.array(v, dtype=wp.vec3)
-    while sim.t < duration:
-        sim.step()
+    v0 = 0.2
+    sideways = v0 if friction > 0.0 else 0.0
+    sim, pts = _stiff_block_on_the_floor(friction, (sideways, v0), 4, 0.02)
     t, g = sim.t, mpm_slump.G
     rise = float(sim.x.numpy()[:, 1].mean() - pts[:, 1].mean())
     assert rise == pytest.approx(v0 * t - 0.5 * g * t * t, rel=0.01), rise
     assert float(sim.v.numpy()[:, 1].mean()) == pytest.approx(v0 - g * t, rel=1e-3)
-    assert float(sim.v.numpy()[:, 0].mean()) == pytest.approx(v[0, 0], abs=1e-5 * v0)
+    assert float(sim.v.numpy()[:, 0].mean()) == pytest.approx(sideways, abs=1e-5 * v0)
 
 
 def test_coulomb_floor_node_loses_friction_times_the_normal_speed_it_takes_and_never_reverses():
