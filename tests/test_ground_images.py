@@ -39,7 +39,7 @@ def test_an_imaged_grounds_friction_or_plane_written_after_the_build_is_refused_
     Written in place afterwards (a caller, an optimiser of ``plane_friction``'s gradient), a
     frictionless imaged ground given a friction ran on frictionless, a rough one given
     friction 0 ran rough, and a moved ground left its images under the old plane, all without
-    a word; the step now refuses each by name before any launch (``Model.check_image_plane``).
+    a word; the step now refuses each by name before any launch (``Model.check_colliders``).
     A positive friction changed to another positive one is the contact's and runs."""
     b = we.SceneBuilder(spacing=DX)
     b.add_box((0.0, 2.0 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
@@ -75,7 +75,7 @@ def test_an_imaged_grounds_friction_or_plane_written_after_the_build_is_refused_
 def test_an_imaged_grounds_friction_not_a_finite_number_at_least_0_is_refused_at_the_build_and_at_the_step(built, bad):
     """``add_ground`` refuses a friction that is NaN, inf or negative by name; written into
     ``plane_friction`` after the build, the step took it without a word on a rough imaged
-    ground (neither 0 nor changed from 0: ``check_image_plane``'s rule) and ran the contact on it,
+    ground (neither 0 nor changed from 0: the imaged ground's rule of ``check_colliders``) and ran the contact on it,
     and on a frictionless one advised building again with that friction. The step now refuses
     it by name, before any launch."""
     b = we.SceneBuilder(spacing=DX)
@@ -95,37 +95,48 @@ def test_an_imaged_grounds_friction_not_a_finite_number_at_least_0_is_refused_at
     np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
 
 
-def test_the_imaged_plane_is_checked_on_the_values_read_with_the_parameters(monkeypatch):
-    """``check_image_plane`` read the plane arrays at every step, on a GPU a transfer of its own
-    (each read of a device array waits for the device). The step's one read of the parameter
-    arrays now brings them (on a GPU copied into the same buffer, ``Model._read_staged``, run
-    here on the CPU in place of its views, ``_staged_reads``): a step reads none of its own, the values read are
-    the arrays' (the imaged ground in row 1, after another plane), and a write is still refused
-    at the next step; called outside a step, the check reads them itself."""
+def test_the_colliders_are_checked_on_the_values_read_with_the_parameters(monkeypatch):
+    """The check of the imaged plane (``Model.check_colliders``, then ``check_image_plane``) read
+    the plane arrays at every step, on a GPU a transfer of its own (each read of a device array
+    waits for the device). The step's one read of the parameter arrays now brings every static
+    collider's values (on a GPU copied into the same buffer, ``Model._read_staged``, run here on
+    the CPU in place of its views, ``_staged_reads``): a step reads none of its own, the values
+    read are the arrays' (the imaged ground in row 1, after another plane; a sphere), and a
+    write is still refused at the next step; called outside a step, the check reads them itself."""
     b = we.SceneBuilder(spacing=DX)
     b.add_box((0.0, 2.0 * DX, 0.0), (4 * DX,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
     b.add_plane((1.0, 0.0, 0.0), -1.0)
     b.add_ground(0.0, friction=0.3, images=True)
+    b.add_sphere_collider((0.0, 1.0, 0.0), 0.25, friction=0.2)
     m = b.finalize()
     monkeypatch.setattr(m, "_staged_reads", True, raising=False)
     own = []
-    values = m._image_plane_values
-    monkeypatch.setattr(m, "_image_plane_values", lambda: own.append(1) or values())
+    values = m._collider_values
+    monkeypatch.setattr(m, "_collider_values", lambda: own.append(1) or values())
     s = we.Solver(m)
     a, c = m.state(), m.state()
     for _ in range(3):
         s.step(a, c, 1e-4)
         a, c = c, a
     assert own == []
-    rows, plane = m._read_staged()
-    np.testing.assert_array_equal(plane, np.array([0.3, 0.0, 0.0, 1.0, 0.0], dtype=np.float32))
+    rows, colliders = m._read_staged()
+    np.testing.assert_array_equal(colliders, np.array(
+        [0.5, 0.3, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0,  # the planes' frictions, offsets, normals
+         0.2, 0.25, 0.0, 1.0, 0.0,  # the sphere's friction, radius, centre
+         0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=np.float32))  # no box: its arrays' one unread row
     np.testing.assert_array_equal(rows, np.stack([getattr(m, f).numpy() for f in m.MATERIAL_FIELDS]))
     m.plane_offset.assign(np.array([-1.0, 0.005], dtype=np.float32))
     with pytest.raises(ValueError, match=r"^model.plane_offset\[1\] = 0.005 is not allowed"):
         s.step(a, c, 1e-4)
     assert own == []
     with pytest.raises(ValueError, match=r"^model.plane_offset\[1\] = 0.005 is not allowed"):
-        m.check_image_plane()
+        m.check_colliders()
+    assert own == [1]
+    m.plane_offset.assign(np.array([-1.0, 0.0], dtype=np.float32))
+    m.sphere_radius.assign(np.array([-0.25], dtype=np.float32))
+    with pytest.raises(ValueError, match=r"^model.sphere_radius\[0\] = -0.25 is not allowed: must be finite and > 0 "
+                                         r"\(built 0.25\)$"):
+        s.step(a, c, 1e-4)
     assert own == [1]
 
 

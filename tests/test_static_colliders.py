@@ -796,6 +796,65 @@ def test_a_plane_equal_to_one_added_up_to_rounding_is_refused_as_that_plane():
     assert len(b.planes) == 2
 
 
+#: A static collider array written in place after the build with a value no collider takes,
+#: and the one line the next step refuses it with (``Model.check_colliders``).
+_BAD_COLLIDER_VALUES = (
+    ("plane_friction", [float("nan")], r"model.plane_friction\[0\] = nan is not allowed: must be finite \(built 0.5\)"),
+    ("plane_friction", [-0.2], r"model.plane_friction\[0\] = -0.2 is not allowed: must be a finite number >= 0 \(built 0.5\)"),
+    ("plane_offset", [float("inf")], r"model.plane_offset\[0\] = inf is not allowed: must be finite \(built 0.0\)"),
+    ("plane_normal", [(0.0, 2.0, 0.0)], r"model.plane_normal\[0\] = \(0.0, 2.0, 0.0\) is not allowed: must be a finite "
+                                        r"vector of unit length \(write normal / norm and offset / norm\) "
+                                        r"\(built \(0.0, 1.0, 0.0\)\)"),
+    ("sphere_friction", [float("inf")], r"model.sphere_friction\[0\] = inf is not allowed: must be finite \(built 0.4\)"),
+    ("sphere_radius", [0.0], r"model.sphere_radius\[0\] = 0.0 is not allowed: must be finite and > 0 \(built 0.5\)"),
+    ("sphere_center", [(0.0, float("nan"), 0.0)], r"model.sphere_center\[0\] = \(0.0, nan, 0.0\) is not allowed: must be finite"),
+    ("box_friction", [-1.0], r"model.box_friction\[0\] = -1.0 is not allowed: must be a finite number >= 0 \(built 0.3\)"),
+    ("box_half", [(0.1, -0.1, 0.1)], r"model.box_half\[0\] = \(0.1, -0.1, 0.1\) is not allowed: must be finite and > 0 "
+                                     r"\(built \(0.1, 0.1, 0.1\)\)"),
+    ("box_center", [(float("inf"), 0.0, 0.0)], r"model.box_center\[0\] = \(inf, 0.0, 0.0\) is not allowed: must be finite"),
+)
+
+
+def test_a_static_colliders_values_written_in_place_that_no_collider_takes_are_refused_before_the_step():
+    """``add_ground``, ``add_plane``, ``add_sphere_collider`` and ``add_box_collider`` refuse a
+    friction that is NaN, inf or negative, a radius or half extent not > 0, by name; written into
+    the model's collider arrays after the build (a caller, an optimiser of a friction's
+    gradient), only the imaged ground's were refused, and the step ran the contact on the rest:
+    a NaN friction took the particles to NaN, a negative one drove them along the surface. The
+    step now refuses each by name before any launch (``Model.check_colliders``); a valid value
+    written in place (another friction, a moved sphere) runs, and an array replaced by one of
+    other rows is refused naming what the kernels take."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_ground(0.0)
+    b.add_sphere_collider((1.0, 0.0, 0.0), 0.5, friction=0.4)
+    b.add_box_collider((-1.0, 0.0, 0.0), (0.1, 0.1, 0.1), friction=0.3)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    s.step(a, c, 1e-4)
+    before = c.x.numpy().copy()
+    for name, bad, message in _BAD_COLLIDER_VALUES:
+        array = getattr(m, name)
+        built = array.numpy().copy()
+        array.assign(np.array(bad, dtype=np.float32))
+        with pytest.raises(ValueError, match=f"^{message}"):
+            s.step(a, c, 1e-4)
+        np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
+        array.assign(built)
+    m.box_friction.assign(np.array([0.7], dtype=np.float32))
+    m.sphere_center.assign(np.array([(2.0, 0.0, 0.0)], dtype=np.float32))
+    s.step(a, c, 1e-4)
+    kept = m.plane_friction
+    m.plane_friction = wp.array([0.5, 0.5], dtype=wp.float32)
+    with pytest.raises(ValueError, match=r"^model.plane_friction = a warp array of shape \(2,\), dtype float32 on cpu is not "
+                                         r"allowed: the step's kernels were made for a warp array of shape \(1,\), dtype "
+                                         r"float32 on cpu; write the values into the array it was"):
+        s.step(a, c, 1e-4)
+    m.plane_friction = kept
+    s.step(a, c, 1e-4)
+
+
 _plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
 
 

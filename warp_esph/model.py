@@ -503,9 +503,12 @@ class State(Unpicklable):
 #: spacings: half a spacing, where a floor of particles has its top layer.
 IMAGE_MIN_DEPTH = 0.5
 
-#: The imaged plane's values that ``Model.check_image_plane`` compares with the build's:
-#: friction, offset and the normal's three components.
-IMAGE_PLANE_VALUES = 5
+#: The static colliders' arrays that ``Model.check_colliders`` judges, in the order the
+#: step's one read brings them: each with the list of the model's colliders its rows are and
+#: the numbers of a row.
+COLLIDER_FIELDS = (("plane_friction", "planes", 1), ("plane_offset", "planes", 1), ("plane_normal", "planes", 3),
+                   ("sphere_friction", "spheres", 1), ("sphere_radius", "spheres", 1), ("sphere_center", "spheres", 3),
+                   ("box_friction", "boxes", 1), ("box_half", "boxes", 3), ("box_center", "boxes", 3))
 
 #: The kernels' ``images`` argument (``Model.image_args``): no image plane; images at rest over
 #: each step in the fits (a rough floor, the ground's ``friction > 0``); images that move with
@@ -698,89 +701,151 @@ class Model(Unpicklable):
         #: imaged ground, else at rest.
         self.image_motion = (IMAGES_NONE if not imaged else IMAGES_MOVING if imaged[0].friction == 0.0
                              else IMAGES_AT_REST)
-        # The imaged plane's row of the plane arrays and its values as built (check_image_plane).
+        # The imaged plane's row of the plane arrays, and every collider array's values as built
+        # (check_colliders).
         self._image_row = next((k for k, p in enumerate(planes) if getattr(p, "images", False)), None)
-        self._image_views = None
-        self._image_stage = None
-        self._image_read = None  # its values as the last staged read of the parameter arrays found them
-        self._image_built = None if self._image_row is None else self._image_plane_values()
+        self._collider_flat = None  # _collider_arrays' answer, with the arrays it was made of
+        self._collider_views = None
+        self._collider_stage = None
+        self._collider_read = None  # their values as the last staged read of the parameter arrays found them
+        self._collider_built = self._collider_values()
+        self._colliders_checked = self._collider_built.tobytes()  # the values check_colliders last passed
         check_pressure_forces(materials, self.image_plane is not None)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
-    def _image_plane_values(self) -> np.ndarray:
-        """The imaged plane's friction, offset and normal as the plane arrays hold them now: views
-        on the CPU (kept while the arrays are the same ones), one transfer on a GPU."""
-        k = self._image_row
-        arrays = (self.plane_friction, self.plane_offset, self.plane_normal)
+    def _collider_arrays(self) -> list:
+        """The arrays of ``COLLIDER_FIELDS`` as the model holds them now, each refused
+        (``ValueError``) where it is not one the kernels were made for: an array replaced by
+        another of other rows, type or device."""
+        now = [getattr(self, name) for name, _, _ in COLLIDER_FIELDS]
+        held = self._collider_flat
+        if held is not None and all(a is b for a, b in zip(held[0], now)):
+            return held[1]
+        arrays = []
+        for (name, kind, width), a in zip(COLLIDER_FIELDS, now):
+            rows = max(len(getattr(self, kind)), 1)  # zero colliders of a kind still pass one (never read) row
+            dtype = self.scalar if width == 1 else self.types.vec3
+            if not isinstance(a, wp.array) or a.shape != (rows,) or a.dtype != dtype or a.device != self.device:
+                shown = (f"a warp array of shape {a.shape}, dtype {wp.types.type_repr(a.dtype)} on {a.device}"
+                         if isinstance(a, wp.array) else f"a {type(a).__name__}")
+                raise ValueError(f"model.{name} = {shown} is not allowed: the step's kernels were made for a warp array of "
+                                 f"shape ({rows},), dtype {wp.types.type_repr(dtype)} on {self.device}; write the values "
+                                 f"into the array it was (model.{name}.assign(...))")
+            arrays.append(a if width == 1 else a.view(self.scalar).flatten())
+        # Kept while the arrays are the same ones: every step asks.
+        self._collider_flat = (now, arrays)
+        return arrays
+
+    def _collider_values(self) -> np.ndarray:
+        """Every ``COLLIDER_FIELDS`` array's values now, one after the other (a vector's three
+        numbers in turn): views on the CPU (kept while the arrays are the same ones), one
+        transfer on a GPU."""
+        arrays = self._collider_arrays()
         if self.device.is_cpu:
-            held = self._image_views
-            if held is None or any(a is not b for a, b in zip(held[0], arrays)):
-                held = self._image_views = (arrays, [a.numpy() for a in arrays])
-            f, off, n = held[1]
-            return np.concatenate(([f[k], off[k]], n[k]))
+            held = self._collider_views
+            if held is None or held[0] is not arrays:
+                held = self._collider_views = (arrays, [a.numpy() for a in arrays])
+            return np.concatenate(held[1])
         # One transfer into a buffer kept for it (each read of a device array waits for the device).
-        stage = self._image_stage
+        stage = self._collider_stage
         if stage is None:
-            stage = self._image_stage = wp.empty(IMAGE_PLANE_VALUES, dtype=self.scalar, device=self.device)
-        self._stage_image_plane(stage, 0)
+            stage = self._collider_stage = wp.empty(sum(a.shape[0] for a in arrays), dtype=self.scalar, device=self.device)
+        self._stage_colliders(stage, 0, arrays)
         return stage.numpy()
 
-    def _stage_image_plane(self, stage: wp.array, at: int) -> None:
-        """Copy the imaged plane's friction, offset and normal (``IMAGE_PLANE_VALUES``) into
-        ``stage`` from ``at``, on the device."""
-        k = self._image_row
-        wp.copy(stage, self.plane_friction, dest_offset=at, src_offset=k, count=1)
-        wp.copy(stage, self.plane_offset, dest_offset=at + 1, src_offset=k, count=1)
-        wp.copy(stage, self.plane_normal.view(self.scalar).flatten(), dest_offset=at + 2, src_offset=3 * k, count=3)
+    @staticmethod
+    def _stage_colliders(stage: wp.array, at: int, arrays: list) -> None:
+        """Copy the collider arrays (``_collider_arrays``) into ``stage`` from ``at``, on the device."""
+        for a in arrays:
+            wp.copy(stage, a, dest_offset=at, count=a.shape[0])
+            at += a.shape[0]
 
-    def check_image_plane(self) -> None:
-        """Refuse (``ValueError``) the imaged ground's friction, height or normal written in the
-        plane arrays after the build (``plane_friction``, ``plane_offset``, ``plane_normal``: a
-        caller or an optimiser of the friction's gradient writes them in place). The images are
-        made when the model is built: at that plane, and at rest over each step or moving with
-        their particles as its friction was positive or 0 (``image_motion``). A frictionless
-        imaged ground given a friction ran on frictionless, and a rough one given friction 0
-        ran the rough floor that ``add_ground`` refuses to call frictionless for no other
-        reason; a moved ground left its images under the old one. ``Solver.step`` calls it
-        before its first launch: on a GPU on the values that the step's one read of the
-        parameter arrays brings in its transfer (``_parameters_read_once``; none of their own),
-        on the CPU through views of the arrays, as a call outside a step reads them. A positive
-        friction changed to another positive one is the contact's alone and taken; one that is
-        NaN, inf or negative is refused, as ``add_ground`` refuses it."""
-        if self._image_row is None:
-            return
+    def _collider_rows(self, flat: np.ndarray) -> dict[str, np.ndarray]:
+        """``_collider_values``'s numbers as each field's rows (a row per collider of the model)."""
+        out, at = {}, 0
+        for name, kind, width in COLLIDER_FIELDS:
+            rows = len(getattr(self, kind))
+            out[name] = flat[at:at + rows * width].reshape(rows, width)
+            at += max(rows, 1) * width
+        return out
+
+    def check_colliders(self) -> None:
+        """Refuse (``ValueError``) the static colliders' arrays (``COLLIDER_FIELDS``) written in
+        place after the build (a caller, an optimiser of a friction's gradient) with values no
+        collider takes: a friction NaN, inf or negative, as ``add_ground``, ``add_plane``,
+        ``add_sphere_collider`` and ``add_box_collider`` refuse it; an offset, centre or normal
+        not finite, a normal not of unit length (the contact moves a particle by the depth along
+        it, so a longer one left it off the surface); a radius or half extent not a finite number
+        > 0. Unchecked, a NaN friction ran the particles to NaN and a negative one drove them
+        along the surface, without a word. Of an imaged ground (``add_ground(images=True)``)
+        the friction's being 0 or positive, the offset and the normal are the build's as well:
+        its images are made when the model is built, at that plane, and at rest over each step or
+        moving with their particles as its friction was positive or 0 (``image_motion``); a
+        frictionless imaged ground given a friction ran on frictionless, a rough one given
+        friction 0 ran the rough floor that ``add_ground`` refuses to call frictionless for no
+        other reason, and a moved ground left its images under the old one. A positive friction
+        changed to another positive one is the contact's alone and taken, as any valid value of
+        another collider. ``Solver.step`` calls it before its first launch: on a GPU on the
+        values that the step's one read of the parameter arrays brings in its transfer
+        (``_parameters_read_once``; none of their own), on the CPU through views of the arrays,
+        as a call outside a step reads them."""
         # Inside _parameters_read_once the last read is its own (each other returns its rows).
-        held = self._image_read if self._held_parameters is not None else None
-        now = held if held is not None else self._image_plane_values()
-        built = self._image_built
-        if now.tobytes() == built.tobytes():
+        held = self._collider_read if self._held_parameters is not None else None
+        now = held if held is not None else self._collider_values()
+        if now.tobytes() == self._colliders_checked:
             return
-        k = self._image_row
+        values, built = self._collider_rows(now), self._collider_rows(self._collider_built)
+        if self._image_row is not None:
+            self._check_image_plane(values, built)
         # A method, not a closure: a recursive closure made each step's call a reference cycle
         # (the garbage test of a taped rollout counts them).
         shown = self._shown_plane_value
+        tol = 64.0 * float(np.finfo(self.types.np_dtype).eps)
+        for name, kind, width in COLLIDER_FIELDS:
+            for k, (v, b) in enumerate(zip(values[name], built[name])):
+                v, b = (v[0], b[0]) if width == 1 else (v, b)
+                if not np.isfinite(v).all():
+                    allowed = "finite"
+                elif name.endswith("friction") and v < 0.0:
+                    allowed = "a finite number >= 0"
+                elif name in ("sphere_radius", "box_half") and not (v > 0.0).all():
+                    allowed = "finite and > 0"
+                elif name == "plane_normal" and not abs(float(np.linalg.norm(v.astype(np.float64))) - 1.0) <= tol:
+                    allowed = "a finite vector of unit length (write normal / norm and offset / norm)"
+                else:
+                    continue
+                raise ValueError(f"model.{name}[{k}] = {shown(v)} is not allowed: must be {allowed} (built {shown(b)})")
+        self._colliders_checked = now.tobytes()
 
-        if not 0.0 <= now[0] < np.inf:
+    def _check_image_plane(self, values: dict, built: dict) -> None:
+        """``check_colliders``'s rules of the imaged ground: its friction 0 or positive as built,
+        and its plane where it was built."""
+        k = self._image_row
+        shown = self._shown_plane_value
+        now_f, built_f = values["plane_friction"][k, 0], built["plane_friction"][k, 0]
+        if not 0.0 <= now_f < np.inf:
             # NaN, inf or a negative friction passed the rule below (neither 0 nor changed from
             # 0): the contact ran on it, where add_ground refuses it by name.
-            raise ValueError(f"model.plane_friction[{k}] = {shown(now[0])} is not allowed: the imaged ground's friction is a "
-                             f"finite number >= 0 (built {shown(built[0])}; add_ground's friction)")
-        if (now[0] == 0.0) != (built[0] == 0.0):
-            moving = built[0] == 0.0
+            raise ValueError(f"model.plane_friction[{k}] = {shown(now_f)} is not allowed: the imaged ground's friction is a "
+                             f"finite number >= 0 (built {shown(built_f)}; add_ground's friction)")
+        if (now_f == 0.0) != (built_f == 0.0):
+            moving = built_f == 0.0
             raise ValueError(
-                f"model.plane_friction[{k}] = {shown(now[0])} is not allowed: the imaged ground was built with "
-                f"friction {shown(built[0])}, " + (
+                f"model.plane_friction[{k}] = {shown(now_f)} is not allowed: the imaged ground was built with "
+                f"friction {shown(built_f)}, " + (
                     "so its images move with their particles (a frictionless floor), and a friction does not stop them"
                     if moving else "so its images stand still over each step (a rough floor whatever its friction), "
                     "and friction 0 does not make them move") + "; build the scene again with "
-                f"add_ground(friction={shown(now[0])}, images=True)")
-        if not np.array_equal(now[1:], built[1:]):
-            name, value = (f"plane_offset[{k}]", now[1]) if now[1] != built[1] else (f"plane_normal[{k}]", now[2:])
+                f"add_ground(friction={shown(now_f)}, images=True)")
+        now_plane = np.concatenate((values["plane_offset"][k], values["plane_normal"][k]))
+        built_plane = np.concatenate((built["plane_offset"][k], built["plane_normal"][k]))
+        if not np.array_equal(now_plane, built_plane):
+            name, value = (f"plane_offset[{k}]", now_plane[0]) if now_plane[0] != built_plane[0] else (f"plane_normal[{k}]", now_plane[1:])
             raise ValueError(
                 f"model.{name} = {shown(value)} is not allowed: the imaged ground's images are made at the plane it was "
-                f"built at (normal {shown(built[2:])}, offset {shown(built[1])}) and would stay there; build the scene "
-                f"again with the ground where it is to be")
+                f"built at (normal {shown(built_plane[1:])}, offset {shown(built_plane[0])}) and would stay there; build "
+                f"the scene again with the ground where it is to be")
 
     def _shown_plane_value(self, v) -> str:
         """The shortest text of a plane value in the model's precision: 0.3, not 0.300000011921."""
@@ -1273,38 +1338,38 @@ class Model(Unpicklable):
         read of a device array waits for the device and the step asks every step
         (``stable_dt``, ``sph_active``); the buffer has no gradient, so a recording tape takes
         no note of the copies. On the CPU the arrays' own memory is read through views. On a
-        GPU an imaged ground's plane values come in the same transfer (``_image_read``), which
-        ``check_image_plane`` compares in a step without a transfer of its own."""
+        GPU the static colliders' values come in the same transfer (``_collider_read``), which
+        ``check_colliders`` judges in a step without a transfer of its own."""
         if self._held_parameters is not None:
             return self._held_parameters.copy()
         if self._staged_reads:
-            rows, self._image_read = self._read_staged()
+            rows, self._collider_read = self._read_staged()
             return rows
         # A CPU array's numpy() is a view of its memory: nothing to transfer, and views kept
         # while the arrays are the same ones cost less than the copies of _read_staged. The
-        # imaged plane's values are read through views as well, by check_image_plane.
+        # colliders' values are read through views as well, by check_colliders.
         arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
         key = pointer_key(arrays)
         if self._parameter_views is None or self._parameter_views[0] != key:
             self._parameter_views = (key, [a.numpy() for a in arrays])
         return np.stack(self._parameter_views[1])
 
-    def _read_staged(self) -> tuple[np.ndarray, np.ndarray | None]:
-        """``_read_parameters`` on a GPU: the arrays, and the imaged plane's values (None without
-        one), copied on the device into one buffer, read in one transfer."""
+    def _read_staged(self) -> tuple[np.ndarray, np.ndarray]:
+        """``_read_parameters`` on a GPU: the arrays, and the static colliders' values
+        (``_collider_values``), copied on the device into one buffer, read in one transfer."""
         arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
+        colliders = self._collider_arrays()
         n = arrays[0].shape[0]
         end = len(arrays) * n
-        size = end + (0 if self._image_row is None else IMAGE_PLANE_VALUES)
+        size = end + sum(a.shape[0] for a in colliders)
         stage = self._parameter_stage
         if stage is None or stage.shape[0] != size or stage.dtype != arrays[0].dtype:
             stage = self._parameter_stage = wp.empty(size, dtype=arrays[0].dtype, device=self.device)
         for k, arr in enumerate(arrays):
             wp.copy(stage, arr, dest_offset=k * n, count=n)
-        if self._image_row is not None:
-            self._stage_image_plane(stage, end)
+        self._stage_colliders(stage, end, colliders)
         out = stage.numpy()
-        return out[:end].reshape(len(arrays), n).copy(), None if self._image_row is None else out[end:].copy()
+        return out[:end].reshape(len(arrays), n).copy(), out[end:].copy()
 
     def _parameters_key(self) -> bytes:
         """The parameter arrays' values as bytes: inside ``_parameters_read_once`` those of its

@@ -1070,7 +1070,7 @@ class Solver(Unpicklable):
             m.tools.check_arrays()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
-            m.check_image_plane()  # on the imaged plane's values read with them
+            m.check_colliders()  # on the static colliders' values read with them
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
             # Read once for the check and the path (_runs_rest), only where the path hangs on it.
