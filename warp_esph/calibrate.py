@@ -277,7 +277,12 @@ def run_fit(args, out=None, err=None) -> int:
                     message = (f"{unread} (looked for relative to {checks.shown_path(spec['scene_folder'], False)}, the folder of the "
                                f"--experiments file){message[len(unread):]}")
             if where and f"{where}{message}" != said:
-                raise type(e)(f"{where}{message}") from None
+                # A plain error of its kind, the error read its cause: type(e)(text) raised a
+                # TypeError traceback where an error's class takes more than its message
+                # (json.JSONDecodeError's three arguments, UnicodeDecodeError's five, the
+                # package's checks.Rebuilt errors' fields).
+                again = FileNotFoundError if isinstance(e, FileNotFoundError) else ValueError
+                raise again(f"{where}{message}") from e
             raise
 
     # Every experiment's targets whose frames are chosen, before any scene: an experiment's
