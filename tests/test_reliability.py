@@ -1622,6 +1622,37 @@ def test_an_extreme_input_gets_its_one_line_and_no_numpy_notes_before_it(tmp_pat
     assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and needle in err, err
 
 
+def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_before_a_state_or_a_forward():
+    """``model.particle_x0`` and ``particle_v0`` are numpy arrays a caller may write (a start
+    moved or sped up by hand). A NaN or infinite entry written there ran to NaN positions
+    without a word: ``state()`` copied it and the step reads no particle back; an array of
+    another shape was refused by Warp in its own words. Both are refused by name, by
+    ``state()`` and by a rollout's forward from the model's start (``Model.check_start``),
+    before any kernel; the start written back is taken."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    model = b.finalize(dtype="float64", requires_grad=True)
+    rollout = Rollout(model, 1, 1e-4)
+    x0, v0 = model.particle_x0.copy(), model.particle_v0.copy()
+    for name, row, value, said in (("particle_x0", 3, (0.0, math.nan, 0.0), r"\(0\.0, nan, 0\.0\)"),
+                                   ("particle_v0", 5, (math.inf, 0.0, 0.0), r"\(inf, 0\.0, 0\.0\)")):
+        getattr(model, name)[row] = value
+        for call in (model.state, lambda: rollout.forward(check=False)):
+            with pytest.raises(ValueError, match=rf"^model\.{name}\[{row}\] = {said} is not allowed: must be finite "
+                                                 rf"\(particle {row}, of body 'block'\)$"):
+                call()
+        model.particle_x0[:], model.particle_v0[:] = x0, v0
+    model.particle_v0 = np.zeros((model.particle_count, 2))
+    with pytest.raises(ValueError, match=rf"^model\.particle_v0 = an array of shape \({model.particle_count}, 2\) and dtype "
+                                         rf"float64 is not allowed: must be a numpy array of shape \({model.particle_count}, 3\) "
+                                         r"of real numbers, one row per particle"):
+        model.state()
+    model.particle_v0 = v0
+    # One step of 0.1 ms from rest, undeformed: every particle falls g dt^2 (symplectic Euler).
+    fallen = rollout.forward()[-1] - x0
+    np.testing.assert_allclose(fallen, np.tile([0.0, -9.81e-8, 0.0], (model.particle_count, 1)), rtol=1e-6, atol=1e-15)
+
+
 def test_a_state_of_another_scene_of_as_many_particles_is_refused_and_one_built_again_is_taken():
     """A state of another model of as many particles and the same precision stepped without a
     word: a 4 x 4 x 4 rubber block resting on the ground, stepped by the model of a 8 x 2 x 4

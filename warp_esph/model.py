@@ -314,6 +314,7 @@ class State(Unpicklable):
         # a model edited since (``calibrate.jitter_model``) no longer describes this state's
         # scene, and one built again from the same builder still does.
         self._made_of = model.scene_snapshot()
+        model.check_start()
         self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         # The positions' round-off (warp_esph/sim/roundoff.py), as F_lo for F below.
         self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
@@ -1286,6 +1287,26 @@ class Model(Unpicklable):
             x0.flags.writeable = False
             held = self._snapshot = (bodies, x0)
         return held
+
+    def check_start(self) -> None:
+        """Refuse (``ValueError``) the start ``particle_x0`` or ``particle_v0`` (numpy arrays a
+        caller may write in place) where no state can start from it: not an ``(n, 3)`` array of
+        real numbers, or an entry NaN or infinite. A new state (``state()``) and a rollout's
+        forward from the model's start check it. Unchecked, a NaN position or velocity written
+        after the build ran to NaN positions without a word: a state copies them, and the step
+        reads no particle back."""
+        n = self.particle_count
+        for name in ("particle_x0", "particle_v0"):
+            a = getattr(self, name)
+            if not isinstance(a, np.ndarray) or a.shape != (n, 3) or a.dtype.kind not in "fiu":
+                shown = f"an array of shape {a.shape} and dtype {a.dtype}" if isinstance(a, np.ndarray) else f"a {type(a).__name__}"
+                raise ValueError(f"model.{name} = {shown} is not allowed: must be a numpy array of shape ({n}, 3) of real "
+                                 f"numbers, one row per particle (write into it: model.{name}[...] = ...)")
+            if not np.isfinite(a).all():
+                i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+                body = self.bodies[int(self.particle_body_np[i])].name
+                raise ValueError(f"model.{name}[{i}] = {self._shown_plane_value(a[i])} is not allowed: must be finite "
+                                 f"(particle {i}, of body {body!r})")
 
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""

@@ -817,6 +817,7 @@ class Rollout:
             checks.same_state(m, "initial_state", initial_state)  # its precision and device too
             init.assign(initial_state)
         else:
+            m.check_start()
             init.x.assign(m.particle_x0)
             init.v.assign(m.particle_v0)
             eye = np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1))
