@@ -122,8 +122,7 @@ def test_the_colliders_are_checked_on_the_values_read_with_the_parameters(monkey
     rows, colliders = m._read_staged()
     np.testing.assert_array_equal(colliders, np.array(
         [0.5, 0.3, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0,  # the planes' frictions, offsets, normals
-         0.2, 0.25, 0.0, 1.0, 0.0,  # the sphere's friction, radius, centre
-         0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=np.float32))  # no box: its arrays' one unread row
+         0.2, 0.25, 0.0, 1.0, 0.0], dtype=np.float32))  # the sphere's friction, radius, centre (no box: none of its)
     np.testing.assert_array_equal(rows, np.stack([getattr(m, f).numpy() for f in m.MATERIAL_FIELDS]))
     m.plane_offset.assign(np.array([-1.0, 0.005], dtype=np.float32))
     with pytest.raises(ValueError, match=r"^model.plane_offset\[1\] = 0.005 is not allowed"):

@@ -13,6 +13,7 @@ import contextlib
 import copy
 import dataclasses
 import math
+import operator
 from collections.abc import Sequence
 
 import numpy as np
@@ -705,8 +706,12 @@ class Model(Unpicklable):
         # The imaged plane's row of the plane arrays, and every collider array's values as built
         # (check_colliders).
         self._image_row = next((k for k, p in enumerate(planes) if getattr(p, "images", False)), None)
+        # The fields of the kinds of collider the model has: a kind it has none of passes a row
+        # the kernels never read, and reading it cost every step of a scene on the ground alone.
+        self._collider_fields = [f for f in COLLIDER_FIELDS if getattr(self, f[1])]
+        self._collider_getter = operator.attrgetter(*(f[0] for f in self._collider_fields)) if self._collider_fields else None
         self._collider_flat = None  # _collider_arrays' answer, with the arrays it was made of
-        self._collider_views = None
+        self._collider_view_list = None
         self._collider_stage = None
         self._collider_read = None  # their values as the last staged read of the parameter arrays found them
         self._collider_built = self._collider_values()
@@ -716,16 +721,19 @@ class Model(Unpicklable):
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
     def _collider_arrays(self) -> list:
-        """The arrays of ``COLLIDER_FIELDS`` as the model holds them now, each refused
+        """The arrays of ``COLLIDER_FIELDS`` of the model's kinds of collider as it holds them now, each refused
         (``ValueError``) where it is not one the kernels were made for: an array replaced by
         another of other rows, type or device."""
-        now = [getattr(self, name) for name, _, _ in COLLIDER_FIELDS]
+        fields = self._collider_fields
+        if not fields:
+            return []
+        now = self._collider_getter(self)  # a tuple: a kind has three fields
         held = self._collider_flat
-        if held is not None and all(a is b for a, b in zip(held[0], now)):
+        if held is not None and all(map(operator.is_, held[0], now)):
             return held[1]
         arrays = []
-        for (name, kind, width), a in zip(COLLIDER_FIELDS, now):
-            rows = max(len(getattr(self, kind)), 1)  # zero colliders of a kind still pass one (never read) row
+        for (name, kind, width), a in zip(fields, now):
+            rows = len(getattr(self, kind))
             dtype = self.scalar if width == 1 else self.types.vec3
             if not isinstance(a, wp.array) or a.shape != (rows,) or a.dtype != dtype or a.device != self.device:
                 shown = (f"a warp array of shape {a.shape}, dtype {wp.types.type_repr(a.dtype)} on {a.device}"
@@ -738,16 +746,22 @@ class Model(Unpicklable):
         self._collider_flat = (now, arrays)
         return arrays
 
-    def _collider_values(self) -> np.ndarray:
-        """Every ``COLLIDER_FIELDS`` array's values now, one after the other (a vector's three
-        numbers in turn): views on the CPU (kept while the arrays are the same ones), one
-        transfer on a GPU."""
+    def _collider_views(self) -> list[np.ndarray]:
+        """On the CPU, views of the memory of ``_collider_arrays`` (kept while they are the same
+        arrays: nothing is copied)."""
         arrays = self._collider_arrays()
+        held = self._collider_view_list
+        if held is None or held[0] is not arrays:
+            held = self._collider_view_list = (arrays, [a.numpy() for a in arrays])
+        return held[1]
+
+    def _collider_values(self) -> np.ndarray:
+        """The values of ``_collider_arrays`` now, one after the other (a vector's three
+        numbers in turn): through views on the CPU, in one transfer on a GPU."""
         if self.device.is_cpu:
-            held = self._collider_views
-            if held is None or held[0] is not arrays:
-                held = self._collider_views = (arrays, [a.numpy() for a in arrays])
-            return np.concatenate(held[1])
+            views = self._collider_views()
+            return np.concatenate(views) if views else np.empty(0, dtype=self.types.np_dtype)
+        arrays = self._collider_arrays()
         # One transfer into a buffer kept for it (each read of a device array waits for the device).
         stage = self._collider_stage
         if stage is None:
@@ -765,10 +779,10 @@ class Model(Unpicklable):
     def _collider_rows(self, flat: np.ndarray) -> dict[str, np.ndarray]:
         """``_collider_values``'s numbers as each field's rows (a row per collider of the model)."""
         out, at = {}, 0
-        for name, kind, width in COLLIDER_FIELDS:
+        for name, kind, width in self._collider_fields:
             rows = len(getattr(self, kind))
             out[name] = flat[at:at + rows * width].reshape(rows, width)
-            at += max(rows, 1) * width
+            at += rows * width
         return out
 
     def check_colliders(self) -> None:
@@ -792,8 +806,15 @@ class Model(Unpicklable):
         (``_parameters_read_once``; none of their own), on the CPU through views of the arrays,
         as a call outside a step reads them."""
         # Inside _parameters_read_once the last read is its own (each other returns its rows).
-        held = self._collider_read if self._held_parameters is not None else None
-        now = held if held is not None else self._collider_values()
+        now = self._collider_read if self._held_parameters is not None else None
+        if now is None and self.device.is_cpu:
+            # The views' bytes joined: the values unchanged since the last check (every step of
+            # a run) cost no copy of them (np.concatenate took twice as long).
+            views = self._collider_views()
+            if b"".join([v.tobytes() for v in views]) == self._colliders_checked:
+                return
+        if now is None:
+            now = self._collider_values()
         if now.tobytes() == self._colliders_checked:
             return
         values, built = self._collider_rows(now), self._collider_rows(self._collider_built)
@@ -803,7 +824,7 @@ class Model(Unpicklable):
         # (the garbage test of a taped rollout counts them).
         shown = self._shown_plane_value
         tol = 64.0 * float(np.finfo(self.types.np_dtype).eps)
-        for name, kind, width in COLLIDER_FIELDS:
+        for name, kind, width in self._collider_fields:
             for k, (v, b) in enumerate(zip(values[name], built[name])):
                 v, b = (v[0], b[0]) if width == 1 else (v, b)
                 if not np.isfinite(v).all():
