@@ -1242,6 +1242,62 @@ def test_a_model_larger_than_the_machine_is_refused_before_it_is_allocated(monke
         b.finalize()
 
 
+def test_a_model_larger_than_the_process_s_memory_limit_is_refused_before_it_is_allocated(monkeypatch):
+    """A model is weighed against the machine's memory or its container's limit; under a limit
+    of the process itself (``ulimit -v`` or ``-d``) one that fitted the machine was allocated
+    until Warp's allocator failed with a traceback (6e6 particles, 18.5 GiB, under ``ulimit -v
+    6000000``). The lower of the two soft limits counts where it is below the machine's."""
+    import resource
+
+    from warp_esph import builder as builder_module
+
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    real = resource.getrlimit
+    limits = {resource.RLIMIT_AS: 2**31, resource.RLIMIT_DATA: 2**30}
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (limits[which], resource.RLIM_INFINITY) if which in limits
+                        else real(which))
+    monkeypatch.setattr(builder_module, "_cgroup_memory_limit", lambda: None)
+    assert builder_module._host_memory() == min(physical, 2**30)
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    monkeypatch.setattr(builder_module, "BYTES_PER_PARTICLE", 2**31 // 64)  # 2 GiB for the 64 particles
+    with pytest.raises(ValueError, match=r"^particles = 64 is not allowed on cpu: a model and two states of them need about "
+                                         r"2 GiB .* more than its 1 GiB; use a larger spacing"):
+        b.finalize()
+    limits.clear()
+    limits[resource.RLIMIT_AS] = limits[resource.RLIMIT_DATA] = resource.RLIM_INFINITY
+    assert builder_module._host_memory() == physical
+
+
+@pytest.mark.parametrize("command, failure", [
+    ("run", RuntimeError("Failed to allocate 147456000 bytes on device 'cpu'")),
+    ("fit", MemoryError("Unable to allocate 18.4 GiB for an array with shape (2469600000,) and data type float64"))])
+def test_an_allocation_that_fails_before_the_first_frame_is_one_line(tmp_path, capsys, monkeypatch, command, failure):
+    """The estimates weigh the machine's memory or a limit, not what other processes hold nor
+    this one's own libraries: a model they let through can still fail to allocate (384,000
+    particles under ``ulimit -v 2500000``: Warp's 'Failed to allocate 13824000 bytes on device
+    'cpu''), which was a traceback with exit 1. It is one line naming the failure and what to
+    change, exit 2. Raised here where the state of the start is made."""
+    scene = tmp_path / "s.toml"
+    scene.write_text(box_on_ground("tiny", 2, "soft", "dough", "1.5e4"))
+
+    def fail(self, *args, **kwargs):
+        raise failure
+
+    if command == "run":
+        argv = ["run", str(scene), "-o", str(tmp_path / "out.usdc"), "--no-progress"]
+    else:
+        target = tmp_path / "t.npy"
+        np.save(target, np.zeros((48, 3)))
+        argv = ["fit", str(scene), "--target", str(target), "--no-progress", "--iterations", "1", "-o", str(tmp_path / "f.json")]
+    monkeypatch.setattr(we.Model, "state", fail)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: out of memory: {failure}; the command needs more memory "
+                                                    "than this machine (or the process's limit) gives it now: use a smaller "
+                                                    "--scale (a larger spacing) or smaller bodies, or close other programs"), err
+
+
 @pytest.mark.parametrize("collider", ["ground", "sphere", "box"])
 def test_a_body_that_starts_inside_a_static_collider_is_refused_by_name(collider):
     """Started half inside the ground the body was thrown out within a step and the run

@@ -1156,16 +1156,37 @@ def _cgroup_memory_limit() -> int | None:
     return min(found) if found else None
 
 
+def _process_memory_limit() -> int | None:
+    """The lowest soft limit, in bytes, of this process's address space and data segment
+    (``ulimit -v``, ``ulimit -d``: ``RLIMIT_AS``, ``RLIMIT_DATA``), or None where neither is
+    set or none can be read (no ``resource`` module off POSIX)."""
+    try:
+        import resource  # noqa: PLC0415 (POSIX only)
+    except ImportError:
+        return None
+    found = []
+    for name in ("RLIMIT_AS", "RLIMIT_DATA"):
+        try:
+            soft, _ = resource.getrlimit(getattr(resource, name))
+        except (AttributeError, OSError, ValueError):
+            continue
+        if soft != resource.RLIM_INFINITY and soft > 0:
+            found.append(int(soft))
+    return min(found) if found else None
+
+
 def _host_memory() -> int | None:
     """The host's memory in bytes, or None where not known: the machine's, or the limit of the
     process's control group where lower (a container's: the machine's took what the container
-    could not hold, and the container killed the run)."""
+    could not hold, and the container killed the run), or the process's own limit of its
+    address space or data (``ulimit -v`` or ``-d``) where lower still (a model of 2.3 GB a
+    field under ``ulimit -v 6000000`` failed in Warp's allocator with a traceback)."""
     try:
         machine = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, OSError, ValueError, TypeError):
         return None
-    limit = _cgroup_memory_limit()
-    return machine if limit is None else min(machine, limit)
+    limits = [x for x in (_cgroup_memory_limit(), _process_memory_limit()) if x is not None]
+    return min([machine, *limits])
 
 
 def _device_memory(dev) -> int | None:

@@ -3,7 +3,7 @@
 
 Exit status: 0 success; 1 an unexpected error stopped a run, an export or a render mid-way
 (one line naming it, where it was raised and what the output keeps); 2 bad input (unknown scene, bad option value, bad scene file,
-unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
+unreadable or unwritable file, a model or picture more than the memory holds); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before; ``export``, ``render``: the files
 written before; ``fit``: its results, printed first); 5 ``fit`` stopped without converging (stalled, at
@@ -1671,15 +1671,41 @@ def _dispatch(args) -> int:
             if isinstance(e, SimulationError):
                 _err(e)
                 return EXIT_DIVERGED
+            if _is_allocation_failure(e):
+                _err(_out_of_memory(args, e))
+                return EXIT_BAD_INPUT
             if not _is_read_error(e):
                 raise
             _err(_read_failure(args, e))
+            return EXIT_BAD_INPUT
+        except MemoryError as e:
+            _err(_out_of_memory(args, e))
             return EXIT_BAD_INPUT
         except Exception as e:  # noqa: BLE001 (only a damaged input file is turned into one line)
             if not _is_read_error(e):
                 raise
             _err(_read_failure(args, e))
             return EXIT_BAD_INPUT
+
+
+def _is_allocation_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` is Warp's refusal of an allocation its device could not make (a
+    ``RuntimeError``: 'Failed to allocate N bytes on device ...')."""
+    return isinstance(exc, RuntimeError) and str(exc).startswith("Failed to allocate ")
+
+
+def _out_of_memory(args, exc: BaseException) -> str:
+    """The one line of an allocation that failed before any output was written: a model, a
+    rollout or a picture that the estimates let through (they weigh the machine's memory, a
+    container's or the process's limit, not what other processes hold, nor this one's own
+    libraries) raised a traceback (Warp's RuntimeError, numpy's MemoryError)."""
+    from .checks import shorten_text  # noqa: PLC0415
+
+    said = shorten_text(str(exc)) or type(exc).__name__
+    less = ("a smaller --width, --height or --supersample, or fewer frames" if args.command == "render" else
+            "fewer frames" if args.command == "export" else "a smaller --scale (a larger spacing) or smaller bodies")
+    return (f"out of memory: {said}; the command needs more memory than this machine (or the process's limit) gives it "
+            f"now: use {less}, or close other programs")
 
 
 def _is_read_error(exc: BaseException) -> bool:
