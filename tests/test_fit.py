@@ -1227,6 +1227,7 @@ def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypa
     (root / "ci" / "job" / "memory.max").write_text("max\n")
     monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
+    monkeypatch.setattr(builder, "_process_memory_limit", lambda: None)  # a ulimit of the runner's aside
     with pytest.raises(ValueError, match=rf"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
                                          rf"need about {_gib(memory.need(None)[0])} GiB, more than its {_gib(limit)} GiB; give "
                                          rf"checkpoint_every \({least} needs the least, about {_gib(memory.need(least)[0])} "

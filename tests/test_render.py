@@ -367,6 +367,7 @@ def test_a_picture_is_weighed_against_the_containers_memory_limit(tmp_path, monk
     (root / "memory.max").write_text(f"{2**28}\n")
     monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
+    monkeypatch.setattr(builder, "_process_memory_limit", lambda: None)  # a ulimit of the runner's aside
     physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     assert render_module._machine_memory() == min(physical, 2**28)
     with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed on this machine: "
