@@ -2065,6 +2065,50 @@ def test_a_support_radius_whose_kernel_constants_float32_cannot_hold_is_refused(
             make(wp.float64, "poly6", "auto")
 
 
+def test_a_scene_builders_settings_set_after_it_was_made_are_checked_as_the_constructor_checks_them():
+    """A SceneBuilder's scene-wide settings were plain attributes: set by hand after it was made,
+    ``max_neighbors = 0`` crashed the process in the first step (a segmentation fault),
+    ``gravity = (0, nan, 0)`` ran to NaN, a support radius of 50 spacings ran, a spacing
+    changed after a body was added gave its particles the masses of another lattice (8 x at
+    twice it), and 'down' for gravity failed in numpy. Each is checked as the constructor checks
+    it; the spacing, on which the bodies are sampled, is fixed. A support radius raised after
+    the builder was made (``fit --support-radius`` does) now takes the default row width of the
+    new radius: at 3 spacings 96-wide rows cut 32 of an 8 x 8 x 8 block's in its first step."""
+    from warp_esph.sim.neighbors import default_max_neighbors
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.16, 0.16, 0.16), we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_ground(0.0)
+    for name, value, said in (
+            ("spacing", 0.04, r"SceneBuilder\.spacing = 0\.04 is not allowed: the bodies are sampled on the lattice of spacing "
+                              r"0\.02, .*; make a SceneBuilder\(spacing=0\.04\)"),
+            ("max_neighbors", 0, r"max_neighbors = 0 is not allowed: must be an integer >= 1"),
+            ("max_neighbors", "wide", r"max_neighbors = 'wide' is not allowed: must be a positive integer, None"),
+            ("gravity", (0.0, float("nan"), 0.0), r"gravity\[1\] = nan is not allowed: must be a finite number"),
+            ("gravity", "down", r"gravity = 'down' is not allowed: must be a sequence of 3 numbers"),
+            ("support_radius", 1.0, r"support_radius = 1\.0 is not allowed: must be in \[1\.5 \* spacing, 3\.0 \* spacing\]"),
+            ("bodies_interact", "no", r"bodies_interact = 'no' is not allowed: must be True or False"),
+            ("fit", "cubic", r"fit = 'cubic' is not allowed: must be one of"),
+            ("fit_weight", "gauss", r"fit_weight = 'gauss' is not allowed: must be one of"),
+            ("contact_ramp", float("nan"), r"contact_ramp = nan is not allowed: must be a finite number"),
+            ("hourglass", -1.0, r"hourglass = -1\.0 is not allowed: must be >= 0")):
+        before = getattr(b, name)
+        with pytest.raises(ValueError, match=f"^{said}"):
+            setattr(b, name, value)
+        assert getattr(b, name) == before
+    b.gravity = [0.0, -1.0, 0.0]
+    b.support_radius = 0.06
+    model = b.finalize()
+    assert model.gravity == (0.0, -1.0, 0.0) and model.support_radius == 0.06
+    assert model.max_neighbors == default_max_neighbors(3.0) == 440
+    solver = we.Solver(model)
+    solver.step(model.state(), model.state(), 1e-4)
+    assert solver.guard_counts()["neighbors_cut"] == 0
+    b.max_neighbors = 200  # given: kept whatever the radius
+    b.support_radius = None  # the default, 2 spacings
+    assert (b.support_radius, b.max_neighbors) == (0.04, 200)
+
+
 def test_api_values_python_would_have_taken_are_refused_by_name():
     """Each of these ran on or failed deep inside: a negative or NaN Courant number gave a
     negative step, a bool shear modulus ran as 1 Pa, Solver(None) an AttributeError,

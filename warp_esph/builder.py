@@ -140,54 +140,35 @@ class SceneBuilder:
         hourglass: float | None = None,
         fit_weight: str = DEFAULT_FIT_WEIGHT,
     ):
-        self.spacing = checks.positive("spacing", spacing)
+        spacing = checks.positive("spacing", spacing)
+        self._spacing = spacing
         # The support radius (up to SUPPORT_RANGE[1] spacings) and the ratios read from it must be
         # finite: at 1e308 they overflowed to inf and the neighbour cap raised OverflowError.
         widest = float(np.finfo(np.float64).max) / SUPPORT_RANGE[1]
-        if self.spacing > widest:
+        if spacing > widest:
             raise ValueError(f"spacing = {checks.shorten(spacing)!r} is not allowed: must be at most {widest:.3g} (the support radius, up "
                              f"to {SUPPORT_RANGE[1]:g} spacings, must be a finite number)")
         # Below what finalize's precision check takes even in float64: at 1e-320 the coincidence
         # check's cell underflowed to 0, and two particles two spacings apart were refused as one.
         narrowest = float(np.finfo(np.float64).tiny) ** (1 / 9) / SUPPORT_RANGE[0]
-        if self.spacing < narrowest:
+        if spacing < narrowest:
             raise ValueError(f"spacing = {checks.shorten(spacing)!r} is not allowed: must be at least {narrowest:.2g} (the kernels' "
                              f"constants, 1 / h^9 of a support radius of at least {SUPPORT_RANGE[0]:g} spacings, must fit "
                              "float64)")
-        #: ``Model.fit_weight`` of the model ``finalize`` makes.
-        self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
-        #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
-        self.fit = None if fit is None else checks.choice("fit", fit, FITS)
+        self.fit_weight = fit_weight
+        self.fit = fit
         if contact is not None:
             if contact_ramp != CONTACT_RAMP:
                 raise ValueError(f"contact = {contact!r} and contact_ramp = {contact_ramp!r} are not allowed together: give one")
             contact_ramp = CONTACTS[checks.choice("contact", contact, tuple(CONTACTS))]
-        #: ``Model.contact_ramp`` of the model ``finalize`` makes.
-        self.contact_ramp = check_contact_ramp("contact_ramp", contact_ramp)
-        #: ``Model.hourglass`` of the model ``finalize`` makes.
-        self.hourglass = None if hourglass is None else checks.hourglass("hourglass", hourglass)
-        if not isinstance(bodies_interact, bool):
-            raise ValueError(f"bodies_interact = {checks.shorten(bodies_interact)!r} is not allowed: must be True or False")
-        #: Whether SPH pressure and viscosity act between bodies (contact between bodies).
-        #: ``False`` makes every body a separate simulation that only shares colliders.
+        self.contact_ramp = contact_ramp
+        self.hourglass = hourglass
         self.bodies_interact = bodies_interact
-        self.gravity = checks.vector("gravity", gravity)
-        h = 2.0 * self.spacing if support_radius is None else checks.positive("support_radius", support_radius)
-        lo, hi = SUPPORT_RANGE
-        if not lo * self.spacing <= h <= hi * self.spacing:
-            raise ValueError(
-                f"support_radius = {checks.shorten(support_radius)!r} is not allowed: must be in "
-                f"[{lo} * spacing, {hi} * spacing] = [{lo * self.spacing:g}, {hi * self.spacing:g}]"
-            )
-        self.support_radius = h
-        if max_neighbors is None:
-            max_neighbors = default_max_neighbors(h / self.spacing)
-        elif isinstance(max_neighbors, str):
-            if max_neighbors != "paper":
-                raise ValueError(f"max_neighbors = {checks.shorten(max_neighbors)!r} is not allowed: must be a positive integer, "
-                                 f"None (the default width) or 'paper' ({PAPER_MAX_NEIGHBORS})")
-            max_neighbors = PAPER_MAX_NEIGHBORS
-        self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors, maximum=MAX_NEIGHBORS)
+        self.gravity = gravity
+        # The max_neighbors given (None: the default, which follows the support radius).
+        self._max_neighbors_given = None
+        self.support_radius = support_radius
+        self.max_neighbors = max_neighbors
         self._points: list[np.ndarray] = []
         self._velocities: list[np.ndarray] = []
         self._bodies: list[Body] = []
@@ -846,6 +827,118 @@ class SceneBuilder:
         raise ValueError(f"body = {checks.shorten(body)!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
 
     # --------------------------------------------------------------- finalize
+    # The scene-wide settings, checked as the constructor checks them when set afterwards
+    # (the command line sets the solver's from its options, fit --support-radius the radius):
+    # set by hand they were taken unchecked, and max_neighbors = 0 crashed the process in the
+    # first step, gravity (0, nan, 0) ran to NaN and a support radius of 50 spacings ran.
+
+    @property
+    def spacing(self) -> float:
+        """The lattice spacing dx (m); fixed once made: the bodies are sampled on its lattice."""
+        return self._spacing
+
+    @spacing.setter
+    def spacing(self, value):
+        raise ValueError(f"SceneBuilder.spacing = {checks.shorten(value)!r} is not allowed: the bodies are sampled on the lattice "
+                         f"of spacing {self._spacing!r}, and their masses, the support radius and the neighbour rows follow "
+                         f"it; make a SceneBuilder(spacing={checks.shorten(value)!r})")
+
+    @property
+    def support_radius(self) -> float:
+        """The kernels' support radius h (m), in ``SUPPORT_RANGE`` spacings; None sets the
+        default, 2 dx. The default ``max_neighbors`` follows it."""
+        return self._support_radius
+
+    @support_radius.setter
+    def support_radius(self, value):
+        h = 2.0 * self._spacing if value is None else checks.positive("support_radius", value)
+        lo, hi = SUPPORT_RANGE
+        if not lo * self._spacing <= h <= hi * self._spacing:
+            raise ValueError(
+                f"support_radius = {checks.shorten(value)!r} is not allowed: must be in "
+                f"[{lo} * spacing, {hi} * spacing] = [{lo * self._spacing:g}, {hi * self._spacing:g}]"
+            )
+        self._support_radius = h
+        if self._max_neighbors_given is None:
+            # The default width for the new radius: rows of the old one's were cut.
+            self._max_neighbors = default_max_neighbors(h / self._spacing)
+
+    @property
+    def max_neighbors(self) -> int:
+        """The width of a neighbour row (see the class's docstring): a positive integer, None
+        (the default for the support radius) or "paper" (``PAPER_MAX_NEIGHBORS``)."""
+        return self._max_neighbors
+
+    @max_neighbors.setter
+    def max_neighbors(self, value):
+        given = value
+        if value is None:
+            value = default_max_neighbors(self._support_radius / self._spacing)
+        elif isinstance(value, str):
+            if value != "paper":
+                raise ValueError(f"max_neighbors = {checks.shorten(value)!r} is not allowed: must be a positive integer, "
+                                 f"None (the default width) or 'paper' ({PAPER_MAX_NEIGHBORS})")
+            value = PAPER_MAX_NEIGHBORS
+        self._max_neighbors = checks.positive_int("max_neighbors", value, maximum=MAX_NEIGHBORS)
+        self._max_neighbors_given = given
+
+    @property
+    def gravity(self) -> tuple[float, float, float]:
+        """The acceleration of gravity (m/s^2): three finite numbers."""
+        return self._gravity
+
+    @gravity.setter
+    def gravity(self, value):
+        self._gravity = checks.vector("gravity", value)
+
+    @property
+    def bodies_interact(self) -> bool:
+        """Whether SPH pressure and viscosity act between bodies (contact between bodies).
+        ``False`` makes every body a separate simulation that only shares colliders."""
+        return self._bodies_interact
+
+    @bodies_interact.setter
+    def bodies_interact(self, value):
+        if not isinstance(value, bool):
+            raise ValueError(f"bodies_interact = {checks.shorten(value)!r} is not allowed: must be True or False")
+        self._bodies_interact = value
+
+    @property
+    def fit(self) -> str | None:
+        """``Model.fit`` of the model ``finalize`` makes (None: the model's default)."""
+        return self._fit
+
+    @fit.setter
+    def fit(self, value):
+        self._fit = None if value is None else checks.choice("fit", value, FITS)
+
+    @property
+    def fit_weight(self) -> str:
+        """``Model.fit_weight`` of the model ``finalize`` makes."""
+        return self._fit_weight
+
+    @fit_weight.setter
+    def fit_weight(self, value):
+        self._fit_weight = checks.choice("fit_weight", value, FIT_WEIGHTS)
+
+    @property
+    def contact_ramp(self) -> float:
+        """``Model.contact_ramp`` of the model ``finalize`` makes."""
+        return self._contact_ramp
+
+    @contact_ramp.setter
+    def contact_ramp(self, value):
+        self._contact_ramp = check_contact_ramp("contact_ramp", value)
+
+    @property
+    def hourglass(self) -> float | None:
+        """``Model.hourglass`` of the model ``finalize`` makes (None: by the fit)."""
+        return self._hourglass
+
+    @hourglass.setter
+    def hourglass(self, value):
+        self._hourglass = None if value is None else checks.hourglass("hourglass", value)
+
     @property
     def particle_count(self) -> int:
         """The particles added so far (pinned floors included)."""
