@@ -959,6 +959,59 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     assert err < FORCE_GRADIENT_RTOL, err
 
 
+@pytest.mark.parametrize("fused, base", [
+    (False, 0.6), (True, 0.6),
+    pytest.param(False, 0.2, marks=pytest.mark.xfail(strict=True, reason=(
+        "below half a spacing the frictionless imaged ground's force is not the gradient of its energy: 0.36 "
+        "relative off (docs/physics.md, \"The frictionless imaged ground below half a spacing: the total energy\")")))])
+def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the_particles_and_images_energies(
+        fused, base):
+    """``add_ground(friction=0, images=True)``: the images move with their particles (``g(x)``,
+    Jacobian ``J``). A cube whose bottom layer stands ``base`` spacings above the plane, ``F`` up
+    to 15 % from I, each image's F its particle's mirrored, jittered: its elastic force against
+    the central difference of ``sum V psi(F)`` over the particles, each within ``h`` of the plane
+    counted as ``1/2 (psi(F_i) + psi(F_g))`` with its image's F after the step (the images moving
+    by ``J`` in the differences). From half a spacing up, where every image is its particle's
+    mirror, the force is that energy's gradient (measured 1.1e-10 relative): the mirror zone's
+    identity. Below it (0.2) it is not (measured 0.36); a force that is (``1/2 (E_i + E_g)``
+    with every image's reaction sent to its particle through ``J``, the images' F their own
+    fit's, not blended) was tried in a scratch copy: 1.2e-10 here (this case then passes),
+    2.0e-2 with the blend kept. With the images at rest (friction 0.5) the same sum is 0.69-0.73 off
+    at either height: the images' motion is what the identity holds."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, (base + 1.5) * SPACING, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    b.add_ground(0.0, friction=0.0, images=True)
+    model = b.finalize(dtype=wp.float64)
+    n = model.particle_count
+    rng = np.random.default_rng(2)
+    x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
+    assert (x0[:, 1].min() > 0.5 * SPACING) == (base > 0.5)  # whether the images are exact mirrors
+    F0 = np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3))
+    R = np.diag([1.0, -1.0, 1.0])
+    solver = we.Solver(model, fused=fused, fit="linear", hourglass=0.0)
+    a, c = model.state(), model.state()
+    a.x.assign(x0)
+    a.F.assign(F0)
+    a.F_image.assign(R @ F0 @ R)
+    moved = mover(solver, a, c)
+    near = x0[:, 1] < model.support_radius
+    V = model.particle_volume.numpy()
+
+    def energy(k, delta):
+        s = moved(k, delta)
+        psi, psi_g = stvk_psi(model, s.F.numpy()), stvk_psi(model, s.F_image.numpy())
+        return float((V * np.where(near, 0.5 * (psi + psi_g), psi)).sum())
+
+    force = moved(0, 0.0).force.numpy().ravel().copy()
+    dEdx = central_gradient(energy, range(3 * n))
+    assert sum(solver.guard_counts().values()) == 0
+    assert near.sum() >= 24  # not vacuous: two layers within h, their images in the sum
+    err = np.abs(force + dEdx).max() / np.abs(dEdx).max()
+    print(f"fused {fused}, base {base}: |f + dE/dx| / max |dE/dx| = {err:.3g}")
+    assert err < FORCE_GRADIENT_RTOL, err
+
+
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
 def test_floor_images_store_the_update_of_the_fit_their_energy_is_of(fit):
     """Each floor image's own F after a step (``State.F_image``) is ``dF_g F_g`` of the fit its
