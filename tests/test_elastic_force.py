@@ -910,6 +910,22 @@ def _image_fits(model, x, y, F, rows, fit="linear"):
     return Fg, x[:, 1] < h
 
 
+def _deformed_cube_on_the_imaged_ground(base, friction, fit_weight):
+    """A float64 4x4x3 ``stvk`` cube without pressure or gravity on ``add_ground(friction=...,
+    images=True)``, its bottom layer ``base`` spacings above the plane: the model, its positions
+    jittered by 0.02 dx and an ``F`` up to 15 % from I (seed 2)."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
+    b.add_box((0.0, (base + 1.5) * SPACING, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    b.add_ground(0.0, friction=friction, images=True)
+    model = b.finalize(dtype=wp.float64)
+    n = model.particle_count
+    rng = np.random.default_rng(2)
+    x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
+    assert (x0[:, 1].min() > 0.5 * SPACING) == (base > 0.5)  # whether the images are exact mirrors
+    return model, x0, np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3))
+
+
 @pytest.mark.parametrize("fused, base, fit, fit_weight", [
     (True, 0.6, "linear", "poly6"), (False, 0.6, "linear", "poly6"), (True, 0.2, "linear", "poly6"),
     (False, 0.6, "curvature_corrected", "poly6"), (False, 0.2, "curvature_corrected", "poly6"),
@@ -925,16 +941,8 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     left out of the sum). The same with the curvature-corrected fit (``curvature.py``), whose
     images enter its moments and the images' energy likewise; and with the biweight fit weight
     (``SceneBuilder(fit_weight="biweight")``) in the fits, the particles' and the images'."""
-    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk")
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
-    b.add_box((0.0, (base + 1.5) * SPACING, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
-    b.add_ground(0.0, images=True)
-    model = b.finalize(dtype=wp.float64)
+    model, x0, F0 = _deformed_cube_on_the_imaged_ground(base, 0.5, fit_weight)
     n = model.particle_count
-    rng = np.random.default_rng(2)
-    x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
-    assert (x0[:, 1].min() > 0.5 * SPACING) == (base > 0.5)  # whether the images are exact mirrors
-    F0 = np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3))
     solver = we.Solver(model, fused=fused, fit=fit, hourglass=0.0)
     a, c = model.state(), model.state()
     a.x.assign(x0)
@@ -978,16 +986,8 @@ def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the
     fit's, not blended) was tried in a scratch copy: 1.2e-10 here (this case then passes),
     2.0e-2 with the blend kept. With the images at rest (friction 0.5) the same sum is 0.69-0.73 off
     at either height: the images' motion is what the identity holds."""
-    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk")
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
-    b.add_box((0.0, (base + 1.5) * SPACING, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
-    b.add_ground(0.0, friction=0.0, images=True)
-    model = b.finalize(dtype=wp.float64)
+    model, x0, F0 = _deformed_cube_on_the_imaged_ground(base, 0.0, "biweight")
     n = model.particle_count
-    rng = np.random.default_rng(2)
-    x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
-    assert (x0[:, 1].min() > 0.5 * SPACING) == (base > 0.5)  # whether the images are exact mirrors
-    F0 = np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3))
     R = np.diag([1.0, -1.0, 1.0])
     solver = we.Solver(model, fused=fused, fit="linear", hourglass=0.0)
     a, c = model.state(), model.state()
