@@ -855,6 +855,36 @@ def test_a_static_colliders_values_written_in_place_that_no_collider_takes_are_r
     s.step(a, c, 1e-4)
 
 
+def test_a_unit_normal_written_with_float32_round_off_runs_a_float64_model_as_the_exact_one():
+    """``check_colliders`` refuses a plane normal not of unit length; its tolerance was 64 of the
+    model's epsilons, so a float64 model refused a unit normal made in float32 (a float32
+    model's, a torch tensor's): (0.6, 0.8, 0) in float32 is 2.4e-8 off unit length. The
+    contact scales the depth by it, so such a normal runs as the exact one to round-off: a
+    block driven 2 mm into the plane at 1 m/s is pushed out along it by 1.5 mm, the same to
+    1e-9 m; a normal 8e-5 off unit length is still refused."""
+    def pushed(normal):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0), velocity=(-0.6, -0.8, 0.0))
+        b.add_plane((0.6, 0.8, 0.0), -0.0045)  # the block's nearest corner half a millimetre off it
+        m = b.finalize(dtype=wp.float64)
+        m.plane_normal.assign(np.array([normal]))
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        for _ in range(10):
+            s.step(a, c, DT)
+            a, c = c, a
+        return a.x.numpy() - (m.particle_x0 + 10 * DT * np.array([-0.6, -0.8, 0.0]))  # off the free flight
+
+    single = np.array((0.6, 0.8, 0.0), dtype=np.float32).astype(np.float64)
+    off = pushed(single)
+    assert abs(np.linalg.norm(single) - 1.0) > 1e-8
+    assert (off @ (0.6, 0.8, 0.0)).max() > 1e-3  # the contact acted
+    np.testing.assert_allclose(off, pushed(single / np.linalg.norm(single)), rtol=0.0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"^model.plane_normal\[0\] = \(0.6, 0.8001, 0.0\) is not allowed: must be a finite "
+                                         r"vector of unit length"):
+        pushed((0.6, 0.8001, 0.0))
+
+
 _plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
 
 

@@ -823,7 +823,10 @@ class Model(Unpicklable):
         # A method, not a closure: a recursive closure made each step's call a reference cycle
         # (the garbage test of a taped rollout counts them).
         shown = self._shown_plane_value
-        tol = 64.0 * float(np.finfo(self.types.np_dtype).eps)
+        # float32's round-off in either precision: a unit normal made in float32 (a float32
+        # model's, a torch tensor's) is 2e-8 off unit length, which 64 float64 epsilons refused
+        # in a float64 model; the depth it scales is off by as little.
+        tol = 64.0 * float(np.finfo(np.float32).eps)
         for name, kind, width in self._collider_fields:
             for k, (v, b) in enumerate(zip(values[name], built[name])):
                 v, b = (v[0], b[0]) if width == 1 else (v, b)
