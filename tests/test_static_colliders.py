@@ -855,6 +855,33 @@ def test_a_static_colliders_values_written_in_place_that_no_collider_takes_are_r
     s.step(a, c, 1e-4)
 
 
+def test_a_collider_added_to_the_models_lists_after_the_build_is_refused_before_the_step():
+    """The step's kernels and the collider arrays are made by ``finalize`` for the colliders it
+    had; a plane appended to ``model.planes`` afterwards made the kernels of two planes, which
+    read the one plane's arrays past their end: every position NaN after one step, without a
+    word. ``check_colliders`` refuses it naming the list, before any launch; the lists as
+    built step again."""
+    import copy
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_ground(0.0)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    s.step(a, c, DT)
+    before = c.x.numpy().copy()
+    for kind, added in (("planes", copy.deepcopy(m.planes[0])), ("spheres", we.sim.colliders.Sphere((1.0, 0.0, 0.0), 0.5, 0.4))):
+        getattr(m, kind).append(added)
+        with pytest.raises(ValueError, match=rf"^model\.{kind} = a list of {len(getattr(m, kind))} is not allowed: the model "
+                                             rf"was built with {len(getattr(m, kind)) - 1}, and finalize made"):
+            s.step(a, c, DT)
+        np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
+        getattr(m, kind).pop()
+    s.step(a, c, DT)
+    assert np.isfinite(c.x.numpy()).all()
+
+
 def test_a_unit_normal_written_with_float32_round_off_runs_a_float64_model_as_the_exact_one():
     """``check_colliders`` refuses a plane normal not of unit length; its tolerance was 64 of the
     model's epsilons, so a float64 model refused a unit normal made in float32 (a float32

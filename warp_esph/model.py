@@ -709,6 +709,7 @@ class Model(Unpicklable):
         # The fields of the kinds of collider the model has: a kind it has none of passes a row
         # the kernels never read, and reading it cost every step of a scene on the ground alone.
         self._collider_fields = [f for f in COLLIDER_FIELDS if getattr(self, f[1])]
+        self._collider_counts = (len(self.planes), len(self.spheres), len(self.boxes))  # as built
         self._collider_getter = operator.attrgetter(*(f[0] for f in self._collider_fields)) if self._collider_fields else None
         self._collider_flat = None  # _collider_arrays' answer, with the arrays it was made of
         self._collider_view_list = None
@@ -723,7 +724,16 @@ class Model(Unpicklable):
     def _collider_arrays(self) -> list:
         """The arrays of ``COLLIDER_FIELDS`` of the model's kinds of collider as it holds them now, each refused
         (``ValueError``) where it is not one the kernels were made for: an array replaced by
-        another of other rows, type or device."""
+        another of other rows, type or device; a collider added to (or taken from) the model's
+        lists after the build, for which no kernel and no row of the arrays was made (a plane
+        appended ran its contact on the arrays' memory past their end: NaN positions in one step)."""
+        counts = (len(self.planes), len(self.spheres), len(self.boxes))
+        if counts != self._collider_counts:
+            k = next(k for k in range(3) if counts[k] != self._collider_counts[k])
+            kind = ("planes", "spheres", "boxes")[k]
+            raise ValueError(f"model.{kind} = a list of {counts[k]} is not allowed: the model was built with {self._collider_counts[k]}, "
+                             f"and finalize made the step's kernels and the collider arrays for them; add the collider with the "
+                             f"builder and build the scene again")
         fields = self._collider_fields
         if not fields:
             return []
