@@ -1713,6 +1713,58 @@ def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_befo
     np.testing.assert_allclose(fallen, np.tile([0.0, -9.81e-8, 0.0], (model.particle_count, 1)), rtol=1e-6, atol=1e-15)
 
 
+#: Per-particle and per-material arrays written in place after the build (name, entry, value)
+#: and the one line each is refused with (``Model.check_particles``).
+_BAD_PARTICLE_VALUES = (
+    ("particle_material", 2, 5, r"model\.particle_material\[2\] = 5 is not allowed: the particles' materials are set when "
+                                r"the model is built \(particle 2, of body 'block', built 0; "),
+    ("particle_mass", 3, math.nan, r"model\.particle_mass\[3\] = nan is not allowed: must be finite and > 0 \(particle 3, "
+                                   r"of body 'block'\)$"),
+    ("particle_volume", 1, -1.0, r"model\.particle_volume\[1\] = -1\.0 is not allowed: must be finite and >= 0 "),
+    ("material_model", 0, 9, r"model\.material_model\[0\] = 9 is not allowed: a material's codes are its material's "
+                             r"\(model\.materials\[0\]\.model = 'linear', code 0\); change a material with model\.set_material$"),
+    ("material_deformation", 0, 1, r"model\.material_deformation\[0\] = 1 is not allowed: "),
+    ("material_elastic_force", 0, 0, r"model\.material_elastic_force\[0\] = 0 is not allowed: "),
+    ("material_pressure_force", 0, 7, r"model\.material_pressure_force\[0\] = 7 is not allowed: "),
+    ("clamp_pressure", 0, 0, r"model\.clamp_pressure\[0\] = 0 is not allowed: "),
+    ("pair_repulsion", 0, math.inf, r"model\.pair_repulsion\[0\] = inf is not allowed: must be finite and >= 0"),
+)
+
+
+def test_the_arrays_the_kernels_index_written_in_place_are_refused_by_the_step_and_by_state():
+    """The particles' materials index every per-material array in the kernels: a
+    ``particle_material`` written past the materials read memory past them, and a NaN mass, a
+    negative volume or a material code no material has ran without a word. The step (on the
+    CPU, through views) and ``state()`` refuse each by name before any kernel
+    (``Model.check_particles``); a valid mass written in place (a heavier block) and a
+    material changed through ``set_material`` are taken, and a step from the same states runs
+    to the same bits once the values are written back."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    b.add_ground()
+    model = b.finalize()
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    solver.step(a, c, 1e-4)
+    first = c.x.numpy().copy()
+    for name, row, value, said in _BAD_PARTICLE_VALUES:
+        array = getattr(model, name)
+        built = array.numpy().copy()
+        bad = built.copy()
+        bad[row] = value
+        array.assign(bad)
+        for call in (lambda: solver.step(a, c, 1e-4), model.state):
+            with pytest.raises(ValueError, match=f"^{said}"):
+                call()
+        array.assign(built)
+    solver.step(a, c, 1e-4)
+    assert np.array_equal(c.x.numpy(), first)
+    model.particle_mass.assign(1.5 * model.particle_mass.numpy())
+    model.set_material(0, we.Material.preset("rubber", elastic_force="paper"))
+    solver.step(a, c, 1e-4)
+    model.state()
+
+
 def test_a_state_of_another_scene_of_as_many_particles_is_refused_and_one_built_again_is_taken():
     """A state of another model of as many particles and the same precision stepped without a
     word: a 4 x 4 x 4 rubber block resting on the ground, stepped by the model of a 8 x 2 x 4

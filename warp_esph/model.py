@@ -512,6 +512,20 @@ COLLIDER_FIELDS = (("plane_friction", "planes", 1), ("plane_offset", "planes", 1
                    ("sphere_friction", "spheres", 1), ("sphere_radius", "spheres", 1), ("sphere_center", "spheres", 3),
                    ("box_friction", "boxes", 1), ("box_half", "boxes", 3), ("box_center", "boxes", 3))
 
+#: The per-particle and per-material arrays that ``Model.check_particles`` judges: each with
+#: what its rows are and whether it holds integers (else the model's scalars).
+PARTICLE_FIELDS = (("particle_material", "particles", True), ("particle_mass", "particles", False),
+                   ("particle_volume", "particles", False), ("material_model", "materials", True),
+                   ("material_deformation", "materials", True), ("material_elastic_force", "materials", True),
+                   ("material_pressure_force", "materials", True), ("clamp_pressure", "materials", True),
+                   ("pair_repulsion", "materials", False))
+#: The material code arrays of ``PARTICLE_FIELDS``: each with the ``Material`` field it codes
+#: and the codes (``clamp_pressure``: 1 for True).
+MATERIAL_CODES = (("material_model", "model", MODEL_IDS), ("material_deformation", "deformation", DEFORMATION_IDS),
+                  ("material_elastic_force", "elastic_force", ELASTIC_FORCE_IDS),
+                  ("material_pressure_force", "pressure_force", PRESSURE_FORCE_IDS),
+                  ("clamp_pressure", "clamp_pressure", {False: 0, True: 1}))
+
 #: The kernels' ``images`` argument (``Model.image_args``): no image plane; images at rest over
 #: each step in the fits (a rough floor, the ground's ``friction > 0``); images that move with
 #: their particles over the step (a frictionless floor, ``friction = 0``;
@@ -715,6 +729,9 @@ class Model(Unpicklable):
         self._collider_view_list = None
         self._collider_stage = None
         self._collider_read = None  # their values as the last staged read of the parameter arrays found them
+        self._particle_getter = operator.attrgetter(*(f[0] for f in PARTICLE_FIELDS))
+        self._particle_held = None  # _particle_arrays' (arrays, their views on the CPU)
+        self._particles_checked = None  # the bytes check_particles last passed
         self._collider_built = self._collider_values()
         self._colliders_checked = self._collider_built.tobytes()  # the values check_colliders last passed
         check_pressure_forces(materials, self.image_plane is not None)
@@ -743,18 +760,21 @@ class Model(Unpicklable):
             return held[1]
         arrays = []
         for (name, kind, width), a in zip(fields, now):
-            rows = len(getattr(self, kind))
-            dtype = self.scalar if width == 1 else self.types.vec3
-            if not isinstance(a, wp.array) or a.shape != (rows,) or a.dtype != dtype or a.device != self.device:
-                shown = (f"a warp array of shape {a.shape}, dtype {wp.types.type_repr(a.dtype)} on {a.device}"
-                         if isinstance(a, wp.array) else f"a {type(a).__name__}")
-                raise ValueError(f"model.{name} = {shown} is not allowed: the step's kernels were made for a warp array of "
-                                 f"shape ({rows},), dtype {wp.types.type_repr(dtype)} on {self.device}; write the values "
-                                 f"into the array it was (model.{name}.assign(...))")
+            self._check_kernel_array(name, a, len(getattr(self, kind)), self.scalar if width == 1 else self.types.vec3)
             arrays.append(a if width == 1 else a.view(self.scalar).flatten())
         # Kept while the arrays are the same ones: every step asks.
         self._collider_flat = (now, arrays)
         return arrays
+
+    def _check_kernel_array(self, name: str, a, rows: int, dtype) -> None:
+        """Refuse (``ValueError``) ``model.<name>`` replaced by an array the step's kernels were not
+        made for: not a warp array of ``rows`` entries of ``dtype`` on the model's device."""
+        if not isinstance(a, wp.array) or a.shape != (rows,) or a.dtype != dtype or a.device != self.device:
+            shown = (f"a warp array of shape {a.shape}, dtype {wp.types.type_repr(a.dtype)} on {a.device}"
+                     if isinstance(a, wp.array) else f"a {type(a).__name__}")
+            raise ValueError(f"model.{name} = {shown} is not allowed: the step's kernels were made for a warp array of "
+                             f"shape ({rows},), dtype {wp.types.type_repr(dtype)} on {self.device}; write the values "
+                             f"into the array it was (model.{name}.assign(...))")
 
     def _collider_views(self) -> list[np.ndarray]:
         """On the CPU, views of the memory of ``_collider_arrays`` (kept while they are the same
@@ -1326,9 +1346,10 @@ class Model(Unpicklable):
         """Refuse (``ValueError``) the start ``particle_x0`` or ``particle_v0`` (numpy arrays a
         caller may write in place) where no state can start from it: not an ``(n, 3)`` array of
         real numbers, or an entry NaN or infinite. A new state (``state()``) and a rollout's
-        forward from the model's start check it. Unchecked, a NaN position or velocity written
-        after the build ran to NaN positions without a word: a state copies them, and the step
-        reads no particle back."""
+        forward from the model's start check it, and the arrays the kernels index
+        (``check_particles``). Unchecked, a NaN position or velocity written after the build
+        ran to NaN positions without a word: a state copies them, and the step reads no
+        particle back."""
         n = self.particle_count
         for name in ("particle_x0", "particle_v0"):
             a = getattr(self, name)
@@ -1341,6 +1362,79 @@ class Model(Unpicklable):
                 body = self.bodies[int(self.particle_body_np[i])].name
                 raise ValueError(f"model.{name}[{i}] = {self._shown_plane_value(a[i])} is not allowed: must be finite "
                                  f"(particle {i}, of body {body!r})")
+        self.check_particles()
+
+    def _particle_arrays(self) -> list:
+        """The arrays of ``PARTICLE_FIELDS`` as the model holds them now, each refused where it
+        is not one the kernels were made for (``_check_kernel_array``); kept while they are the
+        same arrays."""
+        now = self._particle_getter(self)
+        held = self._particle_held
+        if held is not None and all(map(operator.is_, held[0], now)):
+            return held[0]
+        rows = {"particles": self.particle_count, "materials": len(self.materials)}
+        for (name, kind, integer), a in zip(PARTICLE_FIELDS, now):
+            self._check_kernel_array(name, a, rows[kind], wp.int32 if integer else self.scalar)
+        # On the CPU views of their memory, read by check_particles without a copy.
+        self._particle_held = (now, [a.numpy() for a in now] if self.device.is_cpu else None)
+        return now
+
+    def check_particles(self) -> None:
+        """Refuse (``ValueError``) the per-particle and per-material arrays the kernels index
+        (``PARTICLE_FIELDS``) written in place, or replaced, after the build with values the
+        model was not built for: a ``particle_material`` other than the build's (the kernels
+        index every material array with it, so a value past the materials read memory past
+        them; ``stable_dt``, checkpoints and diagnostics read ``particle_material_np``), a
+        ``particle_mass`` not finite and > 0, a ``particle_volume`` not finite and >= 0 (a
+        ghost floor's is 0), a material code (``material_model``, ``material_deformation``,
+        ``material_elastic_force``, ``material_pressure_force``, ``clamp_pressure``) other than
+        its material's in ``model.materials`` (``set_material`` writes both; the solver chose
+        its stages from the materials), a ``pair_repulsion`` not finite and >= 0. A new state
+        (``state()``) and a rollout's forward from the model's start check them on every device
+        (``check_start``); ``Solver.step`` checks them before its first launch where the arrays
+        are read through views (the CPU: their bytes compared with those last passed, a few
+        microseconds), not on a GPU, where it would read the particles back every step."""
+        arrays = self._particle_arrays()
+        views = self._particle_held[1]
+        if views is not None:
+            if b"".join([v.tobytes() for v in views]) == self._particles_checked:
+                return
+        else:
+            views = [a.numpy() for a in arrays]
+        self._judge_particles(dict(zip((f[0] for f in PARTICLE_FIELDS), views)))
+        self._particles_checked = b"".join([v.tobytes() for v in views])
+
+    def _judge_particles(self, values: dict) -> None:
+        """``check_particles``'s rules, on the arrays' values (numpy, by name)."""
+        def particle(i):
+            return f"particle {i}, of body {self.bodies[int(self.particle_body_np[i])].name!r}"
+
+        material = values["particle_material"]
+        if not np.array_equal(material, self.particle_material_np):
+            i = int(np.flatnonzero(material != self.particle_material_np)[0])
+            raise ValueError(f"model.particle_material[{i}] = {int(material[i])} is not allowed: the particles' materials "
+                             f"are set when the model is built ({particle(i)}, built {int(self.particle_material_np[i])}; "
+                             f"model.set_material changes a material's parameters, or finalize a model with the new ones)")
+        for name, least in (("particle_mass", "> 0"), ("particle_volume", ">= 0")):
+            v = values[name]
+            bad = ~np.isfinite(v) | ((v <= 0.0) if least == "> 0" else (v < 0.0))
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(f"model.{name}[{i}] = {self._shown_plane_value(v[i])} is not allowed: must be finite and "
+                                 f"{least} ({particle(i)})")
+        for name, field, ids in MATERIAL_CODES:
+            built = np.array([ids[getattr(m, field)] for m in self.materials], dtype=np.int32)
+            if not np.array_equal(values[name], built):
+                k = int(np.flatnonzero(values[name] != built)[0])
+                raise ValueError(f"model.{name}[{k}] = {int(values[name][k])} is not allowed: a material's codes are its "
+                                 f"material's (model.materials[{k}].{field} = {getattr(self.materials[k], field)!r}, code "
+                                 f"{built[k]}); change a material with model.set_material")
+        v = values["pair_repulsion"]
+        bad = ~(np.isfinite(v) & (v >= 0.0))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"model.pair_repulsion[{k}] = {self._shown_plane_value(v[k])} is not allowed: must be finite "
+                             f"and >= 0 (Material.pair_repulsion)")
 
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""

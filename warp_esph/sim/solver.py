@@ -1068,6 +1068,9 @@ class Solver(Unpicklable):
         if m.tools is not None:
             # Before any launch: the tools' arrays as a caller or an optimiser left them.
             m.tools.check_arrays()
+        if m.device.is_cpu:
+            # Through views, bytes compared (a GPU's arrays are judged by state() and forward).
+            m.check_particles()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             m.check_colliders()  # on the static colliders' values read with them
