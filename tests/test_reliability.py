@@ -2121,6 +2121,43 @@ def test_a_support_radius_whose_kernel_constants_float32_cannot_hold_is_refused(
             make(wp.float64, "poly6", "auto")
 
 
+def test_a_support_radius_raised_past_a_default_particle_floor_is_refused_naming_both(tmp_path, capsys):
+    """A particle floor's default layers are ceil(h / dx), so its top layer has a full
+    neighbourhood; a support radius raised after the floor was added (as fit --support-radius
+    sets it on a scene's builder) kept the 2 layers of h = 2 dx under a support of 3 dx without
+    a word. The raise is refused naming the floor, its layers and both radii; a radius the
+    floor's layers still cover, and any radius over a floor given its layers, are taken, and a
+    floor added after the raise has the new radius's 3 layers."""
+    def builder(layers=None):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+        return b, b.add_particle_floor("block", margin=0.0, layers=layers)
+
+    b, _ = builder()
+    b.support_radius = 0.08  # ceil(1.6) = 2 layers: the floor's
+    with pytest.raises(ValueError, match=r"^support_radius = 0\.15 is not allowed after the particle floor 'block_floor': it "
+                                         r"was added with the default 2 layers, ceil\(support_radius / spacing\) at the "
+                                         r"support radius it was added at, 0\.1, and a support of 0\.15 reaches 3 spacings "
+                                         r"below the body, past the floor; set the support radius before add_particle_floor"):
+        b.support_radius = 0.15
+    assert b.support_radius == 0.08
+    b, _ = builder(layers=2)
+    b.support_radius = 0.15
+    b = we.SceneBuilder(spacing=0.05, support_radius=0.15)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    b.add_particle_floor("block", margin=0.0)
+    assert b.finalize().bodies[0].count == 8 + 3 * 4  # a 2 x 2 footprint, 3 layers under it
+    # fit --support-radius sets it on a scene file's builder, whose floor is built: its own line.
+    scene = tmp_path / "s.toml"
+    scene.write_text(box_on_ground("tiny", 2, "soft", "dough", "1.5e4").replace('shape = "box"', 'shape = "box"\nfloor_margin = 0.0'))
+    np.savez(tmp_path / "t.npz", x=np.zeros((3, 10, 3)))
+    assert main(["fit", str(scene), "--target", str(tmp_path / "t.npz"), "--support-radius", "3"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: --support-radius = 3 is not allowed for {scene} after the "
+                                                    "particle floor 'box0_floor': it was added with the default 2 layers"), err
+    assert err.endswith("; give the scene file's floor_layers, or its support_radius in place of --support-radius\n"), err
+
+
 def test_a_scene_builders_settings_set_after_it_was_made_are_checked_as_the_constructor_checks_them():
     """A SceneBuilder's scene-wide settings were plain attributes: set by hand after it was made,
     ``max_neighbors = 0`` crashed the process in the first step (a segmentation fault),

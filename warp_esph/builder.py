@@ -47,6 +47,12 @@ MAX_FLOOR_LAYERS = 8
 MAX_FLOOR_WORK = 5e8
 
 
+def _floor_layers(support_radius: float, spacing: float) -> int:
+    """A particle floor's default layer count: as many as the support reaches spacings, so the
+    floor's top layer has a full neighbourhood."""
+    return math.ceil(support_radius / spacing - 1e-9)
+
+
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
     """Vertices (2-D) of a star with ``points`` tips, the first tip on +x."""
     angles = np.pi * np.arange(2 * points) / points
@@ -167,6 +173,10 @@ class SceneBuilder:
         self.gravity = gravity
         # The max_neighbors given (None: the default, which follows the support radius).
         self._max_neighbors_given = None
+        # The particle floors of the default layer count, ceil(support_radius / spacing) when
+        # added: their pin's name -> (layers, the support radius then), which the support_radius
+        # setter keeps them enough for.
+        self._default_floors: dict[str, tuple[int, float]] = {}
         self.support_radius = support_radius
         self.max_neighbors = max_neighbors
         self._points: list[np.ndarray] = []
@@ -448,8 +458,9 @@ class SceneBuilder:
             raise ValueError("margin is required: the floor's reach beyond the body's columns (m, horizontally), "
                              "e.g. margin=2 * spacing")
         m = checks.non_negative("margin", margin) / dx
-        if layers is None:
-            layers = math.ceil(self.support_radius / dx - 1e-9)
+        default_layers = layers is None
+        if default_layers:
+            layers = _floor_layers(self.support_radius, dx)
         layers = checks.positive_int("layers", layers, maximum=MAX_FLOOR_LAYERS)
         if where is not None and not callable(where):
             raise ValueError(f"where = {checks.shorten(where)!r} is not allowed: must be callable as where(floor_positions) -> bool array")
@@ -524,7 +535,10 @@ class SceneBuilder:
                                                ghost_plane=float(ref[1] - 0.5 * dx) if ghost else 0.0, ghost_slip=slip)
         self._count += len(floor)
         self._floors.add(bd.name)
-        return self.pin(indices=np.arange(start, self._count), name=name)
+        pin = self.pin(indices=np.arange(start, self._count), name=name)
+        if default_layers:
+            self._default_floors[pin] = (layers, self.support_radius)
+        return pin
 
     # -------------------------------------------------------------- colliders
     def _add_collider(self, lst: list, item, kind: str):
@@ -858,10 +872,27 @@ class SceneBuilder:
                 f"support_radius = {checks.shorten(value)!r} is not allowed: must be in "
                 f"[{lo} * spacing, {hi} * spacing] = [{lo * self._spacing:g}, {hi * self._spacing:g}]"
             )
+        thin = self.thin_floor(h)
+        if thin is not None:
+            raise ValueError(f"support_radius = {h:g} is not allowed {thin}; set the support radius before "
+                             f"add_particle_floor (a scene file's support_radius), or give the floor its layers (layers=, a "
+                             f"scene file's floor_layers)")
         self._support_radius = h
         if self._max_neighbors_given is None:
             # The default width for the new radius: rows of the old one's were cut.
             self._max_neighbors = default_max_neighbors(h / self._spacing)
+
+    def thin_floor(self, support_radius: float) -> str | None:
+        """Why a particle floor added with its default layers would be thinner than a support of
+        ``support_radius`` (its top layer then without a full neighbourhood), or None: the
+        ``support_radius`` setter's refusal, which ``fit --support-radius`` words as its own."""
+        for pin, (layers, then) in self._default_floors.items():
+            reach = _floor_layers(support_radius, self._spacing)
+            if reach > layers:
+                return (f"after the particle floor {pin!r}: it was added with the default {layers} layers, ceil(support_radius "
+                        f"/ spacing) at the support radius it was added at, {then:g}, and a support of {support_radius:g} "
+                        f"reaches {reach} spacings below the body, past the floor")
+        return None
 
     @property
     def max_neighbors(self) -> int:

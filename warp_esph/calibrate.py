@@ -926,6 +926,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         from .builder import SUPPORT_RANGE  # noqa: PLC0415
 
         k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
+        thin = scene.builder.thin_floor(k * scene.builder.spacing)
+        if thin is not None:
+            raise ValueError(f"--support-radius = {k:g} is not allowed for {spec['scene']} {thin}; give the scene file's "
+                             f"floor_layers, or its support_radius in place of --support-radius")
         scene.builder.support_radius = k * scene.builder.spacing
     model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
     jitter_model(model, jitter, _arg(args, "seed", 5))
