@@ -237,7 +237,7 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
     capsys.readouterr()
     plan = r" on cpu: at 17 steps a frame \(dt = 0\.001961 s at 30 fps\) the fit's rollout takes 170 steps, and "
-    need = r"the rollout would need about 0\.0\d+ GiB, more than its 0\.00186 GiB; "
+    need = r"the rollout would need about 0\.0\d+ GiB, more than the 0\.00186 GiB available; "
     for extra, said in (([], r"the targets' last frame, 10, is not allowed with --checkpoint-every auto" + plan
                           + rf"even at its least memory, a checkpoint every {least} steps, " + need
                           + r"fit fewer frames \(--frames, --target-frames\)"),
@@ -300,13 +300,13 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
 
     # Where even the two states do not fit, the refusal says so in the command's words, not as a
     # checkpointed tape's ('--checkpoint-every auto ... even at its least memory, a checkpoint').
-    e = RolloutMemoryError("", reason="the rollout would need about 0.5 GiB, more than its 0.25 GiB", device="cpu",
+    e = RolloutMemoryError("", reason="the rollout would need about 0.5 GiB, more than the 0.25 GiB available", device="cpu",
                            steps=170, segment=None, least=170, least_gib=0.5, least_fits=False, taped=False)
     exp = types.SimpleNamespace(frames_source="the targets' last frame, 10,", substeps=17, dt=0.001961, fps=30.0)
     assert _memory_refusal(e, exp, "", "auto") == (
         "the targets' last frame, 10, is not allowed with --optimizer gauss-newton on cpu: at 17 steps a frame (dt = "
         "0.001961 s at 30 fps) the fit's rollout takes 170 steps, and even untaped (as every run of a Gauss-Newton fit "
-        "is) the rollout would need about 0.5 GiB, more than its 0.25 GiB; fit fewer frames (--frames, --target-frames)")
+        "is) the rollout would need about 0.5 GiB, more than the 0.25 GiB available; fit fewer frames (--frames, --target-frames)")
 
 
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):

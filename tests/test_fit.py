@@ -858,7 +858,7 @@ def test_a_rollout_that_cannot_fit_in_memory_is_refused_before_it_allocates(monk
     # test_a_taped_steps_host_memory_is_bounded_by_its_overhead): a million steps were taken.
     assert full > 10**5 * (STATE_OVERHEAD + TAPE_STEP_OVERHEAD) > 2**30 > memory.need(least)[0]
     with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         rf"would need about {_gib(full)} GiB, more than its 1 GiB; give checkpoint_every "
+                                         rf"would need about {_gib(full)} GiB, more than the 1 GiB available; give checkpoint_every "
                                          rf"\({least} needs the least, about {_gib(memory.need(least)[0])} GiB\) or fewer "
                                          rf"steps$"):
         Rollout(model, 10**5, 1e-3)
@@ -1228,8 +1228,10 @@ def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypa
     monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
     monkeypatch.setattr(builder, "_process_memory_limit", lambda: None)  # a ulimit of the runner's aside
+    # The machine's memory as if all of it were available (what other processes hold aside).
+    monkeypatch.setattr(builder, "_machine_memory_free", lambda: physical)
     with pytest.raises(ValueError, match=rf"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
-                                         rf"need about {_gib(memory.need(None)[0])} GiB, more than its {_gib(limit)} GiB; give "
+                                         rf"need about {_gib(memory.need(None)[0])} GiB, more than the {_gib(limit)} GiB available; give "
                                          rf"checkpoint_every \({least} needs the least, about {_gib(memory.need(least)[0])} "
                                          rf"GiB\) or fewer steps$"):
         Rollout(model, 200, 1e-3)
@@ -1272,12 +1274,12 @@ def test_on_a_gpu_the_taped_states_own_memory_is_the_hosts(monkeypatch):
     least_own = least.need(least.least())[1]
     with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout's "
                                          rf"taped states would need about {_gib(own)} GiB of the host's memory besides their "
-                                         rf"arrays on the device, more than its {_gib(own // 2)} GiB; give checkpoint_every "
+                                         rf"arrays on the device, more than the {_gib(own // 2)} GiB available; give checkpoint_every "
                                          rf"\({least.least()} needs the least, about {_gib(least_own)} GiB\) or fewer steps$"):
         _check_rollout_memory(model, 10**5, None, None)
     memory[False], memory[True] = arrays // 2, 64 * own
     with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout "
-                                         rf"would need about {_gib(arrays)} GiB, more than its {_gib(arrays // 2)} GiB; give "
+                                         rf"would need about {_gib(arrays)} GiB, more than the {_gib(arrays // 2)} GiB available; give "
                                          rf"checkpoint_every"):
         _check_rollout_memory(model, 10**5, None, None)
 
@@ -1356,13 +1358,13 @@ def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch)
     assert memory.need(least)[0] > 2**18
     with pytest.raises(ValueError, match=rf"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
                                          rf"even at its least memory, a checkpoint every {least} steps, the rollout would need "
-                                         rf"about {_gib(memory.need(least)[0])} GiB, more than its 0\.000244 GiB; give fewer "
+                                         rf"about {_gib(memory.need(least)[0])} GiB, more than the 0\.000244 GiB available; give fewer "
                                          rf"steps$") as refused:
         fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False)
     # docs/errors.md shows it whole (it showed sqrt(steps) = 14 as the least, on 1 MiB, where 3 then fit)
     assert f"`{refused.value}`" in (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
     with pytest.raises(ValueError, match=rf"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         rf"would need about {_gib(memory.need(None)[0])} GiB, more than its 0\.000244 GiB; "
+                                         rf"would need about {_gib(memory.need(None)[0])} GiB, more than the 0\.000244 GiB available; "
                                          rf"give fewer steps"):
         fit([Experiment(model, loss, steps=200, dt=1e-3, checkpoint_every=None, name="drop")], None, ["mu"],
             iterations=1, progress=False)

@@ -118,7 +118,7 @@ def test_replicate_worlds_refuses_more_worlds_than_finalize_or_memory_allow(drop
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 100 * 2**10)  # room for one copy, not two
     # (It said 'is not allowed' twice: 'worlds = 2 is not allowed: particles = 128 is not allowed on cpu: ...'.)
     with pytest.raises(ValueError, match=r"^worlds = 2 is not allowed on cpu: a model and two states of their \d+ particles "
-                                         r"need about .* more than its 9.54e-05 GiB; use fewer worlds, a larger spacing or "
+                                         r"need about .* more than the 9.54e-05 GiB available; use fewer worlds, a larger spacing or "
                                          r"smaller bodies$"):
         we.replicate_worlds(model, 2)
 

@@ -1238,7 +1238,7 @@ def test_a_model_larger_than_the_machine_is_refused_before_it_is_allocated(monke
     b.finalize()
     monkeypatch.setattr(builder_module, "BYTES_PER_PARTICLE", 2**40)
     with pytest.raises(ValueError, match=r"particles = 64 is not allowed on cpu: a model and two states of them need about "
-                                         r"6.55e\+04 GiB .* more than its .* GiB; use a larger spacing"):
+                                         r"6.55e\+04 GiB .* more than the .* GiB available; use a larger spacing"):
         b.finalize()
 
 
@@ -1256,17 +1256,47 @@ def test_a_model_larger_than_the_process_s_memory_limit_is_refused_before_it_is_
     limits = {resource.RLIMIT_AS: 2**31, resource.RLIMIT_DATA: 2**30}
     monkeypatch.setattr(resource, "getrlimit", lambda which: (limits[which], resource.RLIM_INFINITY) if which in limits
                         else real(which))
-    monkeypatch.setattr(builder_module, "_cgroup_memory_limit", lambda: None)
+    monkeypatch.setattr(builder_module, "_cgroup_memory_free", lambda: None)
+    monkeypatch.setattr(builder_module, "_machine_memory_free", lambda: physical)  # as if all of it were free
     assert builder_module._host_memory() == min(physical, 2**30)
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
     monkeypatch.setattr(builder_module, "BYTES_PER_PARTICLE", 2**31 // 64)  # 2 GiB for the 64 particles
     with pytest.raises(ValueError, match=r"^particles = 64 is not allowed on cpu: a model and two states of them need about "
-                                         r"2 GiB .* more than its 1 GiB; use a larger spacing"):
+                                         r"2 GiB .* more than the 1 GiB available; use a larger spacing"):
         b.finalize()
     limits.clear()
     limits[resource.RLIMIT_AS] = limits[resource.RLIMIT_DATA] = resource.RLIM_INFINITY
     assert builder_module._host_memory() == physical
+
+
+def test_a_model_is_weighed_against_the_memory_available_not_the_machines(monkeypatch, tmp_path, capsys):
+    """A model was weighed against the machine's whole memory (or its container's limit): on a
+    shared machine whose other processes held most of it, a run was taken that filled it. It
+    is weighed against what is available: Linux's MemAvailable, and a
+    container's limit less what its group already uses, where lower; the refusal is one line
+    naming the estimate and the memory available."""
+    from warp_esph import builder as builder_module
+
+    meminfo, root, proc = tmp_path / "meminfo", tmp_path / "fs", tmp_path / "cgroup"
+    meminfo.write_text("MemTotal:       24000000 kB\nMemFree:          100000 kB\nMemAvailable:       1024 kB\n")
+    root.mkdir()
+    proc.write_text("0::/\n")
+    (root / "memory.max").write_text(f"{2**31}\n")
+    (root / "memory.current").write_text(f"{2**31 - 2**29}\n")  # half a GiB left under the group's 2 GiB
+    monkeypatch.setattr(builder_module, "_PROC_MEMINFO", str(meminfo), raising=False)
+    monkeypatch.setattr(builder_module, "_PROC_CGROUP", str(proc), raising=False)
+    monkeypatch.setattr(builder_module, "_CGROUP_ROOT", str(root), raising=False)
+    monkeypatch.setattr(builder_module, "_process_memory_limit", lambda: None)  # a ulimit of the runner's aside
+    assert builder_module._host_memory() == 2**20  # 1 MiB available on the machine
+    assert main(["run", "dough_drop", "-o", str(tmp_path / "out.usdc"), "--frames", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and re.search(r"particles = \d+ is not allowed on cpu: a model and two states of them need "
+                                               r"about 0\.\d+ GiB .*, more than the 0\.000977 GiB available; use a larger "
+                                               r"spacing or smaller bodies", err), err
+    assert not (tmp_path / "out.usdc").exists()
+    meminfo.write_text(f"MemAvailable: {2**32 // 1024} kB\n")  # 4 GiB: the group's half GiB is the least
+    assert builder_module._host_memory() == 2**29
 
 
 @pytest.mark.parametrize("command, failure", [

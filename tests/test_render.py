@@ -338,13 +338,13 @@ def test_a_picture_or_gif_larger_than_the_memory_is_refused_before_anything_is_w
     monkeypatch.setattr(render_module, "_machine_memory", lambda: 2**28, raising=False)
     with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed on this machine: "
                                          r"its 4\.19e\+06 pixels \(supersampled\) need about 0\.781 GiB \(200 B a pixel\), "
-                                         r"more than its 0\.25 GiB; use a smaller picture or supersample$"):
+                                         r"more than the 0\.25 GiB available; use a smaller picture or supersample$"):
         render_usd(path, tmp_path / "big.png", width=1024, height=1024)
     with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed"):
         Renderer(UsdFrames(path), None, RenderOptions(width=1024, height=1024))
     # A GIF may repeat a frame: 100 pictures of frame 0, each 4 MiB held (RGB and palette).
     with pytest.raises(ValueError, match=r"^frames = '(0,){28}\.\.\. is not allowed in one \.gif: 100 frames of 1024 x 1024 are held "
-                                         r"together until it is written, about 0\.391 GiB, more than this machine's 0\.25 GiB; "
+                                         r"together until it is written, about 0\.391 GiB, more than the 0\.25 GiB available; "
                                          r"choose fewer frames or a smaller picture, or write a folder or an \.mp4$"):
         render_usd(path, tmp_path / "long.gif", frames=",".join(["0"] * 100), width=1024, height=1024, supersample=1)
     assert not (tmp_path / "big.png").exists() and not (tmp_path / "long.gif").exists()
@@ -369,9 +369,11 @@ def test_a_picture_is_weighed_against_the_containers_memory_limit(tmp_path, monk
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
     monkeypatch.setattr(builder, "_process_memory_limit", lambda: None)  # a ulimit of the runner's aside
     physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    # The machine's memory as if all of it were available (what other processes hold aside).
+    monkeypatch.setattr(builder, "_machine_memory_free", lambda: physical)
     assert render_module._machine_memory() == min(physical, 2**28)
     with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed on this machine: "
-                                         r".*more than its 0\.25 GiB; use a smaller picture or supersample$"):
+                                         r".*more than the 0\.25 GiB available; use a smaller picture or supersample$"):
         render_usd(path, tmp_path / "big.png", width=1024, height=1024)
     assert not (tmp_path / "big.png").exists()
 

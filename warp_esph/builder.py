@@ -1240,15 +1240,16 @@ BYTES_PER_PARTICLE = 1000
 BYTES_PER_NEIGHBOR = 24
 
 
-#: Where the memory limit of this process's control group is read (``_cgroup_memory_limit``).
+#: Where the memory limit of this process's control group is read (``_cgroup_memory_free``).
 _PROC_CGROUP = "/proc/self/cgroup"
 _CGROUP_ROOT = "/sys/fs/cgroup"
 
 
-def _cgroup_memory_limit() -> int | None:
-    """The lowest memory limit, in bytes, of this process's control group and its ancestors
-    (cgroup v2 ``memory.max``, v1 ``memory.limit_in_bytes``), or None where none is set or
-    none can be read."""
+def _cgroup_memory_free() -> int | None:
+    """The least memory, in bytes, left under a limit of this process's control group or an
+    ancestor's (cgroup v2 ``memory.max`` less ``memory.current``, v1 ``memory.limit_in_bytes``
+    less ``memory.usage_in_bytes``; the limit itself where the use cannot be read), or None
+    where none is set or none can be read."""
     try:
         with open(_PROC_CGROUP) as f:
             lines = f.read().splitlines()
@@ -1260,9 +1261,9 @@ def _cgroup_memory_limit() -> int | None:
         if len(parts) != 3:
             continue
         if parts[1] == "":
-            base, name = _CGROUP_ROOT, "memory.max"
+            base, name, used = _CGROUP_ROOT, "memory.max", "memory.current"
         elif "memory" in parts[1].split(","):
-            base, name = os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes"
+            base, name, used = os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes"
         else:
             continue
         steps = [p for p in parts[2].split("/") if p]
@@ -1276,7 +1277,13 @@ def _cgroup_memory_limit() -> int | None:
                 continue
             # v2 writes "max" for no limit, v1 a number near 2**63.
             if text.isdigit() and 0 < int(text) < 2**62:
-                found.append(int(text))
+                try:
+                    with open(os.path.join(base, *steps[:k], used)) as f:
+                        taken = f.read().strip()
+                except OSError:
+                    taken = ""
+                # The group's other processes' memory (a CI job's other workers) is not this model's.
+                found.append(max(int(text) - (int(taken) if taken.isdigit() else 0), 0))
     return min(found) if found else None
 
 
@@ -1299,27 +1306,50 @@ def _process_memory_limit() -> int | None:
     return min(found) if found else None
 
 
-def _host_memory() -> int | None:
-    """The host's memory in bytes, or None where not known: the machine's, or the limit of the
-    process's control group where lower (a container's: the machine's took what the container
-    could not hold, and the container killed the run), or the process's own limit of its
-    address space or data (``ulimit -v`` or ``-d``) where lower still (a model of 2.3 GB a
-    field under ``ulimit -v 6000000`` failed in Warp's allocator with a traceback)."""
+#: Where the machine's available memory is read (``_machine_memory_free``).
+_PROC_MEMINFO = "/proc/meminfo"
+
+
+def _machine_memory_free() -> int | None:
+    """The machine's memory a new allocation can take, in bytes: Linux's ``MemAvailable``
+    (free memory and the caches it can drop, less what the kernel keeps), else all of it
+    (``SC_PHYS_PAGES``) where that cannot be read; None where neither can."""
     try:
-        machine = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+        with open(_PROC_MEMINFO) as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, OSError, ValueError, TypeError):
         return None
-    limits = [x for x in (_cgroup_memory_limit(), _process_memory_limit()) if x is not None]
+
+
+def _host_memory() -> int | None:
+    """The host's memory available to what is about to be allocated, in bytes, or None where
+    not known: the machine's available memory (``_machine_memory_free``: its total let a run
+    be taken on a shared machine whose other processes held most of it, and it filled it),
+    or what the process's control group has left under its limit where lower (a container's:
+    the machine's took what the container could not hold, and the container killed the run),
+    or the process's own limit of its address space or data (``ulimit -v`` or ``-d``) where
+    lower still (a model of 2.3 GB a field under ``ulimit -v 6000000`` failed in Warp's
+    allocator with a traceback)."""
+    machine = _machine_memory_free()
+    if machine is None:
+        return None
+    limits = [x for x in (_cgroup_memory_free(), _process_memory_limit()) if x is not None]
     return min([machine, *limits])
 
 
 def _device_memory(dev) -> int | None:
-    """The memory of ``dev`` in bytes, or None where not known: for the CPU the host's
-    (``_host_memory``)."""
+    """The memory of ``dev`` available to what is about to be allocated, in bytes, or None
+    where not known: for the CPU the host's (``_host_memory``), for a GPU its free memory."""
     if getattr(dev, "is_cpu", False):
         return _host_memory()
     try:
-        return int(dev.total_memory)
+        return int(dev.free_memory)
     except (AttributeError, OSError, ValueError, TypeError):
         return None
 
@@ -1337,7 +1367,7 @@ def _check_memory(count: int, max_neighbors: int, dev, worlds: int | None = None
                              (f"worlds = {worlds}", f"their {count} particles", "fewer worlds, "))
         raise ValueError(f"{what} is not allowed on {dev}: a model and two states of {them} need about "
                          f"{need / 2**30:.3g} GiB ({need // count} B a particle at max_neighbors = {max_neighbors}), more "
-                         f"than its {have / 2**30:.3g} GiB; use {fewer}a larger spacing or smaller bodies")
+                         f"than the {have / 2**30:.3g} GiB available; use {fewer}a larger spacing or smaller bodies")
 
 
 def _check_outside_colliders(builder) -> None:

@@ -463,9 +463,9 @@ BYTES_PER_PIXEL = 200
 
 
 def _machine_memory() -> int | None:
-    """The memory a picture is drawn in, in bytes, or None where not known: the host's as a
-    model's is weighed (``builder._host_memory``: a container's limit where lower; the
-    machine's let a container kill a drawing it could not hold)."""
+    """The memory a picture is drawn in, in bytes, or None where not known: the host's available
+    memory as a model's is weighed (``builder._host_memory``: a container's room where lower;
+    the machine's let a container kill a drawing it could not hold)."""
     from .builder import _host_memory  # noqa: PLC0415
 
     return _host_memory()
@@ -485,7 +485,7 @@ def _check_pixels(o: "RenderOptions", flag=_same_name) -> None:
         raise ValueError(f"{flag('width')} x {flag('height')} = {o.width} x {o.height} at {flag('supersample')} = "
                          f"{o.supersample} is not allowed on "
                          f"this machine: its {pixels:.3g} pixels (supersampled) need about {need / 2**30:.3g} GiB "
-                         f"({BYTES_PER_PIXEL} B a pixel), more than its {have / 2**30:.3g} GiB; use a smaller picture or "
+                         f"({BYTES_PER_PIXEL} B a pixel), more than the {have / 2**30:.3g} GiB available; use a smaller picture or "
                          f"supersample")
 
 
@@ -1217,7 +1217,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         if have is not None and need > have:
             raise ValueError(f"{flag('frames')} = {checks.shorten(frames)!r} is not allowed in one .gif: {len(chosen)} frames of "
                              f"{options.width} x {options.height} are held together until it is written, about "
-                             f"{need / 2**30:.3g} GiB, more than this machine's {have / 2**30:.3g} GiB; choose fewer frames "
+                             f"{need / 2**30:.3g} GiB, more than the {have / 2**30:.3g} GiB available; choose fewer frames "
                              f"or a smaller picture, or write a folder or an .mp4")
     # Before any frame is drawn: a folder in the way, or a place that takes no file.
     checks.output_place(flag("output"), out, folder=kind == "dir")

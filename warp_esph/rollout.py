@@ -290,7 +290,7 @@ class RolloutMemoryError(checks.Rebuilt, ValueError):
     message names ``steps`` and ``checkpoint_every``, a Python caller's; a caller with other
     names for them (``fit``'s ``checkpoint_every="auto"``, ``warp-esph fit``'s options) words
     its own from ``reason`` (what would not fit: 'the rollout would need about 7.2 GiB, more
-    than its 1 GiB'), ``device``, ``steps``, ``segment`` (the refused one, None: a full
+    than the 1 GiB available'), ``device``, ``steps``, ``segment`` (the refused one, None: a full
     tape), ``least`` (the segment that needs the least memory), ``least_gib`` (what that
     would need) and ``least_fits``. ``experiment``: the ``fit.Experiment`` refused, where a
     fit refused it (else None; None where pickled, as a worker process sends it back);
@@ -426,8 +426,8 @@ class _RolloutMemory:
         what = ("the rollout would need about {:.3g} GiB" if where == 1 else
                 "the rollout's taped states would need about {:.3g} GiB of the host's memory besides their arrays on "
                 "the device")
-        return (f"{what.format(self.need(segment)[where - 1] / 2**30)}, more than its "
-                f"{(self.have if where == 1 else self.host) / 2**30:.3g} GiB")
+        return (f"{what.format(self.need(segment)[where - 1] / 2**30)}, more than the "
+                f"{(self.have if where == 1 else self.host) / 2**30:.3g} GiB available")
 
 
 def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpoint_every,
