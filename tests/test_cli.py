@@ -808,15 +808,24 @@ def test_fit_seed_is_taken_where_something_is_drawn(tmp_path, monkeypatch, capsy
 
 
 def test_cuda_asked_for_where_there_is_none_is_one_line(tmp_path, capsys):
-    """Warp's driver note is the reason, in the one line (it was a warning line and then the
-    error); on a machine with CUDA the run goes on."""
+    """The reason is in the one line (it was Warp's warning line and then the error), the same
+    from run and fit whenever Warp was started: it was Warp's driver note where the command
+    started Warp and 'Warp finds no CUDA device on this machine' where Warp had started before
+    (a second command of one process). On a machine with CUDA the run goes on."""
     import warp as wp
+
+    from warp_esph.startup import cuda_absence
 
     if wp.is_cuda_available():
         pytest.skip("CUDA is available here: nothing to refuse (the CPU machines of CI run this check)")
     (tmp_path / "s.toml").write_text(GOOD_TOML)
+    said = (f"warp-esph: error: --device = 'cuda' is not allowed: Warp finds no CUDA device on this machine: {cuda_absence()} "
+            "(use --device cpu)\n")
+    assert cuda_absence() in ("this Warp was built without CUDA", "it could not find or load the NVIDIA CUDA driver")
     assert main(["run", str(tmp_path / "s.toml"), "-o", str(tmp_path / "t.usdc"), "--device", "cuda", "--no-progress"]) == 2
-    assert_one_line_error(capsys.readouterr().err, "--device = 'cuda' is not allowed: ", "(use --device cpu)")
+    assert capsys.readouterr().err == said
+    assert main(["fit", str(tmp_path / "s.toml"), "--target", str(tmp_path / "t.npz"), "--device", "cuda"]) == 2
+    assert capsys.readouterr().err == said
 
 
 def test_an_output_another_writer_is_writing_is_refused_and_left_to_it(tmp_path, capsys):

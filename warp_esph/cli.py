@@ -354,16 +354,17 @@ def _init_warp(device: str) -> None:
     missing CUDA driver is held back for a CPU run and reported as a warning for a CUDA run
     (``warp_esph.startup.init_warp``)."""
     from . import checks  # noqa: PLC0415
-    from .startup import init_warp  # noqa: PLC0415
+    from .startup import cuda_absence, init_warp  # noqa: PLC0415
 
     notes = init_warp(device, echo=False)
     if device != "cpu":
         import warp as wp  # noqa: PLC0415
 
         if not wp.is_cuda_available():
-            # The driver's note is the reason: one line, not the note and then the error.
-            why = next((_one_line(n) for n in notes if "CUDA" in n), "Warp finds no CUDA device on this machine")
-            raise ValueError(f"--device = {checks.shorten(device)!r} is not allowed: {why} (use --device cpu)")
+            # One line, not the driver's note and then the error; the reason read from Warp's
+            # runtime, as its note is printed only at the start of the process.
+            raise ValueError(f"--device = {checks.shorten(device)!r} is not allowed: Warp finds no CUDA device on this "
+                             f"machine: {cuda_absence()} (use --device cpu)")
     for note in notes:
         if device != "cpu" or "CUDA" not in note:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)

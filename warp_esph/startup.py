@@ -145,3 +145,20 @@ def init_warp(device: str | None = None, log_level: int | None = None, echo: boo
             if wants_gpu or "CUDA" not in note:
                 print(note, file=sys.stderr)
     return notes
+
+
+def cuda_absence() -> str:
+    """Why the started Warp has no CUDA device, read from its runtime (the same words whenever
+    Warp was started: its own note at the start is printed once a process, so a second command
+    of one process named another reason)."""
+    from warp._src import context  # noqa: PLC0415
+
+    runtime = getattr(context, "runtime", None)
+    if runtime is None or not getattr(runtime, "is_cuda_enabled", True):
+        return "this Warp was built without CUDA"
+    driver, least = getattr(runtime, "driver_version", None), getattr(runtime, "min_driver_version", None)
+    if driver is None:
+        return "it could not find or load the NVIDIA CUDA driver"
+    if least is not None and driver < least:
+        return f"the CUDA driver {driver[0]}.{driver[1]} is older than the {least[0]}.{least[1]} it needs"
+    return "the CUDA driver reports no device"
