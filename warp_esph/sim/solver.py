@@ -1030,7 +1030,8 @@ class Solver(Unpicklable):
         the cut-row count until a row is first cut), never the particles. Its checks are of
         what it has: ``dt`` (``check_dt``: refused unless positive and resolvable; above
         ``Model.stable_dt()`` a ``RuntimeWarning``, once per value, and the step runs), the
-        states' shapes, and, from the displacement bounds, whether ``state_in`` holds a
+        states' shapes, the static colliders' values (``Model.check_colliders``), on the CPU the
+        arrays the kernels index (``Model.check_particles``), and, from the displacement bounds, whether ``state_in`` holds a
         non-finite position (a ``RuntimeWarning``, once per solver; with the default
         ``neighbor_skin``, from the second step). A step past the stable one returns what the
         kernels computed, NaN included, without raising; the step after it warns. The
