@@ -1396,13 +1396,13 @@ class Model(Unpicklable):
         microseconds), not on a GPU, where it would read the particles back every step."""
         arrays = self._particle_arrays()
         views = self._particle_held[1]
-        if views is not None:
-            if b"".join([v.tobytes() for v in views]) == self._particles_checked:
-                return
-        else:
+        if views is None:  # a GPU's: read back
             views = [a.numpy() for a in arrays]
+        now = b"".join([v.tobytes() for v in views])
+        if now == self._particles_checked:
+            return
         self._judge_particles(dict(zip((f[0] for f in PARTICLE_FIELDS), views)))
-        self._particles_checked = b"".join([v.tobytes() for v in views])
+        self._particles_checked = now
 
     def _judge_particles(self, values: dict) -> None:
         """``check_particles``'s rules, on the arrays' values (numpy, by name)."""
