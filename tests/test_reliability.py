@@ -1283,7 +1283,8 @@ def test_a_model_is_weighed_against_the_memory_available_not_the_machines(monkey
     root.mkdir()
     proc.write_text("0::/\n")
     (root / "memory.max").write_text(f"{2**31}\n")
-    (root / "memory.current").write_text(f"{2**31 - 2**29}\n")  # half a GiB left under the group's 2 GiB
+    (root / "memory.current").write_text(f"{2**31 - 2**28}\n")
+    (root / "memory.stat").write_text(f"anon {2**30}\nfile {2**30}\ninactive_file {2**28}\n")  # dropped before a failure
     monkeypatch.setattr(builder_module, "_PROC_MEMINFO", str(meminfo), raising=False)
     monkeypatch.setattr(builder_module, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder_module, "_CGROUP_ROOT", str(root), raising=False)
@@ -1297,6 +1298,8 @@ def test_a_model_is_weighed_against_the_memory_available_not_the_machines(monkey
     assert not (tmp_path / "out.usdc").exists()
     meminfo.write_text(f"MemAvailable: {2**32 // 1024} kB\n")  # 4 GiB: the group's half GiB is the least
     assert builder_module._host_memory() == 2**29
+    (root / "memory.stat").unlink()  # its use alone where its cache cannot be read
+    assert builder_module._host_memory() == 2**28
 
 
 @pytest.mark.parametrize("command, failure", [

@@ -1248,8 +1248,9 @@ _CGROUP_ROOT = "/sys/fs/cgroup"
 def _cgroup_memory_free() -> int | None:
     """The least memory, in bytes, left under a limit of this process's control group or an
     ancestor's (cgroup v2 ``memory.max`` less ``memory.current``, v1 ``memory.limit_in_bytes``
-    less ``memory.usage_in_bytes``; the limit itself where the use cannot be read), or None
-    where none is set or none can be read."""
+    less ``memory.usage_in_bytes``, each use less the group's inactive file cache, which the
+    kernel drops before it fails an allocation; the limit itself where the use cannot be
+    read), or None where none is set or none can be read."""
     try:
         with open(_PROC_CGROUP) as f:
             lines = f.read().splitlines()
@@ -1261,9 +1262,10 @@ def _cgroup_memory_free() -> int | None:
         if len(parts) != 3:
             continue
         if parts[1] == "":
-            base, name, used = _CGROUP_ROOT, "memory.max", "memory.current"
+            base, name, used, cache = _CGROUP_ROOT, "memory.max", "memory.current", "inactive_file"
         elif "memory" in parts[1].split(","):
-            base, name, used = os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes"
+            base, name, used, cache = (os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes",
+                                       "total_inactive_file")
         else:
             continue
         steps = [p for p in parts[2].split("/") if p]
@@ -1277,14 +1279,29 @@ def _cgroup_memory_free() -> int | None:
                 continue
             # v2 writes "max" for no limit, v1 a number near 2**63.
             if text.isdigit() and 0 < int(text) < 2**62:
-                try:
-                    with open(os.path.join(base, *steps[:k], used)) as f:
-                        taken = f.read().strip()
-                except OSError:
-                    taken = ""
                 # The group's other processes' memory (a CI job's other workers) is not this model's.
-                found.append(max(int(text) - (int(taken) if taken.isdigit() else 0), 0))
+                found.append(max(int(text) - _cgroup_memory_used(os.path.join(base, *steps[:k]), used, cache), 0))
     return min(found) if found else None
+
+
+def _cgroup_memory_used(group: str, used: str, cache: str) -> int:
+    """The memory a control group holds, in bytes (``used``, its file), less its inactive file
+    cache (``cache``, the key of its ``memory.stat``), as ``docker stats`` counts it; 0 where
+    it cannot be read."""
+    try:
+        with open(os.path.join(group, used)) as f:
+            taken = int(f.read().strip())
+    except (OSError, ValueError):
+        return 0
+    try:
+        with open(os.path.join(group, "memory.stat")) as f:
+            for line in f:
+                key, _, value = line.partition(" ")
+                if key == cache:
+                    return max(taken - int(value), 0)
+    except (OSError, ValueError):
+        pass
+    return taken
 
 
 def _process_memory_limit() -> int | None:
