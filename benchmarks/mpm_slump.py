@@ -5,6 +5,7 @@
     python -m benchmarks.mpm_slump --column                        # the elastic column check
     python -m benchmarks.mpm_slump --near-yield-column --res 6 9   # the near-yield column, 6 and 9 cells across
     python -m benchmarks.mpm_slump --S 0.2 --res 16 --flow-rate 200   # the particle scene's flow rule
+    python -m benchmarks.mpm_slump --S 0.2 --res 8 --flow-rate 200 --floor-shear-cap 1   # a floor gripping up to tau_y
     python -m benchmarks.mpm_slump --quick                         # CI-sized: column + squeeze, a few s
     python -m benchmarks.mpm_slump --table docs/mpm_slump.json     # the markdown table of docs/validation.md
 
@@ -23,7 +24,9 @@ quadratic B-spline weights on a uniform grid of spacing ``dx``:
   set to zero, the slump's default: it glues, holding the material down as well as up, which a
   no-slip reference is by convention), or a contact that only pushes, slip (a downward ``v_y``
   set to zero, the column check) or Coulomb (``--floor-friction``: with it the tangential
-  velocity loses at most friction x the normal one taken), a node moving up being free in both
+  velocity loses at most friction x the normal one taken) or Tresca (``--floor-shear-cap K``:
+  it grips up to a shear traction ``K tau_y``, ``tau_y = Y / sqrt(2)`` the material's shear yield
+  stress, whatever the normal load: ``tresca_floor``), a node moving up being free in all three
   (before 2026-12-07 slip and Coulomb also took an upward ``v_y``: a floor that pulls); the domain's
   side and top walls are sticky (the material never reaches them: the run stops if it does);
 * G2P: ``v_p = sum w v_i``, ``C_p = (4/dx^2) sum w v_i (x_i - x_p)^T``, ``x_p += dt v_p``,
@@ -173,6 +176,57 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                 wp.atomic_add(gm, bi + i, bj + j, bk + k, w * mp)
 
 
+@wp.func
+def tangential_slowed(vel: wp.vec3, loss: float):
+    """The tangential (x, z) part of ``vel`` with its speed less ``loss``, down to 0 and never
+    reversed: a floor's friction impulse on a node, per unit of its mass."""
+    tangential = wp.vec3(vel[0], 0.0, vel[2])
+    speed = wp.length(tangential)
+    if speed > 0.0:
+        tangential = tangential * (wp.max(0.0, speed - loss) / speed)
+    return tangential
+
+
+@wp.func
+def tresca_speed_loss(shear_cap: float, dx: float, dt: float, column_mass: float, full_mass: float):
+    """The tangential speed a Tresca floor takes from each contact node of a node column in one
+    step: the impulse shear_cap x (the floor area the column's material covers) x dt, shared
+    as one speed loss by the column's contact nodes of total mass ``column_mass``. The covered
+    area is dx^2 x min(1, column_mass / full_mass) (``full_mass`` the floor nodes' mass of a
+    column the material fills), so the loss is shear_cap dx^2 dt / max(column_mass, full_mass)."""
+    return shear_cap * dx * dx * dt / wp.max(column_mass, full_mass)
+
+
+@wp.kernel(module="unique")
+def tresca_floor(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), shear_cap: float, dx: float,
+                 dt: float, full_mass: float):
+    """A floor that grips up to a shear traction ``shear_cap`` whatever the normal load (Tresca
+    friction), on the node columns (i, k) after ``grid_update``'s slip floor: its contact nodes
+    (y <= 0, with mass, not moving up) lose the same tangential speed (``tresca_speed_loss``).
+
+    The node's floor area. The grid is 3-D (not axisymmetric): the floor y = 0 is tiled by one
+    dx x dx square per node column, and the floor nodes of a column with mass are two rows,
+    y = 0 and y = -dx (a particle's quadratic stencil reaches 1.5 dx, so the rows below carry
+    the lowest half cell's particles), which share that square. A column at a body's edge holds
+    material over only part of it: reading dx^2 there gives a block of 4 x 4 cells the grip of
+    the 7 x 7 columns its stencils reach (3 x its base). So a column's area is dx^2 x its contact
+    mass over ``full_floor_mass`` (at most dx^2; the horizontal B-spline weights sum to 1, so a
+    body's columns add up to its base area), and a node's is that share of it by mass: dx^2
+    m_node / max(column mass, full mass), an impulse cap of shear_cap x it x dt."""
+    i, k = wp.tid()
+    column_mass = float(0.0)
+    for j in range(FLOOR_PAD + 1):
+        if gm[i, j, k] > 0.0 and gmv[i, j, k][1] <= 0.0:
+            column_mass += gm[i, j, k]
+    if column_mass <= 0.0:
+        return
+    loss = tresca_speed_loss(shear_cap, dx, dt, column_mass, full_mass)
+    for j in range(FLOOR_PAD + 1):
+        vel = gmv[i, j, k]
+        if gm[i, j, k] > 0.0 and vel[1] <= 0.0:
+            gmv[i, j, k] = tangential_slowed(vel, loss)
+
+
 @wp.kernel(module="unique")
 def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gravity: wp.vec3, dt: float,
                 damping: float, floor_friction: float, wall: int):
@@ -194,11 +248,7 @@ def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gra
             # the force ratio); a node moving away is left free. Taking the outward velocity too
             # lets the floor pull: at rest the node row at y = 0 then pushes 1.25 x the pile's
             # weight and the row below pulls 0.25 x it (docs/physics.md).
-            tangential = wp.vec3(vel[0], 0.0, vel[2])
-            speed = wp.length(tangential)
-            if speed > 0.0:
-                tangential = tangential * (wp.max(0.0, speed + floor_friction * vel[1]) / speed)
-            vel = tangential
+            vel = tangential_slowed(vel, -floor_friction * vel[1])
     if i < wall or i >= ni - wall or k < wall or k >= nk - wall or j >= nj - wall:
         vel = wp.vec3(0.0)
     gmv[i, j, k] = vel
@@ -265,8 +315,16 @@ class MPM:
     """A minimal MLS-MPM of one material on a box grid [lo, lo + n dx] with the floor at y = 0."""
 
     def __init__(self, points, spacing, dx, mu, lam, Y, eta, half_width, height, floor_friction=-1.0,
-                 cfl=0.3, damping=0.0, flow_rate=0.0, device="cpu"):
+                 cfl=0.3, damping=0.0, flow_rate=0.0, floor_shear_cap=None, device="cpu"):
         # floor_friction < 0: sticky (no-slip) floor nodes; 0: slip; > 0: Coulomb friction.
+        # floor_shear_cap (Pa, >= 0; with the slip floor only): the Tresca floor, ``tresca_floor``.
+        if floor_shear_cap is not None:
+            if not floor_shear_cap >= 0.0 or not math.isfinite(floor_shear_cap):
+                raise ValueError(f"floor_shear_cap = {floor_shear_cap!r} is not allowed: a shear traction in Pa, "
+                                 "finite and >= 0")
+            if floor_friction != 0.0:
+                raise ValueError(f"floor_shear_cap = {floor_shear_cap!r} is not allowed with floor_friction = "
+                                 f"{floor_friction!r}: the Tresca floor is the slip floor (0) that grips up to the cap")
         self.device = device
         self.dx, self.mu, self.lam, self.Y, self.eta = float(dx), float(mu), float(lam), float(Y), float(eta)
         self.vp0 = float(spacing) ** 3
@@ -285,6 +343,8 @@ class MPM:
         self.damping_rate = float(damping)
         self.damping = math.exp(-damping * self.dt)
         self.floor_friction = float(floor_friction)
+        self.floor_shear_cap = None if floor_shear_cap is None else float(floor_shear_cap)
+        self.full_floor_mass = full_floor_mass(spacing, dx)
         n = len(points)
         self.n = n
         z3 = np.zeros((n, 3), np.float32)
@@ -317,6 +377,9 @@ class MPM:
             g = g * min(1.0, (self.t + self.dt) / self.ramp)
         wp.launch(grid_update, self.shape, inputs=[self.gm, self.gmv, g, self.dt, self.damping,
                                                    self.floor_friction, 3], device=d)
+        if self.floor_shear_cap is not None:
+            wp.launch(tresca_floor, (self.shape[0], self.shape[2]), inputs=[self.gm, self.gmv, self.floor_shear_cap,
+                                                                          self.dx, self.dt, self.full_floor_mass], device=d)
         if self.plate is not None:
             self.plate_force.zero_()
             wp.launch(plate_update, self.shape, inputs=[self.gm, self.gmv, self.plate[0], self.plate[1],
@@ -328,6 +391,26 @@ class MPM:
     def kinetic(self):
         v = self.v.numpy().astype(np.float64)
         return 0.5 * self.mp * float((v * v).sum())
+
+
+def full_floor_mass(spacing, dx):
+    """The mass on the floor nodes (y <= 0) of one node column under material at rest density
+    filling y > 0 on this MPM's lattice (particles of side ``spacing`` from spacing / 2 up):
+    rho dx^2 spacing sum_n [N(y_n / dx) + N(y_n / dx + 1)], y_n = (n + 1/2) spacing, N the
+    quadratic B-spline (the horizontal weights sum to 1 over a column's share of the floor,
+    dx^2 / spacing^2 particles). At spacing dx / 2: rho dx^3 (33 / 64), rows y = dx/4, 3dx/4
+    and 5dx/4 weighing 0.6875 + 0.03125, 0.28125 and 0.03125. The Tresca floor reads a column's
+    covered area as dx^2 x its floor mass over this, at most dx^2."""
+    def bspline(u):
+        u = abs(u)
+        return 0.75 - u * u if u < 0.5 else (0.5 * (1.5 - u) ** 2 if u < 1.5 else 0.0)
+
+    total, n = 0.0, 0
+    while (n + 0.5) * spacing < 1.5 * dx:
+        u = (n + 0.5) * spacing / dx
+        total += bspline(u) + bspline(u + 1.0)
+        n += 1
+    return RHO * dx * dx * spacing * total
 
 
 def _lattice(nx, ny, nz, s, origin):
@@ -344,8 +427,10 @@ def material(S, H0=0.1, stiffness=10.0):
 
 # --------------------------------------------------------------------------- the slump
 def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.0, flow_rate=0.0, ramp=0.0, cfl=0.3, sample_dt=0.05,
-          half_width=None, save=None, log=None, floor_friction=-1.0):
-    """The slump of ``benchmarks.validation.slump``'s cylinder in the MPM: a dict of measures."""
+          half_width=None, save=None, log=None, floor_friction=-1.0, floor_shear_cap=None):
+    """The slump of ``benchmarks.validation.slump``'s cylinder in the MPM: a dict of measures.
+    ``floor_shear_cap``: a Tresca floor gripping up to this multiple of the material's shear
+    yield stress ``tau_y = Y / sqrt(2)`` (with ``floor_friction`` 0)."""
     R0 = H0 / (2.0 * aspect)
     dx = H0 / res
     s = 0.5 * dx
@@ -356,8 +441,9 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
     mu, lam, Y = material(S, H0)
     if half_width is None:
         half_width = max(3.2 * R0, 0.16)
+    cap_pa = None if floor_shear_cap is None else floor_shear_cap * Y / math.sqrt(2.0)
     sim = MPM(pts, s, dx, mu, lam, Y, eta, half_width, H0 + 2 * dx, floor_friction=floor_friction, cfl=cfl,
-              flow_rate=flow_rate)
+              flow_rate=flow_rate, floor_shear_cap=cap_pa)
     sim.ramp = float(ramp)
     vol0 = np.full(len(pts), sim.vp0)
     mass = sim.mp * len(pts)
@@ -427,7 +513,9 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
         "particles_across": int(round(2 * R0 / s)), "particles": int(len(pts)), "particles_per_cell": 8,
         "dt": sim.dt, "duration": sim.t, "steps": int(round(sim.t / sim.dt)), "eta": eta, "cfl": cfl,
         "flow_rate": flow_rate, "gravity_ramp_s": ramp,
-        "floor": "sticky" if floor_friction < 0 else ("slip" if floor_friction == 0 else "Coulomb %g" % floor_friction),
+        "floor": ("Tresca %g tau_y" % floor_shear_cap if floor_shear_cap is not None else
+                  "sticky" if floor_friction < 0 else ("slip" if floor_friction == 0 else "Coulomb %g" % floor_friction)),
+        **({"floor_shear_cap_Pa": cap_pa} if cap_pa is not None else {}),
         "plasticity": "Bingham (Perzyna)" if flow_rate > 0 else "rate-independent",
         "thickness_over_H0": th, "theory_h_over_H0": theory, "thickness_vs_theory_pct": 100.0 * (th / theory - 1.0),
         "top_on_axis_over_H0": TOP[-1] / H0, "top_vs_theory_pct": 100.0 * (TOP[-1] / H0 / theory - 1.0),
@@ -489,7 +577,7 @@ def column(res=16, L=0.1, width=0.04, stiffness=10.0, duration=0.6, damping=60.0
 
 
 def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=0.8, flow_rate=200.0, periods=36.0,
-                      ramp=4.0, elastic_periods=8.0, cfl=0.3):
+                      ramp=4.0, elastic_periods=8.0, cfl=0.3, floor_shear_cap=None):
     """The particle suite's near-yield column (``benchmarks.validation.near_yield_column``) in
     the continuum: a square column ``width`` across (``res`` cells, ``2 res`` particles) and
     ``aspect`` times as tall on a slip floor, laterally free, ``E``, ``nu``, its uniaxial yield
@@ -501,7 +589,9 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     ``benchmarks.validation.near_yield_column_theory``, whose layers spread freely; the
     depth of the highest yielded particle (the front); the top's rate over the last tenth and
     its lateral offset (a tilt: the column on its yielded base is unstable to leaning, which
-    grows from round-off some time after the base has come to rest, docs/validation.md)."""
+    grows from round-off some time after the base has come to rest, docs/validation.md).
+    ``floor_shear_cap``: the Tresca floor instead, gripping up to this multiple of the shear yield
+    stress ``Y / sqrt(2)`` (the same cap in Pa under the elastic twin)."""
     L = aspect * width
     dx = width / res
     s = 0.5 * dx
@@ -513,9 +603,12 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     top = y0 > y0.max() - 1e-9
     t0 = time.perf_counter()
 
+    Y_column = math.sqrt(2.0 / 3.0) * RHO * G * yield_depth * L
+    cap_pa = None if floor_shear_cap is None else floor_shear_cap * Y_column / math.sqrt(2.0)
+
     def relax(Y, n_periods):
         sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.6 * width, L + 2.0 * dx, floor_friction=0.0, cfl=cfl,
-                  damping=1.4 * omega, flow_rate=flow_rate)
+                  damping=1.4 * omega, flow_rate=flow_rate, floor_shear_cap=cap_pa)
         sim.ramp = ramp * 2.0 * math.pi / omega
         end = n_periods * 2.0 * math.pi / omega
         hist = []
@@ -529,7 +622,7 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     elastic, _ = relax(1.0e30, elastic_periods)
     x_el = elastic.x.numpy().astype(np.float64)
     drop_elastic = float(y0[top].mean() - x_el[top, 1].mean())
-    sim, hist = relax(math.sqrt(2.0 / 3.0) * RHO * G * yield_depth * L, periods)
+    sim, hist = relax(Y_column, periods)
     x = sim.x.numpy().astype(np.float64)
     drop = float(y0[top].mean() - x[top, 1].mean())
     last = hist[hist[:, 0] > 0.9 * hist[-1, 0]]
@@ -537,6 +630,7 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     yielded = (L - y0[sim.plastic.numpy() > 1e-6]) / L
     return {"case": "near_yield_column", "res_cells_across": res, "particles": len(pts), "E": E, "nu": nu,
             "yield_depth": yield_depth, "flow_rate": flow_rate, "periods": periods, "duration": sim.t,
+            "floor": "slip" if cap_pa is None else "Tresca %g tau_y" % floor_shear_cap,
             "elastic_drop": drop_elastic, "elastic_over_theory": drop_elastic / (RHO * G * L * L / (2.0 * E)),
             "plastic_over_theory": (drop - drop_elastic) / plastic_theory,
             "top_rate_pct_of_plastic_per_s": 100.0 * float(np.polyfit(last[:, 0], last[:, 1], 1)[0]) / plastic_theory,
@@ -686,6 +780,9 @@ def main(argv=None):
     ap.add_argument("--floor-friction", type=_cli.finite_float, default=-1.0,
                     help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction "
                          "(slip and Coulomb only push)")
+    ap.add_argument("--floor-shear-cap", type=_cli.nonnegative_float, default=None,
+                    help="the slump's floor: Tresca, gripping up to this multiple of the material's shear yield "
+                         "stress tau_y = S rho g H0 / sqrt(3) whatever the normal load, and only pushing")
     ap.add_argument("--column", action="store_true")
     ap.add_argument("--squeeze", action="store_true")
     ap.add_argument("--near-yield-column", action="store_true",
@@ -697,11 +794,13 @@ def main(argv=None):
     args = ap.parse_args(argv)
     # The slump's options without --S values ran nothing, said nothing and exited 0.
     given = [f"--{k.replace('_', '-')}" for k in ("res", "aspect", "duration", "max_duration", "flow_rate", "ramp",
-                                                  "floor_friction", "save") if getattr(args, k) not in (None, -1.0)]
+                                                  "floor_friction", "floor_shear_cap", "save")
+             if getattr(args, k) not in (None, -1.0)]
     if args.near_yield_column and not args.S:
-        given = [g for g in given if g != "--res"]
+        given = [g for g in given if g not in ("--res", "--floor-shear-cap")]
     if given and not args.S:
-        also = " (--res also sets the --near-yield-column runs)" if given[0] == "--res" else ""
+        also = (" (--res and --floor-shear-cap also set the --near-yield-column runs)"
+                if given[0] in ("--res", "--floor-shear-cap") else "")
         ap.error(f"{given[0]} is not allowed without --S: it sets the slump runs, and --S gives their yield stresses{also}")
     for k in ("S", "res"):
         if getattr(args, k) == []:
@@ -714,6 +813,9 @@ def main(argv=None):
     for k, v in defaults.items():
         if getattr(args, k) is None:
             setattr(args, k, v)
+    if args.floor_shear_cap is not None and args.floor_friction != -1.0:
+        ap.error(f"--floor-friction = {args.floor_friction:g} is not allowed with --floor-shear-cap: the Tresca floor's "
+                 "grip is its shear cap alone")
     if args.max_duration < args.duration:
         ap.error(f"--max-duration = {args.max_duration:g} is not allowed: below --duration = {args.duration:g}")
     if args.table:
@@ -740,7 +842,7 @@ def main(argv=None):
         print(json.dumps(r), flush=True)
         rows.append(r)
     for res in column_res if args.near_yield_column else ():
-        r = near_yield_column(res=res)
+        r = near_yield_column(res=res, floor_shear_cap=args.floor_shear_cap)
         print(json.dumps(r), flush=True)
         rows.append(r)
     if rows and args.json:  # the checks' rows were printed, never written
@@ -749,10 +851,12 @@ def main(argv=None):
         p.write_text(json.dumps(old + rows, indent=1) + "\n")
     for S in args.S:
         for res in args.res:
-            save = f"{args.save}_S{S}_a{args.aspect}_r{res}_f{args.flow_rate:g}_g{args.ramp:g}_m{args.floor_friction:g}.npz" if args.save else None
+            tresca = args.floor_shear_cap is not None
+            floor = f"t{args.floor_shear_cap:g}" if tresca else f"m{args.floor_friction:g}"
+            save = f"{args.save}_S{S}_a{args.aspect}_r{res}_f{args.flow_rate:g}_g{args.ramp:g}_{floor}.npz" if args.save else None
             r = slump(S, res, aspect=args.aspect, duration=args.duration, max_duration=args.max_duration,
                       flow_rate=args.flow_rate, ramp=args.ramp, save=save, log=sys.stdout,
-                      floor_friction=args.floor_friction)
+                      floor_friction=0.0 if tresca else args.floor_friction, floor_shear_cap=args.floor_shear_cap)
             print(json.dumps({k: v for k, v in r.items() if k not in ("history", "axis_layers")}), flush=True)
             rows.append(r)
             if args.json:

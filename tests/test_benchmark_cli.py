@@ -216,7 +216,12 @@ def test_launches(refused, argv, option):
                                          (["--S"], "--S is not allowed without values"),
                                          (["--near-yield-column", "--res", "0"], "--res = 0"),
                                          (["--near-yield-column", "--duration", "1"], "--duration is not allowed without --S"),
-                                         (["--S", "0.2", "--duration", "9", "--max-duration", "8"], "--max-duration = 8")])
+                                         (["--S", "0.2", "--duration", "9", "--max-duration", "8"], "--max-duration = 8"),
+                                         (["--S", "0.2", "--floor-shear-cap", "-1"], "--floor-shear-cap = -1"),
+                                         (["--S", "0.2", "--floor-shear-cap", "nan"], "--floor-shear-cap = nan"),
+                                         (["--S", "0.2", "--floor-shear-cap", "1", "--floor-friction", "0.3"],
+                                          "--floor-friction = 0.3 is not allowed with --floor-shear-cap"),
+                                         (["--floor-shear-cap", "1"], "--floor-shear-cap is not allowed without --S")])
 def test_mpm_slump(refused, argv, option):
     refused("mpm_slump", argv, option)
 

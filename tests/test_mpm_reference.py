@@ -48,10 +48,11 @@ def test_sustained_squeeze_carries_the_bingham_stress_to_large_strain():
     assert rows[-1]["bingham_over_sigma_y"] > 1.3  # the rate term is a third of the load by the end
 
 
-def _stiff_block_on_the_floor(friction, velocity, headroom_cells, duration):
-    """An 8 x 4 x 8 stiff elastic block resting on the MPM's floor (``floor_friction``), all its
-    particles given ``velocity`` = (sideways, up), run for ``duration``: the simulation and the
-    block's starting points."""
+def _stiff_block_on_the_floor(friction, velocity, headroom_cells, duration, shear_cap=None, slope=0.0):
+    """An 8 x 4 x 8 stiff elastic block (20 x 10 x 20 mm) resting on the MPM's floor
+    (``floor_friction``, ``floor_shear_cap``), all its particles given ``velocity`` = (sideways,
+    up), gravity tilted by ``slope`` = sin(theta) towards +x, run for ``duration``: the
+    simulation and the block's starting points."""
     import numpy as np
     import warp as wp
 
@@ -59,7 +60,10 @@ def _stiff_block_on_the_floor(friction, velocity, headroom_cells, duration):
     s = 0.5 * dx
     pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
     mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
-    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + headroom_cells * dx, floor_friction=friction)
+    sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + headroom_cells * dx, floor_friction=friction,
+                        floor_shear_cap=shear_cap)
+    g = mpm_slump.G
+    sim.gravity = wp.vec3(g * slope, -g * math.sqrt(1.0 - slope * slope), 0.0)
     v = np.zeros((len(pts), 3), np.float32)
     v[:, 0], v[:, 1] = velocity
     sim.v = wp.array(v, dtype=wp.vec3)
@@ -84,20 +88,45 @@ def test_coulomb_floor_decelerates_a_sliding_block_at_friction_times_g():
     assert lost == pytest.approx(0.25 * mpm_slump.G * t, rel=0.03)
 
 
-@pytest.mark.parametrize("friction", [0.0, 0.25])
-def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic(friction):
+def test_tresca_floor_holds_a_block_below_its_shear_cap_and_slides_it_at_the_cap_above():
+    """The Tresca floor (``floor_shear_cap``, the continuum of a floor that grips up to a shear
+    traction whatever the normal load): a stiff block 10 mm tall (rho h = 10 kg/m^2) on a slope
+    of gravity, cap 40 Pa. At sin(theta) = 0.2 its base shear, rho h g sin(theta) = 19.6 Pa, is
+    half the cap: it is held (it creeps 1e-6 m, its elastic shear). At 0.8 (78.5 Pa) it slides
+    at g sin(theta) - cap / (rho h), 3.85 m/s^2 (measured 1.03 x: the floor is the block's base
+    area, its node columns' covered share, not 7 x 7 columns of dx^2 where its 4 x 4 cells of
+    footprint reach, which would hold it: 12.3 m/s^2 of grip); cap 0 is the slip floor, to the
+    last digit."""
+    cap, rho_h, g = 40.0, mpm_slump.RHO * 0.01, mpm_slump.G
+
+    def slope(sin_theta, shear_cap):
+        sim, pts = _stiff_block_on_the_floor(0.0, (0.0, 0.0), 2, 0.02, shear_cap=shear_cap, slope=sin_theta)
+        return float(sim.x.numpy()[:, 0].mean() - pts[:, 0].mean()), float(sim.v.numpy()[:, 0].mean()), sim.t
+
+    held, _, t = slope(0.2, cap)
+    assert abs(held) < 1e-5, held  # sliding at the slip floor's 1.96 m/s^2 it would move 4e-4 m
+    _, v, t = slope(0.8, cap)
+    assert v == pytest.approx((g * 0.8 - cap / rho_h) * t, rel=0.05)
+    free = slope(0.8, None)
+    assert slope(0.8, 0.0) == free and free[1] == pytest.approx(g * 0.8 * t, rel=1e-4)
+
+
+@pytest.mark.parametrize("friction, shear_cap", [(0.0, None), (0.25, None), (0.0, 1000.0)])
+def test_slip_floor_only_pushes_a_block_leaving_it_flies_ballistic(friction, shear_cap):
     """The slip floor is a contact: a stiff block on it given an upward speed leaves it as a free
     body, its centre of mass at y0 + v0 t - g t^2 / 2 and its momentum (v0 - g t) M. The Coulomb
     floor (``friction`` > 0) is the same contact, its friction only where it pushes: a block
     leaving it sideways keeps its sideways speed (a friction on the nodes moving up, the
-    formula's ``speed + friction v_y`` with v_y > 0, sped it up). A floor that
+    formula's ``speed + friction v_y`` with v_y > 0, sped it up); so is the Tresca floor
+    (``shear_cap`` 1000 Pa, which would stop the block's sideways speed in 2 ms: 100 m/s^2), which grips only nodes that
+    do not move up. A floor that
     also takes an upward node velocity (the one before 2026-12-07) holds the block's bottom and
     pulls: it measured a rise of 0.0014 of the ballistic one and the block moving down at 1.29 x
     the ballistic speed, where this floor reads 0.997 and 0.9999 (docs/physics.md, "What the rested pile's forces carry": at rest that pull is a couple that
     holds the slip pile up)."""
     v0 = 0.2
-    sideways = v0 if friction > 0.0 else 0.0
-    sim, pts = _stiff_block_on_the_floor(friction, (sideways, v0), 4, 0.02)
+    sideways = v0 if friction > 0.0 or shear_cap else 0.0
+    sim, pts = _stiff_block_on_the_floor(friction, (sideways, v0), 4, 0.02, shear_cap=shear_cap)
     t, g = sim.t, mpm_slump.G
     rise = float(sim.x.numpy()[:, 1].mean() - pts[:, 1].mean())
     assert rise == pytest.approx(v0 * t - 0.5 * g * t * t, rel=0.01), rise
