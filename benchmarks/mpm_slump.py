@@ -77,7 +77,9 @@ laterally free, relaxed under gravity (mass-proportional damping on the grid vel
 does not move the equilibrium) shortens by ``rho g L^2 / (2 E)`` (``column``; 1.002 / 0.982 of it at
 8 / 16 cells over its height); a block squeezed between two slip plates flows at the uniaxial
 yield stress ``sqrt(3/2) Y`` (``squeeze``; volume-mean stress 0.96-0.99 of it at 6-12 cells: the
-node rows at each plate hold the layer next to it in, so not all of the block flows).
+node rows at each plate hold the layer next to it in, so not all of the block flows); a stiff
+block on a slope of gravity on the Tresca floor is held below its cap and slides at
+``g sin theta - cap / (rho h)`` above it (1.03 x).
 
 **Cost** (one core, float32): about 41 s per simulated second at ``res`` 16 (26k particles,
 dt 3.2e-4 s), 200 s at 24 (87k), 12 s at 12; about 630 s at 32 (estimated). The near-yield
