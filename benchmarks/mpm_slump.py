@@ -415,6 +415,17 @@ def full_floor_mass(spacing, dx):
     return RHO * dx * dx * spacing * total
 
 
+def shear_cap_pa(floor_shear_cap, Y):
+    """The Tresca floor's cap in Pa from ``floor_shear_cap`` in units of the shear yield stress
+    ``Y / sqrt(2)`` (None: no Tresca floor); ``ValueError`` naming it unless finite and >= 0."""
+    if floor_shear_cap is None:
+        return None
+    if not (isinstance(floor_shear_cap, (int, float)) and math.isfinite(floor_shear_cap) and floor_shear_cap >= 0.0):
+        raise ValueError(f"floor_shear_cap = {floor_shear_cap!r} is not allowed: a multiple of the shear yield stress, "
+                         "finite and >= 0 (or None: no Tresca floor)")
+    return float(floor_shear_cap) * Y / math.sqrt(2.0)
+
+
 def _lattice(nx, ny, nz, s, origin):
     i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
     p = np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(np.float64)
@@ -443,7 +454,7 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
     mu, lam, Y = material(S, H0)
     if half_width is None:
         half_width = max(3.2 * R0, 0.16)
-    cap_pa = None if floor_shear_cap is None else floor_shear_cap * Y / math.sqrt(2.0)
+    cap_pa = shear_cap_pa(floor_shear_cap, Y)
     sim = MPM(pts, s, dx, mu, lam, Y, eta, half_width, H0 + 2 * dx, floor_friction=floor_friction, cfl=cfl,
               flow_rate=flow_rate, floor_shear_cap=cap_pa)
     sim.ramp = float(ramp)
@@ -606,7 +617,7 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     t0 = time.perf_counter()
 
     Y_column = math.sqrt(2.0 / 3.0) * RHO * G * yield_depth * L
-    cap_pa = None if floor_shear_cap is None else floor_shear_cap * Y_column / math.sqrt(2.0)
+    cap_pa = shear_cap_pa(floor_shear_cap, Y_column)
 
     def relax(Y, n_periods):
         sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.6 * width, L + 2.0 * dx, floor_friction=0.0, cfl=cfl,

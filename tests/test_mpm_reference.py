@@ -109,6 +109,13 @@ def test_tresca_floor_holds_a_block_below_its_shear_cap_and_slides_it_at_the_cap
     assert v == pytest.approx((g * 0.8 - cap / rho_h) * t, rel=0.05)
     free = slope(0.8, None)
     assert slope(0.8, 0.0) == free and free[1] == pytest.approx(g * 0.8 * t, rel=1e-4)
+    # A cap that is no traction, or one on a floor that is not the slip one, is refused before a step.
+    with pytest.raises(ValueError, match=r"floor_shear_cap = -1\.0 is not allowed: a multiple of the shear yield"):
+        mpm_slump.slump(0.2, res=4, floor_shear_cap=-1.0, floor_friction=0.0)
+    with pytest.raises(ValueError, match=r"floor_shear_cap = nan is not allowed: a shear traction in Pa"):
+        _stiff_block_on_the_floor(0.0, (0.0, 0.0), 2, 0.0, shear_cap=float("nan"))
+    with pytest.raises(ValueError, match=r"floor_shear_cap = 40\.0 is not allowed with floor_friction = -1"):
+        _stiff_block_on_the_floor(-1.0, (0.0, 0.0), 2, 0.0, shear_cap=cap)
 
 
 @pytest.mark.parametrize("friction, shear_cap", [(0.0, None), (0.25, None), (0.0, 1000.0)])
