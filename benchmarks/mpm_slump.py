@@ -790,7 +790,7 @@ def main(argv=None):
     ap.add_argument("--flow-rate", type=_cli.nonnegative_float, default=None,
                     help="0: rate-independent plasticity; else the Bingham relaxation rate (1/s)")
     ap.add_argument("--ramp", type=_cli.nonnegative_float, default=None, help="gravity ramped from 0 over this time (s); 0: at once")
-    ap.add_argument("--floor-friction", type=_cli.finite_float, default=-1.0,
+    ap.add_argument("--floor-friction", type=_cli.finite_float, default=None,
                     help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction "
                          "(slip and Coulomb only push)")
     ap.add_argument("--floor-shear-cap", type=_cli.nonnegative_float, default=None,
@@ -822,13 +822,16 @@ def main(argv=None):
     if not (args.S or args.quick or args.column or args.squeeze or args.near_yield_column or args.table):
         ap.error("nothing to run: give --S values, --quick, --column, --squeeze, --near-yield-column or --table")
     column_res = args.res or [6]  # the near-yield column's cells across (the slump's default is 16 over H0)
-    defaults = {"res": [16], "aspect": 1.0, "duration": 8.0, "max_duration": 16.0, "flow_rate": 0.0, "ramp": 0.0}
+    # Any --floor-friction given is refused beside the cap, the sticky -1 too (its default once
+    # let an explicit -1 pass and run the Tresca floor instead).
+    if args.floor_shear_cap is not None and args.floor_friction is not None:
+        ap.error(f"--floor-friction = {args.floor_friction:g} is not allowed with --floor-shear-cap: the Tresca floor's "
+                 "grip is its shear cap alone")
+    defaults = {"res": [16], "aspect": 1.0, "duration": 8.0, "max_duration": 16.0, "flow_rate": 0.0, "ramp": 0.0,
+                "floor_friction": -1.0}
     for k, v in defaults.items():
         if getattr(args, k) is None:
             setattr(args, k, v)
-    if args.floor_shear_cap is not None and args.floor_friction != -1.0:
-        ap.error(f"--floor-friction = {args.floor_friction:g} is not allowed with --floor-shear-cap: the Tresca floor's "
-                 "grip is its shear cap alone")
     if args.max_duration < args.duration:
         ap.error(f"--max-duration = {args.max_duration:g} is not allowed: below --duration = {args.duration:g}")
     if args.table:

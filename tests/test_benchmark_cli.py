@@ -221,6 +221,8 @@ def test_launches(refused, argv, option):
                                          (["--S", "0.2", "--floor-shear-cap", "nan"], "--floor-shear-cap = nan"),
                                          (["--S", "0.2", "--floor-shear-cap", "1", "--floor-friction", "0.3"],
                                           "--floor-friction = 0.3 is not allowed with --floor-shear-cap"),
+                                         (["--S", "0.2", "--floor-shear-cap", "1", "--floor-friction", "-1"],
+                                          "--floor-friction = -1 is not allowed with --floor-shear-cap"),
                                          (["--floor-shear-cap", "1"], "--floor-shear-cap is not allowed without --S")])
 def test_mpm_slump(refused, argv, option):
     refused("mpm_slump", argv, option)
