@@ -1302,6 +1302,35 @@ def test_a_model_is_weighed_against_the_memory_available_not_the_machines(monkey
     assert builder_module._host_memory() == 2**28
 
 
+def test_a_containers_odd_files_fall_back_and_a_group_of_any_name_is_read(monkeypatch, tmp_path):
+    """The control group's files are read as text: a group whose name is not UTF-8 (a name
+    may be any bytes) raised UnicodeDecodeError from every model's memory check, a traceback
+    in place of a run. The group of any name is found and its limit weighed; a limit file
+    of other bytes, a use that is not a number and a ``memory.stat`` that is a folder fall
+    back (the limit itself, or no limit), never raise."""
+    from warp_esph import builder as builder_module
+
+    proc, root = tmp_path / "cgroup", tmp_path / "fs"
+    group = os.path.join(os.fsencode(root), b"job\xff")
+    os.makedirs(group)
+    proc.write_bytes(b"0::/job\xff\n")
+    with open(os.path.join(group, b"memory.max"), "w") as f:
+        f.write(f"{2**31}\n")
+    with open(os.path.join(group, b"memory.current"), "w") as f:
+        f.write(f"{2**30}\n")
+    monkeypatch.setattr(builder_module, "_PROC_CGROUP", str(proc), raising=False)
+    monkeypatch.setattr(builder_module, "_CGROUP_ROOT", str(root), raising=False)
+    assert builder_module._cgroup_memory_free() == 2**30
+    with open(os.path.join(group, b"memory.current"), "w") as f:
+        f.write("a lot\n")
+    os.mkdir(os.path.join(group, b"memory.stat"))
+    assert builder_module._cgroup_memory_free() == 2**31  # the limit itself
+    with open(os.path.join(group, b"memory.max"), "wb") as f:
+        f.write(b"\xfe\xff\n")
+    assert builder_module._cgroup_memory_free() is None
+    assert builder_module._host_memory() is not None
+
+
 @pytest.mark.parametrize("command, failure", [
     ("run", RuntimeError("Failed to allocate 147456000 bytes on device 'cpu'")),
     ("fit", MemoryError("Unable to allocate 18.4 GiB for an array with shape (2469600000,) and data type float64"))])

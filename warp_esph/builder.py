@@ -1252,7 +1252,8 @@ def _cgroup_memory_free() -> int | None:
     kernel drops before it fails an allocation; the limit itself where the use cannot be
     read), or None where none is set or none can be read."""
     try:
-        with open(_PROC_CGROUP) as f:
+        # A group's name may be any bytes: kept as the file system's own (os.path maps them back).
+        with open(_PROC_CGROUP, errors="surrogateescape") as f:
             lines = f.read().splitlines()
     except OSError:
         return None
@@ -1275,7 +1276,7 @@ def _cgroup_memory_free() -> int | None:
             try:
                 with open(os.path.join(base, *steps[:k], name)) as f:
                     text = f.read().strip()
-            except OSError:
+            except (OSError, ValueError):
                 continue
             # v2 writes "max" for no limit, v1 a number near 2**63.
             if text.isdigit() and 0 < int(text) < 2**62:
