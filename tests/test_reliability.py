@@ -1331,6 +1331,30 @@ def test_a_containers_odd_files_fall_back_and_a_group_of_any_name_is_read(monkey
     assert builder_module._host_memory() is not None
 
 
+def test_a_v1_containers_room_and_a_gpus_are_what_is_left(monkeypatch, tmp_path):
+    """cgroup v1's room is its limit less its hierarchical use (``memory.usage_in_bytes``) and
+    less the hierarchical inactive file cache (``total_inactive_file``; ``inactive_file`` is
+    the group's own, without its children's); a GPU's is its free memory, not its total. The
+    v2 test does not reach either: each could be read from the wrong file or key, or the
+    total, and every test passed."""
+    import types
+
+    from warp_esph import builder as builder_module
+
+    proc, root = tmp_path / "cgroup", tmp_path / "fs"
+    (root / "memory").mkdir(parents=True)
+    proc.write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n")  # the container's group at the mount's root
+    (root / "memory" / "memory.limit_in_bytes").write_text(f"{2**32}\n")
+    (root / "memory" / "memory.usage_in_bytes").write_text(f"{3 * 2**30}\n")
+    (root / "memory" / "memory.stat").write_text(f"cache 5\ninactive_file {2**20}\ntotal_cache 6\n"
+                                                 f"total_inactive_file {2**29}\n")
+    monkeypatch.setattr(builder_module, "_PROC_CGROUP", str(proc), raising=False)
+    monkeypatch.setattr(builder_module, "_CGROUP_ROOT", str(root), raising=False)
+    assert builder_module._cgroup_memory_free() == 2**32 - (3 * 2**30 - 2**29)
+    gpu = types.SimpleNamespace(is_cpu=False, total_memory=80 * 2**30, free_memory=2**30)
+    assert builder_module._device_memory(gpu) == 2**30
+
+
 @pytest.mark.parametrize("command, failure", [
     ("run", RuntimeError("Failed to allocate 147456000 bytes on device 'cpu'")),
     ("fit", MemoryError("Unable to allocate 18.4 GiB for an array with shape (2469600000,) and data type float64"))])
