@@ -1298,6 +1298,8 @@ def test_a_model_is_weighed_against_the_memory_available_not_the_machines(monkey
     assert not (tmp_path / "out.usdc").exists()
     meminfo.write_text(f"MemAvailable: {2**32 // 1024} kB\n")  # 4 GiB: the group's half GiB is the least
     assert builder_module._host_memory() == 2**29
+    (root / "memory.stat").write_text(f"inactive_file {2**28}\nactive_file {2**29}\n")  # the active list reclaimed too
+    assert builder_module._host_memory() == 2**29 + 2**29
     (root / "memory.stat").unlink()  # its use alone where its cache cannot be read
     assert builder_module._host_memory() == 2**28
 
@@ -1351,6 +1353,10 @@ def test_a_v1_containers_room_and_a_gpus_are_what_is_left(monkeypatch, tmp_path)
     monkeypatch.setattr(builder_module, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder_module, "_CGROUP_ROOT", str(root), raising=False)
     assert builder_module._cgroup_memory_free() == 2**32 - (3 * 2**30 - 2**29)
+    # The active file cache is reclaimed under the limit too: a group whose use is mostly
+    # active cache read as full (0 GiB) and refused every model, however small.
+    (root / "memory" / "memory.stat").write_text(f"total_inactive_file {2**29}\ntotal_active_file {5 * 2**29}\n")
+    assert builder_module._cgroup_memory_free() == 2**32
     gpu = types.SimpleNamespace(is_cpu=False, total_memory=80 * 2**30, free_memory=2**30)
     assert builder_module._device_memory(gpu) == 2**30
 

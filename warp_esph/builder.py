@@ -1248,7 +1248,7 @@ _CGROUP_ROOT = "/sys/fs/cgroup"
 def _cgroup_memory_free() -> int | None:
     """The least memory, in bytes, left under a limit of this process's control group or an
     ancestor's (cgroup v2 ``memory.max`` less ``memory.current``, v1 ``memory.limit_in_bytes``
-    less ``memory.usage_in_bytes``, each use less the group's inactive file cache, which the
+    less ``memory.usage_in_bytes``, each use less the group's file cache, which the
     kernel drops before it fails an allocation; the limit itself where the use cannot be
     read), or None where none is set or none can be read."""
     try:
@@ -1263,10 +1263,10 @@ def _cgroup_memory_free() -> int | None:
         if len(parts) != 3:
             continue
         if parts[1] == "":
-            base, name, used, cache = _CGROUP_ROOT, "memory.max", "memory.current", "inactive_file"
+            base, name, used, cache = _CGROUP_ROOT, "memory.max", "memory.current", ("inactive_file", "active_file")
         elif "memory" in parts[1].split(","):
             base, name, used, cache = (os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes", "memory.usage_in_bytes",
-                                       "total_inactive_file")
+                                       ("total_inactive_file", "total_active_file"))
         else:
             continue
         steps = [p for p in parts[2].split("/") if p]
@@ -1285,10 +1285,12 @@ def _cgroup_memory_free() -> int | None:
     return min(found) if found else None
 
 
-def _cgroup_memory_used(group: str, used: str, cache: str) -> int:
-    """The memory a control group holds, in bytes (``used``, its file), less its inactive file
-    cache (``cache``, the key of its ``memory.stat``), as ``docker stats`` counts it; 0 where
-    it cannot be read."""
+def _cgroup_memory_used(group: str, used: str, cache: tuple) -> int:
+    """The memory a control group holds, in bytes (``used``, its file), less its file cache
+    (``cache``, the keys of its ``memory.stat``: the inactive and the active lists, both of
+    which the kernel reclaims before it fails an allocation under the limit; with the
+    inactive list alone, as ``docker stats`` counts, a group whose cache is mostly active
+    read as full and every model, however small, was refused); 0 where it cannot be read."""
     try:
         with open(os.path.join(group, used)) as f:
             taken = int(f.read().strip())
@@ -1298,11 +1300,11 @@ def _cgroup_memory_used(group: str, used: str, cache: str) -> int:
         with open(os.path.join(group, "memory.stat")) as f:
             for line in f:
                 key, _, value = line.partition(" ")
-                if key == cache:
-                    return max(taken - int(value), 0)
+                if key in cache:
+                    taken -= int(value)
     except (OSError, ValueError):
         pass
-    return taken
+    return max(taken, 0)
 
 
 def _process_memory_limit() -> int | None:
