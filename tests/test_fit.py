@@ -1430,7 +1430,7 @@ def test_a_gauss_newton_fit_is_weighed_for_the_two_states_its_runs_hold(monkeypa
     assert f"`{refused.value}`" in (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
     with pytest.raises(ValueError, match=r"^the experiment: steps = 60 is not allowed on cpu: even untaped, as every run "
                                          r"of a Gauss-Newton fit is, the rollout would need about 0\.00\d+ GiB, more than "
-                                         r"its 6\.1\d*e-05 GiB; give fewer steps$"):
+                                         r"the 6\.1\d*e-05 GiB available; give fewer steps$"):
         fit(model, loss, ["mu"], optimizer="gauss-newton", **args)
 
 
