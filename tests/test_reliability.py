@@ -2256,7 +2256,8 @@ def test_a_scene_builders_settings_set_after_it_was_made_are_checked_as_the_cons
     ``gravity = (0, nan, 0)`` ran to NaN, a support radius of 50 spacings ran, a spacing
     changed after a body was added gave its particles the masses of another lattice (8 x at
     twice it), and 'down' for gravity failed in numpy. Each is checked as the constructor checks
-    it; the spacing, on which the bodies are sampled, is fixed. A support radius raised after
+    it; the spacing, on which the bodies are sampled, is fixed (set to its own value, it is
+    taken: that was refused too). A support radius raised after
     the builder was made (``fit --support-radius`` does) now takes the default row width of the
     new radius: at 3 spacings 96-wide rows cut 32 of an 8 x 8 x 8 block's in its first step."""
     from warp_esph.sim.neighbors import default_max_neighbors
@@ -2281,6 +2282,10 @@ def test_a_scene_builders_settings_set_after_it_was_made_are_checked_as_the_cons
         with pytest.raises(ValueError, match=f"^{said}"):
             setattr(b, name, value)
         assert getattr(b, name) == before
+    # Its own spacing is no change (a record of the settings written back): taken; not a spacing at all, refused as one.
+    b.spacing = 0.02
+    with pytest.raises(ValueError, match=r"^SceneBuilder\.spacing = nan is not allowed: must be a finite number$"):
+        b.spacing = float("nan")
     b.gravity = [0.0, -1.0, 0.0]
     b.support_radius = 0.06
     model = b.finalize()

@@ -848,11 +848,16 @@ class SceneBuilder:
 
     @property
     def spacing(self) -> float:
-        """The lattice spacing dx (m); fixed once made: the bodies are sampled on its lattice."""
+        """The lattice spacing dx (m); fixed once made: the bodies are sampled on its lattice (set to
+        its own value, a no-op, it is taken)."""
         return self._spacing
 
     @spacing.setter
     def spacing(self, value):
+        # Its own value is no change: a caller that sets every setting from a record (a scene's
+        # settings copied onto a builder) was refused for the one it did not change.
+        if checks.positive("SceneBuilder.spacing", value) == self._spacing:
+            return
         raise ValueError(f"SceneBuilder.spacing = {checks.shorten(value)!r} is not allowed: the bodies are sampled on the lattice "
                          f"of spacing {self._spacing!r}, and their masses, the support radius and the neighbour rows follow "
                          f"it; make a SceneBuilder(spacing={checks.shorten(value)!r})")
