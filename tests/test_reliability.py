@@ -1774,9 +1774,9 @@ def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_befo
     """``model.particle_x0`` and ``particle_v0`` are numpy arrays a caller may write (a start
     moved or sped up by hand). A NaN or infinite entry written there ran to NaN positions
     without a word: ``state()`` copied it and the step reads no particle back; an array of
-    another shape was refused by Warp in its own words. Both are refused by name, by
+    another shape was refused by Warp in its own words. The first is refused by name, by
     ``state()`` and by a rollout's forward from the model's start (``Model.check_start``),
-    before any kernel; the start written back is taken."""
+    before any kernel, the second where it is set; the start written back is taken."""
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
     model = b.finalize(dtype="float64", requires_grad=True)
@@ -1794,15 +1794,60 @@ def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_befo
                                                  rf"\(particle {row}, of body 'block'\)$"):
                 call()
         model.particle_x0[:], model.particle_v0[:] = x0, v0
-    model.particle_v0 = np.zeros((model.particle_count, 2))
-    with pytest.raises(ValueError, match=rf"^model\.particle_v0 = an array of shape \({model.particle_count}, 2\) and dtype "
-                                         rf"float64 is not allowed: must be a numpy array of shape \({model.particle_count}, 3\) "
-                                         r"of real numbers, one row per particle"):
-        model.state()
-    model.particle_v0 = v0
+    with pytest.raises(ValueError, match=rf"^model\.particle_v0 = a ndarray of shape \({model.particle_count}, 2\) and dtype "
+                                         rf"float64 is not allowed: must be an array-like of shape \({model.particle_count}, 3\) "
+                                         r"of real numbers, one row per particle \(taken as float64\)$"):
+        model.particle_v0 = np.zeros((model.particle_count, 2))
+    assert np.array_equal(model.particle_v0, v0)
     # One step of 0.1 ms from rest, undeformed: every particle falls g dt^2 (symplectic Euler).
     fallen = rollout.forward()[-1] - x0
     np.testing.assert_allclose(fallen, np.tile([0.0, -9.81e-8, 0.0], (model.particle_count, 1)), rtol=1e-6, atol=1e-15)
+
+
+def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_models_dtype():
+    """``model.particle_v0 = [[...], ...]`` (a list of rows, a tuple, a warp array) was refused at
+    the next ``state()`` as 'must be a numpy array', and a numpy mass array by the step; an
+    integer array was kept as one, so a velocity of 0.5 written into it later read 0. Each
+    per-particle array (``PARTICLE_ROWS``) takes any array-like of one row per particle, in the
+    model's dtype (on its device for the kernels' arrays); one of another shape, of values that
+    are not real numbers (integers for the materials), ragged, or beyond the dtype is refused
+    where it is set, by name, the array kept."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    model = b.finalize()
+    n = model.particle_count
+    rows = [[0.0, -1.0, 0.25]] * n
+    for given in (rows, tuple(map(tuple, rows)), np.array(rows), wp.array(rows, dtype=wp.vec3d)):
+        model.particle_v0 = given
+        assert type(model.particle_v0) is np.ndarray and model.particle_v0.dtype == np.float32
+        assert np.array_equal(model.state().v.numpy(), np.array(rows, dtype=np.float32))
+    model.particle_v0 = np.zeros((n, 3), dtype=np.int64)
+    model.particle_v0[0] = 0.5
+    assert np.array_equal(model.state().v.numpy()[0], [0.5, 0.5, 0.5])
+    mass = model.particle_mass.numpy()
+    model.particle_mass = list(2.0 * mass)
+    model.particle_material = (0,) * n
+    assert model.particle_mass.dtype == wp.float32 and model.particle_mass.device == model.device
+    assert np.array_equal(model.particle_mass.numpy(), 2.0 * mass)
+    model.state()  # judged as the build's values are (check_particles)
+    ragged = [[0.0, 0.0, 0.0]] * (n - 1) + [[0.0, 0.0]]
+    for name, value, said in (
+            ("particle_v0", [[0.0, 0.0]] * n, rf"particle_v0 = a list of shape \({n}, 2\) and dtype float64 is not allowed: "
+                                              rf"must be an array-like of shape \({n}, 3\) of real numbers, one row per "
+                                              r"particle \(taken as float32\)$"),
+            ("particle_v0", ragged, rf"particle_v0 = a list is not allowed: must be an array-like of shape \({n}, 3\) .*; "
+                                    r"numpy could not read it: .*inhomogeneous"),
+            ("particle_x0", [[1e300, 0.0, 0.0]] * n, r"particle_x0\[0, 0\] = 1e\+300 is not allowed: float32 does not hold it$"),
+            ("particle_mass", ["1"] * n, rf"particle_mass = a list of shape \({n},\) and dtype <U1 is not allowed: must be an "
+                                         rf"array-like of shape \({n},\) of real numbers, one value per particle \(taken as "
+                                         r"float32 on cpu\)$"),
+            ("particle_material", [0.0] * n, rf"particle_material = a list of shape \({n},\) and dtype float64 is not "
+                                             rf"allowed: must be an array-like of shape \({n},\) of integers"),
+            ("particle_material", [2**32] * n, r"particle_material\[0\] = 4294967296 is not allowed: int32 does not hold it$")):
+        before = getattr(model, name)
+        with pytest.raises(ValueError, match=rf"^model\.{said}"):
+            setattr(model, name, value)
+        assert getattr(model, name) is before
 
 
 #: Per-particle and per-material arrays written in place after the build (name, entry, value)

@@ -519,6 +519,11 @@ PARTICLE_FIELDS = (("particle_material", "particles", True), ("particle_mass", "
                    ("material_deformation", "materials", True), ("material_elastic_force", "materials", True),
                    ("material_pressure_force", "materials", True), ("clamp_pressure", "materials", True),
                    ("pair_repulsion", "materials", False))
+#: The per-particle arrays a caller may replace by any array-like of one row per particle
+#: (``Model._particle_rows`` converts it): the start's, numpy arrays of shape ``(n, 3)``, and
+#: those the kernels index, warp arrays of ``n`` real numbers or integers.
+PARTICLE_ROWS = {"particle_x0": "start", "particle_v0": "start", "particle_mass": "reals", "particle_volume": "reals",
+                 "particle_material": "integers"}
 #: The material code arrays of ``PARTICLE_FIELDS``: each with the ``Material`` field it codes
 #: and the codes (``clamp_pressure``: 1 for True).
 MATERIAL_CODES = (("material_model", "model", MODEL_IDS), ("material_deformation", "deformation", DEFORMATION_IDS),
@@ -923,7 +928,47 @@ class Model(Unpicklable):
     def __setattr__(self, name, value):
         if name in Model.MATERIAL_FIELDS and name in self.__dict__:
             self._check_parameter_array(name, value)
+        elif name in PARTICLE_ROWS:
+            value = self._particle_rows(name, value)
         object.__setattr__(self, name, value)
+
+    def _particle_rows(self, name: str, value):
+        """``value`` as the per-particle array ``name`` (``PARTICLE_ROWS``) is held: any
+        array-like of one row per particle (a list of rows, a tuple, a warp or torch array) in
+        the model's dtype, on its device for the kernels' arrays. A list was refused only at the
+        next ``state()`` ('must be a numpy array'), a numpy mass array by the step. A warp
+        array the kernels take is kept as it is (the caller's, written into later); one of
+        another dtype or device stays the caller's too, refused at use (``_check_kernel_array``).
+        The values are judged where they are read (``check_start``, ``check_particles``), as
+        values written in place are, but for a number the dtype cannot hold."""
+        kind = PARTICLE_ROWS[name]
+        if kind != "start" and isinstance(value, wp.array):
+            return value
+        n, integer = self.particle_count, kind == "integers"
+        shape = (n, 3) if kind == "start" else (n,)
+        dtype = np.dtype(np.int32 if integer else self.types.np_dtype)
+        allowed = (f"must be an array-like of shape {shape} of {'integers' if integer else 'real numbers'}, one "
+                   f"{'row' if kind == 'start' else 'value'} per particle (taken as {dtype.name}"
+                   f"{'' if kind == 'start' else f' on {self.device}'})")
+        try:
+            a = value.numpy() if isinstance(value, wp.array) else np.asarray(value)
+        except (TypeError, ValueError, RuntimeError) as e:  # ragged rows; a torch tensor on a GPU or with a gradient
+            said = (str(e).splitlines() or [type(e).__name__])[0]
+            raise ValueError(f"model.{name} = a {type(value).__name__} is not allowed: {allowed}; numpy could not read it: "
+                             f"{said}") from None
+        if a.shape != shape or a.dtype.kind not in ("iu" if integer else "fiu"):
+            raise ValueError(f"model.{name} = a {type(value).__name__} of shape {a.shape} and dtype {a.dtype} is not "
+                             f"allowed: {allowed}")
+        with np.errstate(over="ignore", invalid="ignore"):  # refused below by name, not warned of by numpy
+            held = a.astype(dtype, copy=False)
+        lost = (held != a) if integer else (np.isfinite(a) & ~np.isfinite(held))
+        if lost.any():  # beyond the dtype: a value other than the one given, or inf for a finite one
+            i = np.unravel_index(int(np.flatnonzero(lost)[0]), a.shape)
+            raise ValueError(f"model.{name}[{', '.join(map(str, i))}] = {a[i].item()!r} is not allowed: {dtype.name} does not "
+                             f"hold it")
+        if kind == "start":
+            return np.ascontiguousarray(held)
+        return wp.array(held, dtype=wp.int32 if integer else self.scalar, device=self.device)
 
     def _check_parameter_array(self, name: str, value) -> None:
         """A parameter array put in place of ``name``'s must be one the kernels take: one of
