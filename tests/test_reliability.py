@@ -1804,6 +1804,40 @@ def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_befo
     np.testing.assert_allclose(fallen, np.tile([0.0, -9.81e-8, 0.0], (model.particle_count, 1)), rtol=1e-6, atol=1e-15)
 
 
+def test_a_start_velocity_the_run_does_not_read_is_not_refused_and_one_it_reads_is():
+    """A NaN left in ``model.particle_v0`` refused ``simulate(state=)``, a rollout made then, its
+    ``forward(initial_state=)`` and its ``forward(v0=)``, none of which reads it (the start given
+    replaces it). Only what a run reads is refused: each of those runs to the bits it ran to
+    with the velocities finite; ``state()``, a forward from the model's start and a
+    ``simulate`` without one still refuse it by name; and ``particle_x0``, which every run
+    reads (the rest configuration, the record of the scene a given start is checked against),
+    is refused beside a given start too."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    b.add_ground()
+    model = b.finalize(requires_grad=True)
+    start = model.state(requires_grad=False)
+    v = np.tile([0.2, -0.5, 0.1], (model.particle_count, 1))
+    start.v.assign(v)
+
+    def runs(rollout):
+        return (we.simulate(model, 1, fps=2000.0, dt=1e-4, state=start, progress=False).x.numpy(),
+                rollout.forward(initial_state=start), rollout.forward(v0=-v))
+
+    before = runs(Rollout(model, 3, 1e-4))
+    model.particle_v0[2] = (math.nan, 0.0, 0.0)
+    after = runs(Rollout(model, 3, 1e-4))
+    assert all(np.array_equal(a, c) for a, c in zip(before, after))
+    assert not np.array_equal(before[1], before[2])  # each from the start it was given
+    said = r"^model\.particle_v0\[2\] = \(nan, 0\.0, 0\.0\) is not allowed: must be finite \(particle 2, of body 'block'\)$"
+    for call in (model.state, Rollout(model, 3, 1e-4).forward, lambda: we.simulate(model, 1, progress=False)):
+        with pytest.raises(ValueError, match=said):
+            call()
+    model.particle_x0[1, 0] = math.inf
+    with pytest.raises(ValueError, match=r"^model\.particle_x0\[1\] = \(inf, "):
+        we.simulate(model, 1, state=start, progress=False)
+
+
 def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_models_dtype():
     """``model.particle_v0 = [[...], ...]`` (a list of rows, a tuple, a warp array) was refused at
     the next ``state()`` as 'must be a numpy array', and a numpy mass array by the step; an

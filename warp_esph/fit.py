@@ -704,7 +704,7 @@ def _state_bytes(model: Model) -> tuple[int, int, int]:
     """Bytes of one taped ``State``, one untaped ``State`` and one checkpoint of ``model``."""
     from .rollout import _Checkpoint, state_nbytes  # noqa: PLC0415
 
-    return (state_nbytes(model.state(requires_grad=True)), state_nbytes(model.state(requires_grad=False)),
+    return (state_nbytes(model._scratch_state(requires_grad=True)), state_nbytes(model._scratch_state()),
             _Checkpoint(model).nbytes)
 
 

@@ -303,7 +303,7 @@ class State(Unpicklable):
                    "warp_esph.checkpoint.save_state(path, model, state, step=, frame=) and read it back with "
                    "load_state(path, model) (copy.deepcopy(state) copies it within this process)")
 
-    def __init__(self, model: "Model", requires_grad: bool):
+    def __init__(self, model: "Model", requires_grad: bool, start_velocities: bool = True):
         n, K, dev = model.particle_count, model.max_neighbors, model.device
         T = model.types
         # The model this state is of: a checkpoint is filed under its model's fingerprint, so
@@ -315,11 +315,12 @@ class State(Unpicklable):
         # a model edited since (``calibrate.jitter_model``) no longer describes this state's
         # scene, and one built again from the same builder still does.
         self._made_of = model.scene_snapshot()
-        model.check_start()
+        model.check_start(velocities=start_velocities)
         self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         # The positions' round-off (warp_esph/sim/roundoff.py), as F_lo for F below.
         self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
-        self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        self.v = (wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad) if start_velocities
+                  else wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad))
         self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         # F's round-off, F + F_lo being the stored gradient to about twice the precision:
         # the per-step changes of F near rest are a few units in F's last place, and
@@ -1387,16 +1388,18 @@ class Model(Unpicklable):
             held = self._snapshot = (bodies, x0)
         return held
 
-    def check_start(self) -> None:
+    def check_start(self, velocities: bool = True) -> None:
         """Refuse (``ValueError``) the start ``particle_x0`` or ``particle_v0`` (numpy arrays a
         caller may write in place) where no state can start from it: not an ``(n, 3)`` array of
         real numbers, or an entry NaN or infinite. A new state (``state()``) and a rollout's
         forward from the model's start check it, and the arrays the kernels index
         (``check_particles``). Unchecked, a NaN position or velocity written after the build
         ran to NaN positions without a word: a state copies them, and the step reads no
-        particle back."""
+        particle back. ``velocities``: False where the run does not read ``particle_v0`` (a
+        start given in its place, ``_scratch_state``); ``particle_x0`` is read by every run,
+        as the rest configuration and the record of the scene (``scene_snapshot``)."""
         n = self.particle_count
-        for name in ("particle_x0", "particle_v0"):
+        for name in ("particle_x0", "particle_v0")[:2 if velocities else 1]:
             a = getattr(self, name)
             if not isinstance(a, np.ndarray) or a.shape != (n, 3) or a.dtype.kind not in "fiu":
                 shown = f"an array of shape {a.shape} and dtype {a.dtype}" if isinstance(a, np.ndarray) else f"a {type(a).__name__}"
@@ -1484,6 +1487,14 @@ class Model(Unpicklable):
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""
         return State(self, self.requires_grad if requires_grad is None else checks.boolean("requires_grad", requires_grad))
+
+    def _scratch_state(self, requires_grad: bool = False) -> State:
+        """A new state whose every field the caller writes before a step reads it (a given start
+        copied in, a step's output, a rollout's states): ``state()``'s, but at rest, so that a
+        ``particle_v0`` the run does not read is not refused. A NaN velocity left in the
+        model refused ``simulate(state=)`` and a rollout's ``forward(initial_state=)`` and
+        ``forward(v0=)``, which never read it."""
+        return State(self, requires_grad, start_velocities=False)
 
     def material_arrays(self, rest: bool = False):
         """The per-material arrays as one ``sim.materials`` struct, holding these very

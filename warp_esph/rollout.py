@@ -722,7 +722,7 @@ class Rollout:
                                 if self.collider_names else None)
         # (start step, number of steps) of each segment.
         self.segments = [(s, min(self.segment, self.steps - s)) for s in range(0, self.steps, self.segment)]
-        self._initial = model.state(requires_grad=False)
+        self._initial = model._scratch_state()  # each forward's start is loaded into it (_load_initial)
         self._states: list[State] | None = None  # taped states: whole run, or one segment
         self._final: State | None = None  # the latest forward's last state (final_state)
         self._pair: list[State] | None = None  # untaped ping-pong pair (checkpointed or taped=False forward)
@@ -817,7 +817,7 @@ class Rollout:
             checks.same_state(m, "initial_state", initial_state)  # its precision and device too
             init.assign(initial_state)
         else:
-            m.check_start()
+            m.check_start(velocities="v0" not in given)  # a given v0 replaces particle_v0
             init.x.assign(m.particle_x0)
             init.v.assign(m.particle_v0)
             eye = np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1))
@@ -862,7 +862,7 @@ class Rollout:
             # the caller to make states that only the rollout makes).
             self._states = None
         if self._states is None or len(self._states) < count:
-            self._states = [m.state(requires_grad=True) for _ in range(count)]
+            self._states = [m._scratch_state(requires_grad=True) for _ in range(count)]
             if rest:
                 for state in self._states:
                     state.F_p.requires_grad = True
@@ -1182,7 +1182,7 @@ class Rollout:
         """The forward of a checkpointed rollout (its segment starts saved) or of
         ``forward(taped=False)``, stepping between two states without a tape."""
         if self._pair is None:
-            self._pair = [self.model.state(requires_grad=False) for _ in range(2)]
+            self._pair = [self.model._scratch_state() for _ in range(2)]
         if self.checkpointing and len(self._checkpoints) != len(self.segments):
             self._checkpoints = [_Checkpoint(self.model) for _ in self.segments]
         cur, nxt = self._pair

@@ -1637,7 +1637,8 @@ def simulate(
         # start only) met a TypeError at the first frame once the frame was passed.
         solver_frames = callable(record) and _takes_keyword(record, solver, frame=0)
 
-        current = model.state(requires_grad=False)
+        # A given start replaces the model's: its particle_v0 is not read (nor refused).
+        current = model.state(requires_grad=False) if state is None else model._scratch_state()
         if state is not None:
             checks.same_state(model, "state", state)
             # By the name the caller gave it: the step's check named state_in.time, and a string
@@ -1664,7 +1665,7 @@ def simulate(
         # before it opened its output); anything else is checked here.
         if _checked is None or _checked[0] is not model or _checked[1:] != (float(current.time), *run):
             _check_run_start(model, current, *run)
-        spare = model.state(requires_grad=False)
+        spare = model._scratch_state()
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)
         # A resumed run's bounds taken from its checkpoint's state were laxer (the energy it
