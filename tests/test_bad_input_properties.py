@@ -792,13 +792,26 @@ _MODEL_FOR_STEPS = _box_model()
 def test_a_tiny_density_is_named_for_the_pressure_stiffness_it_derives():
     """``density = 1e-300`` derives the default pressure stiffness K / (4 density) = 7.7e303,
     past float32: the refusal names the density given (it named the derived value, with the
-    advice of a smaller one); a pressure stiffness given is named as itself."""
+    advice of a smaller one); a pressure stiffness given is named as itself. One below float32's
+    smallest (``density = 1e300``) is said to be so, of the density or modulus that made it."""
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1e-300))
     with pytest.raises(ValueError, match=r"^Material.density = 1e-300 \(material 0\) is not allowed in float32: the "
                                          r"pressure_stiffness it gives by default, K / \(4 density\) = 7.67e\+303, must be "
                                          r"at most 3.4e\+38 in float32; give pressure_stiffness, or a larger density"):
         b.finalize()
+    # Below float32's smallest: it was refused as above its largest, named by the modulus with the
+    # advice of a smaller one; it names the density, or the modulus, that made it so small.
+    for material, said in ((we.Material(mu=1e4, lam=1e4, density=1e300), r"Material.density = 1e\+300 \(material 0\) is not "
+                            r"allowed in float32: the pressure_stiffness it gives by default, K / \(4 density\) = 7.67e-297, "
+                            r"must be at least 1.18e-38 in float32; give pressure_stiffness, or a smaller density$"),
+                           (we.Material(mu=1e-36, lam=1e-36, density=1000.0), r"Material.mu = 1e-36 \(material 0\) is not "
+                            r"allowed in float32: the pressure_stiffness it gives by default, .* must be at least 1.18e-38 in "
+                            r"float32; give pressure_stiffness, or a larger modulus$")):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), material)
+        with pytest.raises(ValueError, match=f"^{said}"):
+            b.finalize()
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1000.0, pressure_stiffness=1e39))
     with pytest.raises(ValueError, match=r"^Material.pressure_stiffness = 1e\+39 \(material 0\) is not allowed in float32"):

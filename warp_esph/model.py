@@ -162,12 +162,21 @@ def material_precision_problem(material: Material, scalar, cli: bool = False) ->
         if why is not None and name == "pressure_stiffness" and material.has_default_pressure_stiffness:
             # No one gave it: density = 1e-300 was refused as "pressure_stiffness = 7.67e+303
             # ... or a smaller value", a value derived from the density, which a smaller one raises.
-            source = "density" if material.density < 0.25 else ("mu" if material.mu >= material.lam else "lam")
-            big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+            # Below the precision's smallest (density = 1e300: 1.5e-295) it was refused as above
+            # its largest, named by the modulus, with the advice of a smaller one.
+            info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
+            modulus = "mu" if material.mu >= material.lam else "lam"
+            if abs(v) > float(info.max):
+                source = "density" if material.density < 0.25 else modulus
+                bound, fix = f"at most {float(info.max):.3g}", ("larger density" if source == "density" else "smaller modulus")
+            else:
+                # The one further from a solid's (1000 kg/m^3, 1e5 Pa), in decades.
+                source = ("density" if abs(math.log10(material.density / 1e3)) >= abs(math.log10(getattr(material, modulus) / 1e5))
+                          else modulus)
+                bound, fix = f"at least {float(info.tiny):.3g}", ("smaller density" if source == "density" else "larger modulus")
             return _named_as_given(material, source, float(getattr(material, source)), (
-                f"the pressure_stiffness it gives by default, K / (4 density) = {v:.3g}, must be at most {big:.3g} "
-                f"in {scalar.__name__}; give pressure_stiffness, or a " + ("larger density" if source == "density"
-                                                                          else "smaller modulus")))
+                f"the pressure_stiffness it gives by default, K / (4 density) = {v:.3g}, must be {bound} in "
+                f"{scalar.__name__}; give pressure_stiffness, or a {fix}"))
         if why is not None:
             return _named_as_given(material, name, v, why)
     problem = modulus_precision_problem(material, scalar, cli)
