@@ -1884,6 +1884,35 @@ def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_mod
         assert getattr(model, name) is before
 
 
+def test_the_models_materials_written_in_place_are_refused_naming_set_material():
+    """``model.materials[0] = Material.preset("rubber", mu=1e3)`` changed the list and not the
+    parameter arrays the kernels read: the block stepped at its old modulus while the list (and
+    what reads it) said 1e3. The list refuses every change in place, and being replaced, naming
+    ``set_material``, which changes both; copies of it are the same list."""
+    import copy
+    import pickle
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    model = b.finalize()
+    rubber, soft = model.materials[0], we.Material.preset("rubber", mu=1e3)
+    with pytest.raises(ValueError, match=r"^model\.materials\[0\] = Material\(mu=1000\.0, .* is not allowed: the kernels read "
+                                         r"the parameter arrays built from the materials, .*; change a material with "
+                                         r"model\.set_material\(0, material\)$"):
+        model.materials[0] = soft
+    for change in (lambda: model.materials.append(soft), lambda: model.materials.pop(), model.materials.clear,
+                   lambda: model.materials.extend([soft])):
+        with pytest.raises(ValueError, match=r"^model\.materials\.\w+\(\.\.\.\) is not allowed: .*model\.set_material"):
+            change()
+    with pytest.raises(ValueError, match=r"^model\.materials = \[Material\(mu=1000\.0, .* is not allowed: .*model\.set_material"):
+        model.materials = [soft]
+    assert model.materials == [rubber] and model.mu.numpy()[0] == np.float32(rubber.mu)
+    model.set_material(0, soft)
+    assert model.materials == [soft] and model.mu.numpy()[0] == np.float32(1e3)
+    for twin in (copy.copy(model.materials), copy.deepcopy(model.materials), pickle.loads(pickle.dumps(model.materials))):
+        assert twin == [soft] and type(twin) is type(model.materials)
+
+
 #: Per-particle and per-material arrays written in place after the build (name, entry, value)
 #: and the one line each is refused with (``Model.check_particles``).
 _BAD_PARTICLE_VALUES = (

@@ -549,6 +549,36 @@ MATERIAL_CODES = (("material_model", "model", MODEL_IDS), ("material_deformation
 IMAGES_NONE, IMAGES_AT_REST, IMAGES_MOVING = 0, 1, 2
 
 
+class MaterialList(list):
+    """``Model.materials``: the materials the model's parameter arrays were built from, which
+    ``set_material`` changes together. Not to be changed in place: the list alone changed and the
+    arrays the kernels read did not (``model.materials[0] = Material.preset("rubber", mu=1e3)``
+    stepped at the old modulus, the list and ``stable_dt`` saying 1e3); each change is refused,
+    naming ``set_material``. A copy is a list of the same class (``copy``, ``deepcopy``)."""
+
+    ADVICE = ("the kernels read the parameter arrays built from the materials, which this list only records (a "
+              "material written into it ran at the old values)")
+
+    def __setitem__(self, index, value):
+        raise ValueError(f"model.materials[{checks.shorten(index)!r}] = {checks.shorten(value)!r} is not allowed: "
+                         f"{self.ADVICE}; change a material with model.set_material({checks.shorten(index)!r}, material)")
+
+    def _refused(name):  # noqa: N805 (makes the class's methods)
+        def refuse(self, *args, **kwargs):
+            raise ValueError(f"model.materials.{name}(...) is not allowed: {self.ADVICE}, and the particles' materials "
+                             "are set when the model is built; change a material with model.set_material(index, "
+                             "material), or finalize a model with other materials")
+        return refuse
+
+    __delitem__, __iadd__, __imul__ = _refused("__delitem__"), _refused("__iadd__"), _refused("__imul__")
+    append, extend, insert, pop = _refused("append"), _refused("extend"), _refused("insert"), _refused("pop")
+    remove, clear, sort, reverse = _refused("remove"), _refused("clear"), _refused("sort"), _refused("reverse")
+    del _refused
+
+    def __reduce_ex__(self, protocol):
+        return type(self), (list(self),)  # made whole: pickle's default appends the items one by one
+
+
 class Model(Unpicklable):
     """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
 
@@ -595,7 +625,7 @@ class Model(Unpicklable):
         #: Whether neighbour lists (so SPH pressure and viscosity) reach into other bodies.
         self.bodies_interact = bool(bodies_interact)
         self._gravity = tuple(float(g) for g in gravity)
-        self.materials = list(materials)
+        self.materials = MaterialList(materials)
         self._material_struct = None  # material_arrays' struct and what it was built from
         self._rest_material_struct = None  # the same with every deformation code "rest" (material_arrays(rest=True))
         self._rest_codes = None
@@ -938,6 +968,9 @@ class Model(Unpicklable):
     def __setattr__(self, name, value):
         if name in Model.MATERIAL_FIELDS and name in self.__dict__:
             self._check_parameter_array(name, value)
+        elif name == "materials" and name in self.__dict__:
+            raise ValueError(f"model.materials = {checks.shorten(value)!r} is not allowed: {MaterialList.ADVICE}; change a "
+                             f"material with model.set_material(index, material), or finalize a model with other materials")
         elif name in PARTICLE_ROWS:
             value = self._particle_rows(name, value)
         object.__setattr__(self, name, value)
@@ -1297,7 +1330,7 @@ class Model(Unpicklable):
         # The rest density is the pressure density's: its kernel may change with the force.
         new_density_kernel = (self.materials[index].pressure_force in SPIKY_DENSITY_FORCES) != (
             material.pressure_force in SPIKY_DENSITY_FORCES)
-        self.materials[index] = material
+        list.__setitem__(self.materials, index, material)
         for name in self.MATERIAL_FIELDS:
             arr = getattr(self, name)
             values = arr.numpy()
