@@ -1845,7 +1845,8 @@ def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_mod
     per-particle array (``PARTICLE_ROWS``) takes any array-like of one row per particle, in the
     model's dtype (on its device for the kernels' arrays); one of another shape, of values that
     are not real numbers (integers for the materials), ragged, or beyond the dtype is refused
-    where it is set, by name, the array kept."""
+    where it is set, by name, the array kept. A mass set from a list steps as the same masses
+    written in place do."""
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
     model = b.finalize()
@@ -1863,7 +1864,19 @@ def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_mod
     model.particle_material = (0,) * n
     assert model.particle_mass.dtype == wp.float32 and model.particle_mass.device == model.device
     assert np.array_equal(model.particle_mass.numpy(), 2.0 * mass)
-    model.state()  # judged as the build's values are (check_particles)
+
+    def density_after_a_step(m):  # the SPH density, which the masses weigh
+        a, c = m.state(), m.state()
+        we.Solver(m).step(a, c, 1e-4)
+        return c.density.numpy()
+
+    # The kernels read it: a step as after the same masses written in place, to the bit, not the build's.
+    written, built = b.finalize(), b.finalize()
+    written.particle_mass.assign(2.0 * mass)
+    written.particle_v0[:] = built.particle_v0[:] = model.particle_v0
+    replaced = density_after_a_step(model)
+    assert np.array_equal(replaced, density_after_a_step(written))
+    assert not np.allclose(replaced, density_after_a_step(built))
     ragged = [[0.0, 0.0, 0.0]] * (n - 1) + [[0.0, 0.0]]
     for name, value, said in (
             ("particle_v0", [[0.0, 0.0]] * n, rf"particle_v0 = a list of shape \({n}, 2\) and dtype float64 is not allowed: "
