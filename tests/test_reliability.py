@@ -1833,6 +1833,12 @@ def test_a_start_velocity_the_run_does_not_read_is_not_refused_and_one_it_reads_
     for call in (model.state, Rollout(model, 3, 1e-4).forward, lambda: we.simulate(model, 1, progress=False)):
         with pytest.raises(ValueError, match=said):
             call()
+    # A fit's run kept for its diagnostics is known as the run it is (a NaN is no change).
+    from warp_esph.fit import _KeptRun
+
+    rollout = Rollout(model, 3, 1e-4)
+    rollout.forward(initial_state=start)
+    assert _KeptRun(rollout, start).ran_as(rollout)
     model.particle_x0[1, 0] = math.inf
     with pytest.raises(ValueError, match=r"^model\.particle_x0\[1\] = \(inf, "):
         we.simulate(model, 1, state=start, progress=False)

@@ -963,7 +963,9 @@ class _KeptRun:
         rows, materials, tools, settings = self.inputs
         now_rows, now_materials, now_tools, now_settings = rollout._inputs()
         scene = self._scene(rollout.model)
-        if scene.keys() != self.scene.keys() or not all(np.array_equal(self.scene[k], scene[k]) for k in scene):
+        # NaN as NaN: a particle_v0 a given start replaces may hold it (Model.check_start), and
+        # the run that kept it was taken for another, and run again.
+        if scene.keys() != self.scene.keys() or not all(_same(self.scene[k], scene[k]) for k in scene):
             return False
         if not (self._same_scripted(rollout.model) and self._same_start()):
             return False
