@@ -967,29 +967,28 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     assert err < FORCE_GRADIENT_RTOL, err
 
 
-@pytest.mark.parametrize("fused, base", [
-    (False, 0.6), (True, 0.6),
-    pytest.param(False, 0.2, marks=pytest.mark.xfail(strict=True, reason=(
-        "below half a spacing the frictionless imaged ground's force is not the gradient of its energy: 0.36 "
-        "relative off (docs/physics.md, \"The frictionless imaged ground below half a spacing: the total energy\")")))])
+@pytest.mark.parametrize("fused, base, fit", [
+    (False, 0.6, "linear"), (True, 0.6, "linear"), (False, 0.2, "linear"), (True, 0.2, "linear"),
+    (False, 0.6, "curvature_corrected"), (False, 0.2, "curvature_corrected")])
 def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the_particles_and_images_energies(
-        fused, base):
+        fused, base, fit):
     """``add_ground(friction=0, images=True)``: the images move with their particles (``g(x)``,
     Jacobian ``J``). A cube whose bottom layer stands ``base`` spacings above the plane, ``F`` up
     to 15 % from I, each image's F its particle's mirrored, jittered: its elastic force against
     the central difference of ``sum V psi(F)`` over the particles, each within ``h`` of the plane
     counted as ``1/2 (psi(F_i) + psi(F_g))`` with its image's F after the step (the images moving
-    by ``J`` in the differences). From half a spacing up, where every image is its particle's
-    mirror, the force is that energy's gradient (measured 1.1e-10 relative): the mirror zone's
-    identity. Below it (0.2) it is not (measured 0.36); a force that is (``1/2 (E_i + E_g)``
-    with every image's reaction sent to its particle through ``J``, the images' F their own
-    fit's, not blended) was tried in a scratch copy: 1.2e-10 here (this case then passes),
-    2.0e-2 with the blend kept. With the images at rest (friction 0.5) the same sum is 0.69-0.73 off
-    at either height: the images' motion is what the identity holds."""
+    by ``J`` in the differences). The force is that energy's gradient (``forces.image_energy_share``,
+    ``forces.moving_image_forces``: every image's reaction sent to its particle through ``J``,
+    the images' F their own fit's, ``deformation.floor_image_share``) on either schedule and fit:
+    measured 3.1-3.3e-10 relative with the linear fit, 7.0-7.2e-10 with the corrected one, from
+    half a spacing up (the images mirrors) and below it (0.2). Before, below half a spacing
+    the force was not this gradient: 0.36 (the linear fit) and 0.39 (the corrected) off, the
+    images' reactions on the floor and their F blended towards their particles' (docs/physics.md,
+    "The frictionless imaged ground below half a spacing")."""
     model, x0, F0 = _deformed_cube_on_the_imaged_ground(base, 0.0, "biweight")
     n = model.particle_count
     R = np.diag([1.0, -1.0, 1.0])
-    solver = we.Solver(model, fused=fused, fit="linear", hourglass=0.0)
+    solver = we.Solver(model, fused=fused, fit=fit, hourglass=0.0)
     a, c = model.state(), model.state()
     a.x.assign(x0)
     a.F.assign(F0)

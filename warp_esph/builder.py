@@ -570,7 +570,13 @@ class SceneBuilder:
         With ``friction = 0`` the images move with their particles over each step (the
         mirror of each particle's displacement in the fits, of its velocity in the SPH
         viscosity): a frictionless floor, on which a body slides on (docs/physics.md, "The
-        imaged ground is rough whatever its friction")."""
+        imaged ground is rough whatever its friction"). Its elastic energy within the support
+        radius of the plane is half the particle's and half its image's, each image's F its
+        own fit's, and every image's reaction reaches its particle through the image's motion,
+        so the force is minus the gradient of the energy stored also where the images, below
+        half a spacing, are no mirrors: an undamped body resting there keeps its energy but for
+        the step's own error (docs/physics.md, "The frictionless imaged ground below half a
+        spacing")."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):

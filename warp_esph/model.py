@@ -356,8 +356,8 @@ class State(Unpicklable):
         self.F_image = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
                                 requires_grad=requires_grad and images)
         # And its own hardening, advanced by its own flow as a floor particle's is (0 in a new
-        # state; set it with alpha when alpha is set by hand; blended with its particle's by
-        # the share below, as F_image with F).
+        # state; set it with alpha when alpha is set by hand; its particle's where the share
+        # below is 0, as F_image with F).
         self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
@@ -415,7 +415,8 @@ class State(Unpicklable):
         self.image_stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
         #: How much of each image's state is its own rather than its particle's
         #: (``deformation.floor_image_share``, written by the fit's update: 1 for images at
-        #: rest; 0 without images).
+        #: rest and for moving ones whose particle is within ``h`` of the plane, else 0; 0
+        #: without images).
         self.image_share = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)

@@ -75,6 +75,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     df = deformation.funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
     variational_map = forces.funcs(scalar, weight).variational_map
+    image_energy_share = forces.funcs(scalar, weight).image_energy_share
 
     @wp.func
     def curvature_basis(d: vec3, h: scalar) -> vec3:
@@ -286,11 +287,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.struct
     class ImageSums:
-        """``deformation``'s ``ImageSums`` with the curvature term: ``B - A``, ``E - C`` and
-        the pairs' weight sum."""
+        """``deformation``'s ``ImageSums`` with the curvature term: ``B - A`` and ``E - C``."""
         Bu: mat33
         Eu: mat33
-        wsum: scalar
 
     @wp.func
     def floor_image_displacement_sums(
@@ -312,10 +311,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         w ub xb^T``, ``Eu = sum w ub q^T`` of ``i``'s own image ``g_i`` over ``i`` and its
         same-body neighbours (``xb = x_r - g_i``, ``ub = u_r - u_g``: ``u_g`` 0 at rest), for
         moving images (``images`` 2) over their images too (``xb = g_r - g_i``, ``ub = J(x_r) u_r
-        - u_g``), and the sum of the particle pairs' weights."""
+        - u_g``)."""
         B = mat33()
         E = mat33()
-        wsum = scalar(0.0)
         xi = x[i]
         bi = body[i]
         gi = df.floor_image(xi, gn, goff, gmin)
@@ -329,7 +327,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 wu = w * (df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ug)
                 B += wp.outer(wu, xb)
                 E += wp.outer(wu, curvature_basis(xb, h))
-                wsum += w
                 if images == 2 and j != i:
                     gb = df.floor_image(x[j], gn, goff, gmin) - gi
                     pb = x[j] - xi
@@ -340,7 +337,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         sums = ImageSums()
         sums.Bu = B
         sums.Eu = E
-        sums.wsum = wsum
         return sums
 
     @wp.func
@@ -364,7 +360,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         moments ``sums``): ``Fg + scale inc Fg`` and 1, or ``Fg`` and 0."""
         out = Fg
         applied = int(0)
-        if code == 0 and sums.wsum > scalar(0.0):
+        if code == 0 and df.image_row_length(x[i], n, h, gn, goff) > 0:
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             out, applied = df.uncompensated_update(Fg, corrected_increment(Ag, sums.Bu, Cg, Dg, sums.Eu), scale)
         return out, applied
@@ -512,27 +508,77 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K))), K
 
     @wp.func
-    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
-                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
-                           h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
-        """``forces.floor_image_forces`` with the corrected fit's pair force: ``w M o(g_j - x_i)``
-        on ``i`` for each image in its fit, and ``-w Mg o_g(x_r - g_i)`` of its own image's
-        energy on ``i`` and on each same-body neighbour ``r`` (``o = xb - K^T q(xb)``)."""
+    def image_pair_force(M: mat33, K: mat33, gb: vec3, pb: vec3, h: scalar, c6: scalar) -> vec3:
+        """``forces.image_pair_force`` with the corrected fit's offset: ``w(|pb|^2) M o(gb)``."""
+        return fw.w_c(wp.dot(pb, pb), h, c6) * (M * corrected_offset(K, gb, h))
+
+    @wp.func
+    def moving_image_pair_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                                 nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
+                                 h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)):
+        """``forces.moving_image_pair_forces`` with the corrected fit's pair force (``o = xb -
+        K^T q(xb)``; an image-image pair weighed as its particles' pair, ``floor_image_moment``)."""
         xi = x[i]
         bi = body[i]
         c6 = fw.coef(h)
         gi = df.floor_image(xi, gn, goff, gmin)
         fi = vec3()
+        fg = vec3()
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
-                fi += variational_pair_force(M, K, df.floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                gj = df.floor_image(xj, gn, goff, gmin)
+                Jj = df.floor_image_jacobian(xj, gn, goff, gmin)
+                g = variational_pair_force(M, K, gj - xi, h, c6)
                 gr = variational_pair_force(Mg, Kg, xj - gi, h, c6)
-                if j == i:
-                    fi -= gr
+                fi += g
+                fg += gr
+                fj = -(Jj * g) - gr
+                if j != i:
+                    gg = image_pair_force(Mg, Kg, gj - gi, xj - xi, h, c6)
+                    fg += gg
+                    wp.atomic_add(f, j, fj - Jj * gg)
                 else:
-                    wp.atomic_sub(f, j, gr)
+                    fi += fj
+        return fi, fg
+
+    @wp.func
+    def moving_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
+                            h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
+        """``forces.moving_image_forces`` with the corrected fit's pair force."""
+        fi, fg = moving_image_pair_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, f)
+        return fi + df.floor_image_jacobian(x[i], gn, goff, gmin) * fg
+
+    @wp.func
+    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
+                           h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int,
+                           f: wp.array(dtype=vec3)) -> vec3:
+        """``forces.floor_image_forces`` with the corrected fit's pair force: for images at rest
+        (``images`` 1) ``w M o(g_j - x_i)`` on ``i`` for each image in its fit, and ``-w Mg
+        o_g(x_r - g_i)`` of its own image's energy on ``i`` and on each same-body neighbour ``r``
+        (``o = xb - K^T q(xb)``); for images moving with their particles (2),
+        ``moving_image_forces``."""
+        fi = vec3()
+        if images == 2:
+            fi = moving_image_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, f)
+        else:
+            xi = x[i]
+            bi = body[i]
+            c6 = fw.coef(h)
+            gi = df.floor_image(xi, gn, goff, gmin)
+            for k in range(df.image_row_length(xi, n, h, gn, goff)):
+                j = df.image_row_particle(i, k, n, nbr)
+                if body[j] == bi:
+                    xj = x[j]
+                    fi += variational_pair_force(M, K, df.floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                    gr = variational_pair_force(Mg, Kg, xj - gi, h, c6)
+                    if j == i:
+                        fi -= gr
+                    else:
+                        wp.atomic_sub(f, j, gr)
         return fi
 
     @wp.func
@@ -622,23 +668,25 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return g
 
     @wp.func
-    def scatter_image_pair_adjoint(gb: vec3, pb: vec3, hh: scalar, c6: scalar, h: scalar, K: mat33, adj_A: mat33,
-                                   adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
+    def scatter_image_pair_adjoint(gb: vec3, pb: vec3, hh: scalar, c6: scalar, h: scalar, M: mat33, a: vec3, K: mat33,
+                                   adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
                                    adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar,
                                    gmin: scalar):
         """Adjoint of an image-image pair's terms in an image's moments (``floor_image_moment``:
-        ``gb = g_j - g_i`` weighed by ``w(|pb|^2)``, ``pb = x_j - x_i``), as
-        ``forces.scatter_image_pair_adjoint`` with the ``C``, ``D`` terms; returned for ``i``:
-        ``(adj g_i, adj x_i)``."""
+        ``gb = g_j - g_i`` weighed by ``w(|pb|^2)``, ``pb = x_j - x_i``) and of its force
+        ``image_pair_force`` against ``a`` (``M`` 0 where it has none), as
+        ``deformation.scatter_image_pair_adjoint`` with the ``C``, ``D`` terms; returned for
+        ``i``: ``(adj g_i, adj x_i)``."""
         gg = vec3()
         gp = vec3()
         r2 = wp.dot(pb, pb)
         if r2 < hh:
             w, dw = fw.w_inside(r2, hh, c6)
             q = curvature_basis(gb, h)
-            gg = variational_pair_adjoint(gb, vec3(), w, scalar(0.0), h, mat33(), K, adj_A, adj_A_sym, adj_C, adj_D,
+            gg = variational_pair_adjoint(gb, a, w, scalar(0.0), h, M, K, adj_A, adj_A_sym, adj_C, adj_D,
                                           adj_D_sym, scalar(0.0))
-            s = wp.dot(gb, adj_A * gb) + wp.dot(gb, adj_C * q) + wp.dot(q, adj_D * q)
+            s = (wp.dot(gb, adj_A * gb) + wp.dot(gb, adj_C * q) + wp.dot(q, adj_D * q)
+                 + wp.dot(a, M * corrected_offset(K, gb, h)))
             gp = scalar(2.0) * dw * s * pb
             wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
         return gg, gp
@@ -671,36 +719,25 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         sums: ImageSums,
         Fg: mat33,
         Gg: mat33,
-        applied: int,
-        adj_wsum: scalar,
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
     ):
-        """Adjoint of ``floor_image_own_update`` (``Gg`` the gradient of its output) and of
-        the weight sum the share reads (``adj_wsum``), as
-        ``deformation.floor_image_own_update_adjoint`` for the corrected fit: ``inc0 = (Bu - Eu
+        """Adjoint of ``floor_image_own_update`` where it applied (``Gg`` the gradient of its
+        output), as ``deformation.floor_image_own_update_adjoint`` for the corrected fit: ``inc0 = (Bu - Eu
         K) A~^-1`` back into the image's moments (``projection_adjoint``), each pair's
         ``moment_pair_adjoint`` (``xb = x_r - g_i``, ``yb = u_r - u_g``) scattered to ``x``, ``y``,
         the image pairs' ``scatter_image_pair_adjoint`` (and for moving images, ``images`` 2,
         their ``moving_image_pair_adjoint`` and ``u_g``'s), ``g_i``'s to ``x_i`` through
         ``deformation.floor_image_jacobian``; returns ``(adj Fg, adj scale)``."""
-        inc0 = mat33()
-        K = mat33()
-        adj_A = mat33()
-        adj_Bu = mat33()
-        adj_C = mat33()
-        adj_D = mat33()
-        adj_Eu = mat33()
-        if applied != 0:
-            Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
-            K, D_inv, kept = projection_terms(Ag, Cg, Dg)
-            At_inv = wp.inverse(corrected_moment(Ag, Cg, K))
-            inc0 = corrected_moment(sums.Bu, sums.Eu, K) * At_inv
-            adj_Bt = scale * (Gg * wp.transpose(Fg)) * wp.transpose(At_inv)
-            adj_Bu = adj_Bt
-            adj_Eu = -(adj_Bt * wp.transpose(K))
-            adj_A, adj_C, adj_D = projection_adjoint(-(wp.transpose(inc0) * adj_Bt), -(wp.transpose(sums.Eu) * adj_Bt), Cg,
-                                                     K, D_inv, kept)
+        Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+        K, D_inv, kept = projection_terms(Ag, Cg, Dg)
+        At_inv = wp.inverse(corrected_moment(Ag, Cg, K))
+        inc0 = corrected_moment(sums.Bu, sums.Eu, K) * At_inv
+        adj_Bt = scale * (Gg * wp.transpose(Fg)) * wp.transpose(At_inv)
+        adj_Bu = adj_Bt
+        adj_Eu = -(adj_Bt * wp.transpose(K))
+        adj_A, adj_C, adj_D = projection_adjoint(-(wp.transpose(inc0) * adj_Bt), -(wp.transpose(sums.Eu) * adj_Bt), Cg,
+                                                 K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         xi = x[i]
@@ -722,14 +759,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 if r2 < hh:
                     w, dw = fw.w_inside(r2, hh, c6)
                     gx, gu = moment_pair_adjoint(xb, y[j] - xj - ug, w, dw, h, adj_A, adj_A_sym, adj_Bu, adj_C, adj_D,
-                                                 adj_D_sym, adj_Eu, adj_wsum * dw)
+                                                 adj_D_sym, adj_Eu, scalar(0.0))
                     wp.atomic_add(adj_y, j, gu)
                     wp.atomic_add(adj_x, j, gx - gu)
                     gg_i -= gx
                     gu_i -= gu
-                if j != i and applied != 0:
+                if j != i:
                     gb = df.floor_image(xj, gn, goff, gmin) - gi
-                    gg, gp = scatter_image_pair_adjoint(gb, xj - xi, hh, c6, h, K, adj_A, adj_A_sym, adj_C, adj_D,
+                    gg, gp = scatter_image_pair_adjoint(gb, xj - xi, hh, c6, h, mat33(), vec3(), K, adj_A, adj_A_sym,
+                                                        adj_C, adj_D,
                                                         adj_D_sym, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
@@ -745,9 +783,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if images == 2:
             df.scatter_moving_image_adjoint(adj_x, adj_y, i, xi, y[i], vec3(), vec3(), gu_i, gn, goff, gmin)
         df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
-        adj_Fg = Gg
-        if applied != 0:
-            adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * inc0) * Gg
+        adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * inc0) * Gg
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), inc0)
 
     @wp.func
@@ -762,14 +798,14 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         # accumulator (docs/method.md, Warp pitfall 1).
         A, C, D, same = position_moments(i, x, body, nbr, n, h, gn, goff, gmin, images)
         K = curvature_projection(A, C, D)
-        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
+        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition) * image_energy_share(x[i], n, h, gn, goff, images)
         M = s_fit * variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K)))
         fi = variational_forces(i, x, body, nbr, n, M, K, h, f)
         if images != 0:
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             Mg0, Kg = image_map(volume, Pg, Fg, Ag, Cg, Dg)
             Mg = s_fit * Mg0
-            fi += floor_image_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, f)
+            fi += floor_image_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, images, f)
         return fi
 
     # The fit's side of the update kernels (``deformation.update_kernels``), as
@@ -858,6 +894,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         moment_pairs_adjoint=moment_pairs_adjoint,
         floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,
+        image_pair_force=image_pair_force,
         moment_pair_adjoint=moment_pair_adjoint, variational_pair_adjoint=variational_pair_adjoint,
         scatter_variational_pair_adjoint=scatter_variational_pair_adjoint,
         curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
@@ -945,26 +982,37 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
-                d = df.floor_image(xj, gn, goff, gmin) - xi
-                wa = fw.w_c(wp.dot(d, d), h, c6) * ai
+                gj = df.floor_image(xj, gn, goff, gmin)
+                a1, ar, ag = fo.image_pair_adjoint_vectors(ai, adj_f[j], xi, xj, gn, goff, gmin, images)
+                d = gj - xi
+                wa = fw.w_c(wp.dot(d, d), h, c6) * a1
                 S1 += wp.outer(wa, d)
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
                 d = xj - gi
-                wa = -fw.w_c(wp.dot(d, d), h, c6) * adj_f[j]
+                wa = fw.w_c(wp.dot(d, d), h, c6) * ar
                 S1g += wp.outer(wa, d)
                 S2g += wp.outer(wa, fn.curvature_basis(d, h))
+                if images == 2 and j != i:
+                    d = gj - gi
+                    pb = xj - xi
+                    wa = fw.w_c(wp.dot(pb, pb), h, c6) * ag
+                    S1g += wp.outer(wa, d)
+                    S2g += wp.outer(wa, fn.curvature_basis(d, h))
         K, D_inv, kept = fn.projection_terms(A, C, D)
         Ainv = wp.inverse(fn.corrected_moment(A, C, K))
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
-        # The fade s(A, same) of both maps (guards.guard): M = s M0, Mg = s Mg0.
+        # The fade s(A, same) of both maps (guards.guard) and the energies' share
+        # (forces.image_energy_share): M = s c M0, Mg = s c Mg0.
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
+        c = fo.image_energy_share(xi, n, h, gn, goff, images)
+        sc = s * c
         M0 = fo.variational_map(Vi, P, Fi, Ainv)
-        M = s * M0
+        M = sc * M0
         adj_M = S1 - S2 * K
-        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)
-        adj_s = wp.ddot(adj_M, M0)
+        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, sc * adj_M)
+        adj_s = c * wp.ddot(adj_M, M0)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(S2) * M), C, K, D_inv, kept)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         Mg = mat33()
@@ -979,12 +1027,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Pg = image_stress[i]
             Fg = F_image[i]
             Mg0 = fo.variational_map(Vi, Pg, Fg, Ag_inv)
-            Mg_ = s * Mg0
+            Mg_ = sc * Mg0
             adj_Mg = S1g - S2g * Kg_
-            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, s * adj_Mg)
+            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sc * adj_Mg)
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
-            adj_s += wp.ddot(adj_Mg, Mg0)
+            adj_s += c * wp.ddot(adj_Mg, Mg0)
             adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,
                                                               kept_g)
             Mg = Mg_
@@ -1010,22 +1058,42 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                                             gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
+        # Moving images: g_i's pairs' forces, sent to x_i through J_i (its slope's adjoint).
+        fg = vec3()
         for k in range(n_img):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
+                aj = adj_f[j]
                 gj = df.floor_image(xj, gn, goff, gmin)
-                gx_i -= fn.scatter_variational_pair_adjoint(gj - xi, ai, hh, c6, h, M, K, adj_A, adj_A_sym, adj_C,
+                a1, ar, ag = fo.image_pair_adjoint_vectors(ai, aj, xi, xj, gn, goff, gmin, images)
+                gx_i -= fn.scatter_variational_pair_adjoint(gj - xi, a1, hh, c6, h, M, K, adj_A, adj_A_sym, adj_C,
                                                             adj_D, adj_D_sym, adj_same, adj_x, j, xj, gn, goff, gmin, 1)
                 # (The own image's moments are not the fit's: they do not count.)
-                gg_i -= fn.scatter_variational_pair_adjoint(xj - gi, -adj_f[j], hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
+                gg_i -= fn.scatter_variational_pair_adjoint(xj - gi, ar, hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
                                                             adj_Cg, adj_Dg, adj_Dg_sym, scalar(0.0), adj_x, j, xj, gn,
                                                             goff, gmin, 0)
+                Mp = mat33()  # the image-image pair's force map: moving images' alone
+                if images == 2:
+                    Mp = Mg
                 if j != i:
-                    gg, gp = fn.scatter_image_pair_adjoint(gj - gi, xj - xi, hh, c6, h, Kg, adj_Ag, adj_Ag_sym, adj_Cg,
-                                                           adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin)
+                    gg, gp = fn.scatter_image_pair_adjoint(gj - gi, xj - xi, hh, c6, h, Mp, ag, Kg, adj_Ag, adj_Ag_sym,
+                                                           adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
+                if images == 2:
+                    # The reactions -J_j (g + gg) on j and J_i (gr + gg) on i: J's slope.
+                    g = fn.variational_pair_force(M, K, gj - xi, h, c6)
+                    gr = fn.variational_pair_force(Mg, Kg, xj - gi, h, c6)
+                    gg = vec3()
+                    if j != i:
+                        gg = fn.image_pair_force(Mg, Kg, gj - gi, xj - xi, h, c6)
+                    fg += gr + gg
+                    sj, uj = df.mirrored_motion_adjoint(xj, g + gg, aj, gn, goff, gmin)
+                    wp.atomic_sub(adj_x, j, sj)
+        if images == 2:
+            si, ui = df.mirrored_motion_adjoint(xi, fg, ai, gn, goff, gmin)
+            gx_i += si
         df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
 
     # Eq. 8's update, its adjoint and the elastic forces are the linear fit's kernels on

@@ -68,7 +68,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fw = smoothing.fit_weight_funcs(scalar, weight)
-    smoothstep = smoothing.funcs(scalar).smoothstep
     gf = guards.guard_funcs(scalar)
 
     @wp.func
@@ -471,20 +470,23 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return A
 
     @wp.func
-    def scatter_image_pair_adjoint(adj_A: mat33, adj_A_sym: mat33, gb: vec3, pb: vec3, hh: scalar, c6: scalar,
-                                   adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar, gmin: scalar):
+    def scatter_image_pair_adjoint(adj_A: mat33, adj_A_sym: mat33, M: mat33, a: vec3, gb: vec3, pb: vec3, hh: scalar,
+                                   c6: scalar, adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar,
+                                   gmin: scalar):
         """Adjoint of an image-image term ``w(|pb|^2) gb gb^T`` of an image's moment matrix
         (``floor_image_moment``: ``gb = g_j - g_i``, weighed as its particles' pair
-        ``pb = x_j - x_i``): ``adj gb = w adj_A_sym gb``, ``adj pb = 2 dw (gb . adj_A gb) pb``,
-        added to ``j`` (``gb``'s through ``floor_image_jacobian``); returned for
+        ``pb = x_j - x_i``) and of the pair's force ``w M gb`` against ``a``
+        (``forces.image_pair_force``; ``M`` 0 where the images rest and the pair has no
+        force): ``adj gb = w (adj_A_sym gb + M^T a)``, ``adj pb = 2 dw (gb . adj_A gb + a . M
+        gb) pb``, added to ``j`` (``gb``'s through ``floor_image_jacobian``); returned for
         ``i``: ``(adj g_i, adj x_i)``."""
         gg = vec3()
         gp = vec3()
         r2 = wp.dot(pb, pb)
         if r2 < hh:
             w, dw = fw.w_inside(r2, hh, c6)
-            gg = w * (adj_A_sym * gb)
-            gp = scalar(2.0) * dw * wp.dot(gb, adj_A * gb) * pb
+            gg = w * (adj_A_sym * gb + wp.transpose(M) * a)
+            gp = scalar(2.0) * dw * (wp.dot(gb, adj_A * gb) + wp.dot(a, M * gb)) * pb
             wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
         return gg, gp
 
@@ -510,7 +512,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         """The sums of a floor image's own fit that move with the particles
         (``floor_image_displacement_sums``): ``B - A`` and the pairs' weight sum."""
         Bu: mat33
-        wsum: scalar
 
     @wp.func
     def floor_image_displacement_sums(
@@ -536,7 +537,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         as their particles' pair (``floor_image_moment``), ``ub = J(x_r) u_r - u_g``. Also the sum
         of the particle pairs' weights: 0 where no particle is within ``h`` of the image."""
         B = mat33()
-        wsum = scalar(0.0)
         xi = x[i]
         bi = body[i]
         gi = floor_image(xi, gn, goff, gmin)
@@ -548,7 +548,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 xb = x[j] - gi
                 w = fw.w_c(wp.dot(xb, xb), h, c6)
                 B += w * wp.outer(displacement(x[j], y[j], x_lo[j], y_lo[j]) - ug, xb)
-                wsum += w
                 if images == 2 and j != i:
                     pb = x[j] - xi
                     B += fw.w_c(wp.dot(pb, pb), h, c6) * wp.outer(
@@ -556,30 +555,24 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                         floor_image(x[j], gn, goff, gmin) - gi)
         sums = ImageSums()
         sums.Bu = B
-        sums.wsum = wsum
         return sums
 
     @wp.func
-    def floor_image_share(wsum: scalar, h: scalar, images: int):
-        """How much of a floor image's F is its own (``floor_image_update``) and the slope of
-        that share in ``wsum``, the weights of the particles within ``h`` of the image.
-        Images at rest (``images`` 1): 1, whatever ``wsum``: a floor at rest keeps its own F,
-        as a particle floor's pinned particles do, and an image with no particle near it keeps
-        it unchanged (its fit sees no motion). Blended towards its particle's, the image
-        stored a share of a work its force did not do, and an undamped block hovering with its
-        bottom layer 0.6-1 spacings over the plane gained energy (docs/physics.md, "Where the
-        imaged ground's images store no energy"). Images moving with their particles (2):
-        ``t^2 (3 - 2 t)``, ``t = min(wsum / w(h / 2), 1)``: 0 with zero slope for an image with
-        no particle near it, 1 once its pairs weigh as one at half the support (a resting
-        bottom layer's image has its own particle there)."""
-        w_ref = fw.w_c(scalar(0.25) * h * h, h, fw.coef(h))
-        t = wsum / w_ref
+    def floor_image_share(near: int, images: int) -> scalar:
+        """How much of a floor image's F is its own (``floor_image_update``): 1 wherever its
+        own fit runs (its particle within ``h`` of the plane, ``near``) and for images at rest
+        (``images`` 1) everywhere: a floor at rest keeps its own F, as a particle floor's pinned
+        particles do, and an image with no particle near it keeps it unchanged (its fit sees no
+        motion). An image moving with its particle (2) beyond ``h`` carries its particle's new
+        F mirrored (0). Blended towards its particle's F (a share below 1 inside ``h``), the
+        image stored a share of a work its force did not do, and an undamped block gained energy
+        (docs/physics.md, "Where the imaged ground's images store no energy", "The frictionless
+        imaged ground below half a spacing"). Where its particle crosses ``h`` the image's own F
+        is its particle's mirrored (unread and continuous: its fit sees only its mirror's)."""
         c = scalar(1.0)
-        dc = scalar(0.0)
-        if t < scalar(1.0) and images == 2:
-            c, dct = smoothstep(t)
-            dc = dct / w_ref
-        return c, dc
+        if images == 2 and near == 0:
+            c = scalar(0.0)
+        return c
 
     @wp.func
     def uncompensated_update(F: mat33, inc: mat33, scale: scalar):
@@ -616,7 +609,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         would invert."""
         out = Fg
         applied = int(0)
-        if code == 0 and sums.wsum > scalar(0.0):
+        if code == 0 and image_row_length(x[i], n, h, gn, goff) > 0:
             Ag = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             out, applied = uncompensated_update(Fg, affine_fit(Ag, sums.Bu), scale)
         return out, applied
@@ -624,13 +617,12 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def particle_f_for_image(F: mat33, n: vec3, images: int) -> mat33:
         """A particle's ``F`` as its floor image carries it where the image's own fit does not
-        reach (``floor_image_blend``): ``F`` itself for images at rest (``images`` 1, whose
+        run (``floor_image_select``): ``F`` itself for images at rest (``images`` 1, whose
         share is 1: unread), its mirror ``R F R`` (``R = I - 2 n n^T``) for images moving
         with their particles (``images`` 2): there the image is the particle's mirror, whose own
-        fit gives ``R dF R`` to its particle's ``dF``; blended towards ``F`` an image with few
-        particles within ``h`` carried an unmirrored stress, and an undamped elastic block
-        floating on the frictionless imaged ground gained sideways momentum and energy
-        (docs/physics.md, "The imaged ground is rough whatever its friction"). Linear and
+        fit gives ``R dF R`` to its particle's ``dF``; carrying ``F`` unmirrored, an undamped
+        elastic block floating on the frictionless imaged ground gained sideways momentum and
+        energy (docs/physics.md, "The imaged ground is rough whatever its friction"). Linear and
         self-adjoint in ``F``: its adjoint is itself."""
         out = F
         if images == 2:
@@ -639,36 +631,14 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out
 
     @wp.func
-    def floor_image_blend(own: mat33, F_new: mat33, wsum: scalar, h: scalar, images: int):
-        """The image's new F, its own updated ``own`` and its particle's new ``F_new`` blended
-        by ``floor_image_share`` of its pairs' weights ``wsum``, and that share: ``own`` itself
-        (not to round-off) where the share is 1."""
-        c, dc = floor_image_share(wsum, h, images)
+    def floor_image_select(own: mat33, F_new: mat33, near: int, images: int):
+        """The image's new F, its own updated ``own`` or its particle's new ``F_new`` as
+        ``floor_image_share`` (of ``near``, the image loop's length) has it, and that share."""
+        c = floor_image_share(near, images)
         out = own
         if c < scalar(1.0):
-            out = F_new + c * (own - F_new)
+            out = F_new
         return out, c
-
-    @wp.func
-    def updated_or_kept(code: int, scale: scalar, D0: mat33, Fp: mat33) -> mat33:
-        """A particle's new F as the update's forward has it, to round-off, from its unfaded
-        increment ``D0`` and fade ``scale``: ``Fp + scale D0 Fp``, or ``Fp`` where guarded
-        (``code``) or where that would invert."""
-        F_new = Fp
-        if code == 0:
-            F_new, applied = uncompensated_update(Fp, D0, scale)
-        return F_new
-
-    @wp.func
-    def floor_image_blend_adjoint(Gg: mat33, own: mat33, code: int, scale: scalar, D0: mat33, Fp: mat33,
-                                  adj_c: scalar, wsum: scalar, h: scalar, gn: vec3, images: int):
-        """Adjoint of ``floor_image_blend`` in the weight sum ``wsum`` (``Gg`` the gradient of
-        the blend, ``adj_c`` that of the share; the particle's new F as its update had it,
-        ``updated_or_kept``, as the image carries it, ``particle_f_for_image``) and the share
-        ``c``: returns ``(c, adj_wsum)``."""
-        c, dc = floor_image_share(wsum, h, images)
-        target = particle_f_for_image(updated_or_kept(code, scale, D0, Fp), gn, images)
-        return c, (wp.ddot(Gg, own - target) + adj_c) * dc
 
     @wp.func
     def floor_image_own_update_adjoint(
@@ -687,29 +657,20 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         sums: ImageSums,
         Fg: mat33,
         Gg: mat33,
-        applied: int,
-        adj_wsum: scalar,
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
     ):
-        """Adjoint of ``floor_image_own_update`` where the image's own fit applies (``sums``,
-        ``Ag`` its sums at ``x``, ``y``; ``Gg`` the gradient of its output) and of the weight
-        sum ``floor_image_share`` reads (``adj_wsum``): scatters the pairs' adjoints (``B``'s
-        ``w u xb^T`` with ``u = y_r - x_r - u_g``, ``xb = x_r - g_i``, ``w`` itself, and
+        """Adjoint of ``floor_image_own_update`` where the image's own fit applied (``sums``,
+        ``Ag`` its sums at ``x``, ``y``; ``Gg`` the gradient of its output): scatters the pairs'
+        adjoints (``B``'s ``w u xb^T`` with ``u = y_r - x_r - u_g``, ``xb = x_r - g_i``, and
         ``floor_image_moment``'s two kinds of term) to ``x`` and ``y``, ``g_i``'s to ``x_i``
         through ``floor_image_jacobian``; for moving images (``images`` 2) the image pairs'
         ``B`` terms too (``moving_image_pair_adjoint``) and the image's own displacement
-        ``u_g``'s (``scatter_moving_image_adjoint``); returns ``(adj Fg, adj scale)``.
-        ``applied`` 0: the weight sum's alone."""
-        D0 = mat33()
-        adj_B = mat33()
-        adj_A = mat33()
-        if applied != 0:
-            Ag_inv = wp.inverse(floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
-            D0 = sums.Bu * Ag_inv
-            adj_D = scale * (Gg * wp.transpose(Fg))
-            adj_B = adj_D * Ag_inv
-            adj_A = -(wp.transpose(D0) * adj_B)
+        ``u_g``'s (``scatter_moving_image_adjoint``); returns ``(adj Fg, adj scale)``."""
+        Ag_inv = wp.inverse(floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+        D0 = sums.Bu * Ag_inv
+        adj_B = scale * (Gg * wp.transpose(Fg)) * Ag_inv
+        adj_A = -(wp.transpose(D0) * adj_B)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         xi = x[i]
         bi = body[i]
@@ -733,14 +694,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     Bx = adj_B * xb
                     adj_u = w * Bx
                     adj_xb = (w * (adj_A_sym * xb + wp.transpose(adj_B) * u)
-                              + scalar(2.0) * dw * (wp.dot(xb, adj_A * xb) + wp.dot(u, Bx) + adj_wsum) * xb)
+                              + scalar(2.0) * dw * (wp.dot(xb, adj_A * xb) + wp.dot(u, Bx)) * xb)
                     wp.atomic_add(adj_y, j, adj_u)
                     wp.atomic_add(adj_x, j, adj_xb - adj_u)
                     gg_i -= adj_xb
                     gu_i -= adj_u
-                if j != i and applied != 0:
+                if j != i:
                     gb = floor_image(xj, gn, goff, gmin) - gi
-                    gg, gp = scatter_image_pair_adjoint(adj_A, adj_A_sym, gb, xj - xi, hh, c6, adj_x, j, xj, gn, goff, gmin)
+                    gg, gp = scatter_image_pair_adjoint(adj_A, adj_A_sym, mat33(), vec3(), gb, xj - xi, hh, c6, adj_x, j,
+                                                        xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
                     if images == 2:
@@ -754,9 +716,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if images == 2:
             scatter_moving_image_adjoint(adj_x, adj_y, i, xi, y[i], vec3(), vec3(), gu_i, gn, goff, gmin)
         scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
-        adj_Fg = Gg
-        if applied != 0:
-            adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
+        adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
 
     @wp.func
@@ -919,7 +879,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
         ImageSums=ImageSums, floor_image_own_update=floor_image_own_update,
-        floor_image_blend=floor_image_blend, floor_image_blend_adjoint=floor_image_blend_adjoint,
+        floor_image_select=floor_image_select,
         particle_f_for_image=particle_f_for_image,
         floor_image_own_update_adjoint=floor_image_own_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         uncompensated_update=uncompensated_update,
@@ -946,7 +906,7 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     """Eq. 8 of a floor image (``State.F_image``) and its adjoint, written once for both
     fits: ``fit`` (``fit_funcs``) supplies the image's own sums
     (``floor_image_displacement_sums``, its ``ImageSums``), its own update and that
-    update's adjoint; the share and the blend are this module's."""
+    update's adjoint; the share is this module's."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     df = funcs(scalar, weight)
@@ -979,14 +939,16 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         (``scale``), updates its own flowed ``Fg``, so that the work of its energy (the
         fit's ``image_map``) is stored as a particle's is (docs/physics.md, "The floor
         images' energy is not stored"). An image at rest keeps its own F wherever it is (a
-        floor at rest); an image moving with ``i`` with no particle near it carries its
-        particle's new F, ``F_new``, mirrored, and between the two, by ``floor_image_share``
-        of its pairs' weights, smooth as they enter its support. Returns the image's new F and
-        that share (``State.image_share``: the image's hardening is blended by it too,
-        ``plasticity.image_hardening_update``)."""
+        floor at rest); an image moving with ``i`` keeps its own while ``i`` is within ``h`` of
+        the plane (its energy counted there, ``forces.image_energy_share``) and carries its
+        particle's new F, ``F_new``, mirrored beyond (``floor_image_share``; the two agree
+        where ``i`` crosses ``h``, every image above half a spacing being its particle's
+        mirror). Returns the image's new F and that share (``State.image_share``: the image's
+        hardening is chosen by it too, ``plasticity.image_hardening_update``)."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
-        return df.floor_image_blend(own, df.particle_f_for_image(F_new, gn, images), sums.wsum, h, images)
+        return df.floor_image_select(own, df.particle_f_for_image(F_new, gn, images),
+                                     df.image_row_length(x[i], n, h, gn, goff), images)
 
     @wp.func
     def floor_image_update_adjoint(
@@ -1005,28 +967,25 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         images: int,
         code: int,
         scale: scalar,
-        D0: mat33,
-        Fp: mat33,
         Fg: mat33,
         Gg: mat33,
-        adj_c: scalar,
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
     ):
-        """Adjoint of ``floor_image_update`` inside ``update_kernels``' adjoint (``D0`` the
-        particle's unfaded increment, ``Fp`` its flowed F, ``Gg`` the gradient of the image's
-        new F, ``adj_c`` that of its share): the pairs' adjoints scattered to ``x`` and ``y``
+        """Adjoint of ``floor_image_update`` inside ``update_kernels``' adjoint (``Gg`` the
+        gradient of the image's new F; its share is constant where it is smooth, so the share's
+        gradient goes nowhere): the pairs' adjoints scattered to ``x`` and ``y``
         (the fit's ``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins
         the gradient of the particle's new F, and the adjoints of the image's flowed F and of
         the fade ``scale``."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
-        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, sums.wsum, h, gn, images)
+        c = df.floor_image_share(df.image_row_length(x[i], n, h, gn, goff), images)
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
-        if applied != 0 or adj_wsum != scalar(0.0):
+        if applied != 0:
             adj_Fg, adj_s = fn.floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, scale, sums,
-                                                              Fg, c * Gg, applied, adj_wsum, adj_x, adj_y)
+                                                              Fg, c * Gg, adj_x, adj_y)
         return df.particle_f_for_image((scalar(1.0) - c) * Gg, gn, images), adj_Fg, adj_s
 
     return types.SimpleNamespace(floor_image_update=floor_image_update,
@@ -1116,7 +1075,6 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         Fg_prev: wp.array(dtype=mat33),
         adj_F_out: wp.array(dtype=mat33),
         adj_Fg_out: wp.array(dtype=mat33),
-        adj_share: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
@@ -1155,8 +1113,8 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         adj_s = scalar(0.0)
         if images != 0:
             G_share, adj_Fg, adj_sg = fi.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    images, code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
-                                                                    adj_share[i], adj_x, adj_y)
+                                                                    images, code, s, Fg_prev[i], adj_Fg_out[i], adj_x,
+                                                                    adj_y)
             G = G + G_share
             adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
             adj_s = adj_sg
@@ -1187,13 +1145,6 @@ def image_F_flowed(model, state_out):
     """The images' flowed F the update reads (``State.F_image_flowed``); without an image
     plane, an array of the right shape that it does not read."""
     return state_out.F_image_flowed if model.image_plane is not None else state_out.F_flowed
-
-
-def image_share_grad(state_out):
-    """The gradient of the images' share (``State.image_share``) the update adjoints read;
-    without images (no gradient kept), the share itself, which they do not read."""
-    g = state_out.image_share.grad
-    return state_out.image_share if g is None else g
 
 
 def fit_kernels(model, fit: str = "linear") -> types.SimpleNamespace:
@@ -1253,7 +1204,7 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
             int(min_neighbors), model.scalar(max_condition),
             *model.image_args(), image_F_flowed(model, state_out), state_out.F.grad,
-            state_out.F_image.grad if images else state_out.F.grad, image_share_grad(state_out), state_in.x.grad,
+            state_out.F_image.grad if images else state_out.F.grad, state_in.x.grad,
             y.grad, state_out.F_flowed.grad, state_out.F_image_flowed.grad if images else state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,

@@ -308,34 +308,124 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         the layer above (docs/physics.md, "The ground collider's thin-layer strength")."""
         return variational_map(volume, P, F, wp.inverse(A_image))
 
+    fit_sums = deformation.funcs(scalar, weight).fit_sums
+    floor_image_moment = deformation.funcs(scalar, weight).floor_image_moment
+    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+
     @wp.func
-    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
-                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
-                           gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
-        """The variational force of the floor images (``deformation.fit_pair_sums``):
-        through ``i``'s own energy (``M``), ``w M (g_j - x_i)`` for each image ``g_j`` in its
-        fit (the floor takes the reaction), returned; and through the energy of ``i``'s own
-        image ``g_i`` (``Mg = image_map``), ``-w Mg (x_r - g_i)`` on ``i`` and on each same-body
-        neighbour ``r`` within ``h`` of it."""
+    def image_energy_share(xi: vec3, n: int, h: scalar, gn: vec3, goff: scalar, images: int) -> scalar:
+        """The share of a particle's energy, and of its image's, in the energy whose gradient
+        the force is: ``1/2`` each within ``h`` of the plane where the images move with their
+        particles (``images`` 2: ``1/2 (E_i + E_g)``, the particle and its image as the two
+        halves of one mirrored pair, docs/physics.md, "The frictionless imaged ground below half
+        a spacing"), else 1 (its image, if any, at rest: the floor's own energy)."""
+        c = scalar(1.0)
+        if images == 2 and image_row_length(xi, n, h, gn, goff) > 0:
+            c = scalar(0.5)
+        return c
+
+    @wp.func
+    def image_pair_force(M: mat33, gb: vec3, pb: vec3, h: scalar, c6: scalar) -> vec3:
+        """The pair force of an image's energy on another image, ``w(|pb|^2) M gb``
+        (``gb = g_r - g_i``), weighed as its particles' pair ``pb = x_r - x_i``
+        (``deformation.floor_image_moment``)."""
+        return fw.w_c(wp.dot(pb, pb), h, c6) * (M * gb)
+
+    @wp.func
+    def moving_image_pair_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                                 nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
+                                 gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)):
+        """The pairs of ``moving_image_forces``: on ``i``, ``w M (g_j - x_i)`` of each image in
+        its fit, its reaction ``-J_j`` of it on ``j``, returned; of its own image's energy
+        (``Mg``), the pairs with its real partners (``w Mg (x_r - g_i)``, taken from ``r``) and
+        with their images (``image_pair_force``, taken from ``r`` through ``J_r``), their sum
+        on ``g_i`` returned."""
         xi = x[i]
         bi = body[i]
         c6 = fw.coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
+        fg = vec3()
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
-                fi += variational_pair_force(M, floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                gj = floor_image(xj, gn, goff, gmin)
+                Jj = floor_image_jacobian(xj, gn, goff, gmin)
+                g = variational_pair_force(M, gj - xi, h, c6)
                 gr = variational_pair_force(Mg, xj - gi, h, c6)
-                if j == i:
-                    fi -= gr
+                fi += g
+                fg += gr
+                fj = -(Jj * g) - gr
+                if j != i:
+                    gg = image_pair_force(Mg, gj - gi, xj - xi, h, c6)
+                    fg += gg
+                    wp.atomic_add(f, j, fj - Jj * gg)
                 else:
-                    wp.atomic_sub(f, j, gr)
+                    fi += fj
+        return fi, fg
+
+    @wp.func
+    def moving_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
+                            gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
+        """``floor_image_forces`` of images moving with their particles (``g(x)``, Jacobian
+        ``J``): every pair's reaction on an image goes to the image's particle through ``J``
+        (symmetric), so the force is minus the gradient of the energy the images store
+        (``moving_image_pair_forces``; the force on ``g_i`` reaches ``i`` as ``J_i`` of it,
+        outside the pairs' loop, whose sum Warp's generated adjoint would not replay:
+        docs/method.md, Warp pitfall 1)."""
+        fi, fg = moving_image_pair_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, f)
+        return fi + floor_image_jacobian(x[i], gn, goff, gmin) * fg
+
+    @wp.func
+    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
+                           gn: vec3, goff: scalar, gmin: scalar, images: int, f: wp.array(dtype=vec3)) -> vec3:
+        """The variational force of the floor images (``deformation.fit_pair_sums``), those
+        at rest (``images`` 1): through ``i``'s own energy (``M``), ``w M (g_j - x_i)`` for each
+        image ``g_j`` in its fit (the floor takes the reaction), returned; and through the
+        energy of ``i``'s own image ``g_i`` (``Mg = image_map``), ``-w Mg (x_r - g_i)`` on ``i``
+        and on each same-body neighbour ``r`` within ``h`` of it. Those moving with their
+        particles (2): ``moving_image_forces``."""
+        fi = vec3()
+        if images == 2:
+            fi = moving_image_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, f)
+        else:
+            xi = x[i]
+            bi = body[i]
+            c6 = fw.coef(h)
+            gi = floor_image(xi, gn, goff, gmin)
+            for k in range(image_row_length(xi, n, h, gn, goff)):
+                j = image_row_particle(i, k, n, nbr)
+                if body[j] == bi:
+                    xj = x[j]
+                    fi += variational_pair_force(M, floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                    gr = variational_pair_force(Mg, xj - gi, h, c6)
+                    if j == i:
+                        fi -= gr
+                    else:
+                        wp.atomic_sub(f, j, gr)
         return fi
 
-    fit_sums = deformation.funcs(scalar, weight).fit_sums
-    floor_image_moment = deformation.funcs(scalar, weight).floor_image_moment
+    @wp.func
+    def image_pair_adjoint_vectors(ai: vec3, aj: vec3, xi: vec3, xj: vec3, gn: vec3, goff: scalar, gmin: scalar,
+                                   images: int):
+        """What an image row's pairs of ``floor_image_forces`` are weighed against in its
+        adjoint (``ai``, ``aj``: the adjoints of ``f_i``, ``f_j``): of ``i``'s pair with ``g_j``,
+        of ``g_i``'s with ``x_j`` and of ``g_i``'s with ``g_j``. Images at rest (``images`` 1)
+        give their reactions to the floor: ``(ai, -aj, 0)``; images moving with their particles
+        (2) give them through ``J``: ``(ai - J_j aj, J_i ai - aj, J_i ai - J_j aj)``."""
+        a1 = ai
+        ar = -aj
+        ag = vec3()
+        if images == 2:
+            Jai = floor_image_jacobian(xi, gn, goff, gmin) * ai
+            Jaj = floor_image_jacobian(xj, gn, goff, gmin) * aj
+            a1 = ai - Jaj
+            ar = Jai - aj
+            ag = Jai - Jaj
+        return a1, ar, ag
 
     @wp.func
     def fit_variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -346,23 +436,25 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         taken from its neighbours and returned for ``i``, faded where ``cond(A)`` passes
         ``max_condition`` or the count falls towards ``min_neighbors - 1``
         (``guards.guard_scale``); with ``images`` its floor images' terms and its own image's
-        energy (stress ``Pg``, ``Fg``: ``State.F_image``, where its work is stored). The
-        elastic kernels' side of the linear fit; ``curvature.funcs`` has the corrected one's."""
+        energy (stress ``Pg``, ``Fg``: ``State.F_image``, where its work is stored), each
+        counted by ``image_energy_share``. The elastic kernels' side of the linear fit;
+        ``curvature.funcs`` has the corrected one's."""
         # The moments of x alone (y = x and the same round-off: B - A = 0), from their own
         # function: an inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1).
         A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
         A_inv = wp.inverse(A)
-        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
+        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition) * image_energy_share(x[i], n, h, gn, goff, images)
         M = s_fit * variational_map(volume, P, F, A_inv)
         fi = variational_forces(i, x, body, nbr, n, M, h, f)
         if images != 0:
             Mg = s_fit * image_map(volume, Pg, Fg, floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
-            fi += floor_image_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, f)
+            fi += floor_image_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, images, f)
         return fi
 
     return types.SimpleNamespace(
         fit_variational_forces=fit_variational_forces,
-        image_map=image_map, floor_image_forces=floor_image_forces,
+        image_map=image_map, floor_image_forces=floor_image_forces, image_energy_share=image_energy_share,
+        image_pair_force=image_pair_force, image_pair_adjoint_vectors=image_pair_adjoint_vectors,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         corotated_principal_stress=corotated_principal_stress, corotated_stress=corotated_stress,
         principal_strain_trace=principal_strain_trace,
@@ -451,6 +543,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     image_row_particle = deformation.image_row_particle
     scatter_partner_adjoint = deformation.funcs(scalar, weight).scatter_partner_adjoint
     scatter_own_adjoint = deformation.funcs(scalar, weight).scatter_own_adjoint
+    mirrored_motion_adjoint = deformation.funcs(scalar, weight).mirrored_motion_adjoint
 
     @wp.kernel(enable_backward=False, module="unique")
     def elastic_forces_adjoint(
@@ -614,7 +707,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
         if code != 0:
             return 0, mat33(), mat33(), mat33(), scalar(0.0), mat33(), mat33(), mat33(), 0, vec3()
-        # With images, their part of adj M and adj Mg.
+        # With images, their part of adj M and adj Mg (image_pair_adjoint_vectors).
         n_img = image_slots(xi, n, h, gn, goff, images)
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
@@ -622,18 +715,26 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
-                d = floor_image(xj, gn, goff, gmin) - xi
-                adj_M += fw.w_c(wp.dot(d, d), h, c6) * wp.outer(ai, d)
+                gj = floor_image(xj, gn, goff, gmin)
+                a1, ar, ag = fn.image_pair_adjoint_vectors(ai, adj_f[j], xi, xj, gn, goff, gmin, images)
+                d = gj - xi
+                adj_M += fw.w_c(wp.dot(d, d), h, c6) * wp.outer(a1, d)
                 dr = xj - gi
-                adj_Mg -= fw.w_c(wp.dot(dr, dr), h, c6) * wp.outer(adj_f[j], dr)
+                adj_Mg += fw.w_c(wp.dot(dr, dr), h, c6) * wp.outer(ar, dr)
+                if images == 2 and j != i:
+                    pb = xj - xi
+                    adj_Mg += fw.w_c(wp.dot(pb, pb), h, c6) * wp.outer(ag, gj - gi)
+        # The energies' share (image_energy_share) scales both maps with the fade: M = s c M0.
+        c = fn.image_energy_share(xi, n, h, gn, goff, images)
+        sc = s * c
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
         M0 = fn.variational_map(Vi, P, Fi, Ainv)
-        M = s * M0
-        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)
-        adj_s = wp.ddot(adj_M, M0)
+        M = sc * M0
+        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, sc * adj_M)
+        adj_s = c * wp.ddot(adj_M, M0)
         Mg = mat33()
         adj_Ag = mat33()
         if n_img > 0:
@@ -641,12 +742,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Pg = image_stress[i]
             Fg = F_image[i]
             Mg0 = fn.variational_map(Vi, Pg, Fg, Ag_inv)
-            Mg = s * Mg0
-            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, s * adj_Mg)
+            Mg = sc * Mg0
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sc * adj_Mg)
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
             adj_Ag = adj_Ag_
-            adj_s += wp.ddot(adj_Mg, Mg0)
+            adj_s += c * wp.ddot(adj_Mg, Mg0)
         adj_A = adj_A + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
@@ -782,21 +883,41 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if applied != 0:
             # Through g_i (summed, then by d g_i / d x_i).
             gg_i = vec3()
+            # Moving images: g_i's pairs' forces, sent to x_i through J_i (its slope's adjoint).
+            fg = vec3()
             for k in range(n_img):
                 j = image_row_particle(i, k, n, nbr)
                 if body[j] == bi:
                     xj = x[j]
+                    aj = adj_f[j]
                     gj = floor_image(xj, gn, goff, gmin)
-                    gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai, gj - xi, hh, c6, adj_x,
+                    a1, ar, ag = fn.image_pair_adjoint_vectors(ai, aj, xi, xj, gn, goff, gmin, images)
+                    gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, a1, gj - xi, hh, c6, adj_x,
                                                                 j, xj, gn, goff, gmin, 1)
                     # (The own image's moments are not the fit's: they do not count.)
-                    gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, scalar(0.0), -adj_f[j], xj - gi,
+                    gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, scalar(0.0), ar, xj - gi,
                                                                 hh, c6, adj_x, j, xj, gn, goff, gmin, 0)
+                    Mp = mat33()  # the image-image pair's force map: moving images' alone
+                    if images == 2:
+                        Mp = Mg
                     if j != i:
-                        gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, gj - gi, xj - xi, hh, c6, adj_x, j, xj,
-                                                               gn, goff, gmin)
+                        gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, Mp, ag, gj - gi, xj - xi, hh, c6,
+                                                               adj_x, j, xj, gn, goff, gmin)
                         gg_i -= gg
                         gx_i -= gp
+                    if images == 2:
+                        # The reactions -J_j (g + gg) on j and J_i (gr + gg) on i: J's slope.
+                        g = fn.variational_pair_force(M, gj - xi, h, c6)
+                        gr = fn.variational_pair_force(Mg, xj - gi, h, c6)
+                        gg = vec3()
+                        if j != i:
+                            gg = fn.image_pair_force(Mg, gj - gi, xj - xi, h, c6)
+                        fg += gr + gg
+                        sj, uj = mirrored_motion_adjoint(xj, g + gg, aj, gn, goff, gmin)
+                        wp.atomic_sub(adj_x, j, sj)
+            if images == 2:
+                si, ui = mirrored_motion_adjoint(xi, fg, ai, gn, goff, gmin)
+                gx_i += si
             scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         if sph != 0:
             wp.atomic_add(adj_x, i, gp_i)

@@ -430,7 +430,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     ):
         """Each floor image's hardening after the step: its own flowed one where the image is
         its own (``State.image_share`` 1: every image at rest), its particle's where it has no
-        particle near it (0, a moving image), blended between, as the fit's update blends its F."""
+        particle within ``h`` of the plane (0, a moving image), as the fit's update picks its F
+        (``deformation.floor_image_share``)."""
         i = wp.tid()
         a = alpha_image_flowed[i]
         if share[i] < scalar(1.0):
