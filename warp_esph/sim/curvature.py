@@ -960,7 +960,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         (``forces.variational_forces_adjoint``): the image pairs of the fit with ``a = adj f_i``,
         the own image's energy (``Mg``, ``Kg`` of ``floor_image_moment``) with ``a = -adj f_r``
         on ``d = x_r - g_i`` and the image-image terms ``d = g_r - g_i``, weighed by their
-        particles' pair (``scatter_image_pair_adjoint``)."""
+        particles' pair (``scatter_image_pair_adjoint``); for moving images as the linear fit's
+        (``forces.image_pair_adjoint_vectors``, the image-image pairs' forces, the energies'
+        share and ``J``'s slope)."""
         i = wp.tid()
         if elastic_force[material[i]] != 1 or guard[i] != 0:
             return

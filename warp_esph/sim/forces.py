@@ -813,7 +813,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
         and the image-image terms ``d = g_r - g_i`` of ``A_g``, weighed by their particles' pair
         (``scatter_image_pair_adjoint``); an image's ``adj`` goes to its particle through
-        ``deformation.floor_image_jacobian``.
+        ``deformation.floor_image_jacobian``. Images moving with their particles (``images`` 2,
+        ``moving_image_forces``) weigh each pair against ``image_pair_adjoint_vectors`` (their
+        reactions reach the particles through ``J``), their image-image pairs' forces too, both
+        maps scaled by ``image_energy_share``, and ``J``'s slope (``mirrored_motion_adjoint``)
+        on the particles whose ``J`` carries a reaction.
 
         With ``sph`` 1 the scatter pass also takes every particle's SPH pressure and viscosity
         pairs (``pressure.pressure_forces_adjoint``'s, ``pressure_pair_adjoint``), as the fused
