@@ -723,8 +723,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         adj_y: wp.array(dtype=vec3),
     ):
         """Adjoint of ``floor_image_own_update`` where it applied (``Gg`` the gradient of its
-        output), as ``deformation.floor_image_own_update_adjoint`` for the corrected fit: ``inc0 = (Bu - Eu
-        K) A~^-1`` back into the image's moments (``projection_adjoint``), each pair's
+        output), as ``deformation.floor_image_own_update_adjoint`` for the corrected fit:
+        ``inc0 = (Bu - Eu K) A~^-1`` back into the image's moments (``projection_adjoint``), each pair's
         ``moment_pair_adjoint`` (``xb = x_r - g_i``, ``yb = u_r - u_g``) scattered to ``x``, ``y``,
         the image pairs' ``scatter_image_pair_adjoint`` (and for moving images, ``images`` 2,
         their ``moving_image_pair_adjoint`` and ``u_g``'s), ``g_i``'s to ``x_i`` through
@@ -767,8 +767,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 if j != i:
                     gb = df.floor_image(xj, gn, goff, gmin) - gi
                     gg, gp = scatter_image_pair_adjoint(gb, xj - xi, hh, c6, h, mat33(), vec3(), K, adj_A, adj_A_sym,
-                                                        adj_C, adj_D,
-                                                        adj_D_sym, adj_x, j, xj, gn, goff, gmin)
+                                                        adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
                     if images == 2:
