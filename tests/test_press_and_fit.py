@@ -15,26 +15,30 @@ import press_and_fit as pf  # noqa: E402
 TARGET = 0.021
 
 
-def test_press_loss_derivative_in_the_keyframe_matches_central_differences():
-    """At a 16 mm press depth: tape +7.994066e-4, central difference with h = 1e-8 m 2.8e-8
-    from it (on an earlier build 7.918920e-4 and 3e-8). The loss is only piecewise smooth in
-    the depth (the base's friction and the yielding switch on and off at kinks): with h = 1e-6,
-    1e-5, 1e-4 m the central differences were 7.918e-4, 7.43e-4, 8.84e-4 on that build (now
-    7.993e-4 at 1e-6 and 8.94e-4 at 1e-4 m; the same sign, the scale of the trend), so the
-    exact check needs the small step."""
-    depth, h = 0.016, 1e-8
-    loss, top, g = pf.press_loss(np.array([depth, 0.03]), TARGET, grad=True)
-    fd = (pf.press_loss(np.array([depth + h, 0.03]), TARGET)[0] - pf.press_loss(np.array([depth - h, 0.03]), TARGET)[0]) / (2 * h)
-    print(f"d loss / d depth: tape {g[0]:+.10e}, central difference {fd:+.10e}")
-    assert g[0] == pytest.approx(fd, rel=1e-5)
+def test_press_optimisation_reaches_the_target_top_height_and_its_keyframe_derivative_is_the_central_difference():
+    """``optimise_press`` (the notebook's part 1): measured depth 13.84 mm, mean top 21.00 mm
+    for the 21 mm target in 6 evaluations (docs/tools.md; with the poly6 fit weight, the default
+    before, 14.31 mm in 6, and 13.86 mm in 7 before the tool contact's tangential displacement
+    was taken from the particle's start).
 
-
-def test_press_optimisation_reaches_the_target_top_height():
-    """``optimise_press`` (the notebook's part 1): measured depth 14.31 mm, mean top 20.99 mm
-    for the 21 mm target in 6 evaluations (docs/tools.md; 13.86 mm in 7 before the tool
-    contact's tangential displacement was taken from the particle's start)."""
+    Its third evaluation, at a 16 mm press depth (two fixed 2 mm steps down from 20 mm), is
+    the tape's derivative checked against float64 central differences: the search's own
+    taped run, as the notebook reads it (this was a test of its own, which ran that taped
+    press again). Measured: tape +1.0846837622e-3, central difference with h = 1e-8 m
+    +1.0846837645e-3, 2e-9 apart relative to it (with poly6 7.994066e-4 and 2.8e-8, on an
+    earlier build 7.918920e-4 and 3e-8); with the tape's derivative off by 1e-4 of itself the check fails.
+    The loss is only piecewise smooth in the depth (the base's friction and the yielding
+    switch on and off at kinks): with h = 1e-6, 1e-5, 1e-4 m the central differences were
+    7.918e-4, 7.43e-4, 8.84e-4 on that build (7.993e-4 at 1e-6 and 8.94e-4 at 1e-4 m on the
+    next; the same sign, the scale of the trend), so the exact check needs the small step."""
     history, positions = [], {}
     depth = pf.optimise_press(TARGET, history=history, positions=positions)
+    d16, _, _, g = history[2]
+    assert d16 == pytest.approx(0.016, abs=1e-12)
+    h = 1e-8
+    fd = (pf.press_loss(np.array([d16 + h, 0.03]), TARGET)[0] - pf.press_loss(np.array([d16 - h, 0.03]), TARGET)[0]) / (2 * h)
+    print(f"d loss / d depth at 16 mm: tape {g:+.10e}, central difference {fd:+.10e}")
+    assert g == pytest.approx(fd, rel=1e-5)
     # The search returns the depth it evaluated last: its top is read there, not run again.
     last, _, top, _ = history[-1]
     assert last == depth
