@@ -1804,10 +1804,11 @@ def test_a_start_written_non_finite_or_replaced_by_another_shape_is_refused_befo
     np.testing.assert_allclose(fallen, np.tile([0.0, -9.81e-8, 0.0], (model.particle_count, 1)), rtol=1e-6, atol=1e-15)
 
 
-def test_a_start_velocity_the_run_does_not_read_is_not_refused_and_one_it_reads_is():
+def test_a_start_velocity_the_run_does_not_read_is_not_refused_and_one_it_reads_is(tmp_path):
     """A NaN left in ``model.particle_v0`` refused ``simulate(state=)``, a rollout made then, its
     ``forward(initial_state=)`` and its ``forward(v0=)``, none of which reads it (the start given
-    replaces it). Only what a run reads is refused: each of those runs to the bits it ran to
+    replaces it), and ``load_state``, whose file's state does. Only what a run reads is refused:
+    each of those runs to the bits it ran to
     with the velocities finite; ``state()``, a forward from the model's start and a
     ``simulate`` without one still refuse it by name; and ``particle_x0``, which every run
     reads (the rest configuration, the record of the scene a given start is checked against),
@@ -1829,6 +1830,9 @@ def test_a_start_velocity_the_run_does_not_read_is_not_refused_and_one_it_reads_
     after = runs(Rollout(model, 3, 1e-4))
     assert all(np.array_equal(a, c) for a, c in zip(before, after))
     assert not np.array_equal(before[1], before[2])  # each from the start it was given
+    save_state(tmp_path / "start.npz", model, start, step=0, frame=0)
+    loaded, _ = we.checkpoint.load_state(tmp_path / "start.npz", model)
+    assert all(np.array_equal(getattr(loaded, k).numpy(), getattr(start, k).numpy()) for k in ("x", "v", "F", "alpha"))
     said = r"^model\.particle_v0\[2\] = \(nan, 0\.0, 0\.0\) is not allowed: must be finite \(particle 2, of body 'block'\)$"
     for call in (model.state, Rollout(model, 3, 1e-4).forward, lambda: we.simulate(model, 1, progress=False)):
         with pytest.raises(ValueError, match=said):

@@ -455,7 +455,9 @@ def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[Sta
     _check_state_values(where, arrays, model,
                         _takes_inverted_fits(model, meta.get("rest_model"), arrays["material_yield_stress"],
                                              arrays["material_flow_rate"]))
-    state = model.state()
+    # The file's state replaces the model's start (x and v are in every file): a NaN left in
+    # particle_v0, which no run from this state reads, refused the load by name.
+    state = model._scratch_state(model.requires_grad)
     for name in State.STATE_FIELDS:
         if name in arrays:
             getattr(state, name).assign(arrays[name])
