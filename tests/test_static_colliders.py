@@ -10,6 +10,7 @@ and the internal forces sum to zero, so their force on the body is ``dP/dt - M g
 weight, Coulomb's ``mu N``, the torque balance of a body at rest, both step schedules,
 and float64 central differences."""
 
+import re
 import warnings
 
 import numpy as np
@@ -880,6 +881,40 @@ def test_a_collider_added_to_the_models_lists_after_the_build_is_refused_before_
         getattr(m, kind).pop()
     s.step(a, c, DT)
     assert np.isfinite(c.x.numpy()).all()
+
+
+def test_a_collider_replaced_in_the_models_lists_after_the_build_is_refused_before_the_step():
+    """``model.planes[0] = Plane(...)`` kept the list's length, so the step took it: its kernels
+    ran the plane arrays finalize made (the old plane) while what reads the list (the divergence
+    check's floor, the reaction rows' reference points, a checkpoint's fingerprint) read the new
+    one: a ground raised by 0.1 m in the list left the block where it stood on the old ground.
+    ``check_colliders`` refuses a replaced plane, sphere or box by its index, before any launch,
+    naming the arrays to write; an equal one put back, and the arrays written, step."""
+    from warp_esph.sim.colliders import Box, Plane, Sphere
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_ground(0.0)
+    b.add_sphere_collider((1.0, 0.0, 0.0), 0.5, friction=0.4)
+    b.add_box_collider((-1.0, 0.0, 0.0), (0.1, 0.1, 0.1), friction=0.3)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    s.step(a, c, DT)
+    before = c.x.numpy().copy()
+    for kind, new, arrays in (("planes", Plane((0.0, 1.0, 0.0), 0.1, 0.5), "plane_offset, plane_normal and plane_friction"),
+                              ("spheres", Sphere((1.0, 0.2, 0.0), 0.5, 0.4), "sphere_radius, sphere_center and sphere_friction"),
+                              ("boxes", Box((-1.0, 0.0, 0.0), (0.2, 0.1, 0.1), 0.3), "box_half, box_center and box_friction")):
+        built = getattr(m, kind)[0]
+        getattr(m, kind)[0] = new
+        with pytest.raises(ValueError, match=rf"^model\.{kind}\[0\] = {re.escape(repr(new))} is not allowed: the step's "
+                                             rf"kernels run the collider arrays finalize made from the one built, "
+                                             rf"{re.escape(repr(built))}, which the list only records; .* into model\.{arrays} "):
+            s.step(a, c, DT)
+        np.testing.assert_array_equal(c.x.numpy(), before)  # refused before any launch
+        getattr(m, kind)[0] = type(built)(**{f: getattr(built, f) for f in built.__dataclass_fields__})  # equal: taken
+    s.step(a, c, DT)
+    np.testing.assert_array_equal(c.x.numpy(), before)
 
 
 def test_a_unit_normal_written_with_float32_round_off_runs_a_float64_model_as_the_exact_one():

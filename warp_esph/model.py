@@ -769,7 +769,7 @@ class Model(Unpicklable):
         # The fields of the kinds of collider the model has: a kind it has none of passes a row
         # the kernels never read, and reading it cost every step of a scene on the ground alone.
         self._collider_fields = [f for f in COLLIDER_FIELDS if getattr(self, f[1])]
-        self._collider_counts = (len(self.planes), len(self.spheres), len(self.boxes))  # as built
+        self._collider_lists = (list(self.planes), list(self.spheres), list(self.boxes))  # as built
         self._collider_getter = operator.attrgetter(*(f[0] for f in self._collider_fields)) if self._collider_fields else None
         self._collider_flat = None  # _collider_arrays' answer, with the arrays it was made of
         self._collider_view_list = None
@@ -789,14 +789,13 @@ class Model(Unpicklable):
         (``ValueError``) where it is not one the kernels were made for: an array replaced by
         another of other rows, type or device; a collider added to (or taken from) the model's
         lists after the build, for which no kernel and no row of the arrays was made (a plane
-        appended ran its contact on the arrays' memory past their end: NaN positions in one step)."""
-        counts = (len(self.planes), len(self.spheres), len(self.boxes))
-        if counts != self._collider_counts:
-            k = next(k for k in range(3) if counts[k] != self._collider_counts[k])
-            kind = ("planes", "spheres", "boxes")[k]
-            raise ValueError(f"model.{kind} = a list of {counts[k]} is not allowed: the model was built with {self._collider_counts[k]}, "
-                             f"and finalize made the step's kernels and the collider arrays for them; add the collider with the "
-                             f"builder and build the scene again")
+        appended ran its contact on the arrays' memory past their end: NaN positions in one step),
+        or one replaced in them (the kernels ran the old one's arrays, and what reads the list, the
+        divergence check's floor, the reaction rows' reference points, a checkpoint's
+        fingerprint, the new one)."""
+        lists = (self.planes, self.spheres, self.boxes)
+        if lists != self._collider_lists:  # each element compared by identity first: no cost in a step
+            self._refuse_collider_lists(lists)
         fields = self._collider_fields
         if not fields:
             return []
@@ -811,6 +810,22 @@ class Model(Unpicklable):
         # Kept while the arrays are the same ones: every step asks.
         self._collider_flat = (now, arrays)
         return arrays
+
+    def _refuse_collider_lists(self, lists) -> None:
+        """``_collider_arrays``' refusal of collider lists not as built (``ValueError``)."""
+        for kind, one, now, built in zip(("planes", "spheres", "boxes"), ("plane", "sphere", "box"), lists,
+                                         self._collider_lists):
+            if len(now) != len(built):
+                raise ValueError(f"model.{kind} = a list of {len(now)} is not allowed: the model was built with {len(built)}, "
+                                 f"and finalize made the step's kernels and the collider arrays for them; add the collider "
+                                 f"with the builder and build the scene again")
+            k = next((k for k, (a, b) in enumerate(zip(now, built)) if a != b), None)
+            if k is not None:
+                names = [name for name, of, _ in COLLIDER_FIELDS if of == kind]
+                raise ValueError(f"model.{kind}[{k}] = {now[k]!r} is not allowed: the step's kernels run the collider arrays "
+                                 f"finalize made from the one built, {built[k]!r}, which the list only records; change a "
+                                 f"{one} by writing its values into model.{', '.join(names[1:])} and {names[0]} "
+                                 f"(.assign(...)), or build the scene again")
 
     def _check_kernel_array(self, name: str, a, rows: int, dtype) -> None:
         """Refuse (``ValueError``) ``model.<name>`` replaced by an array the step's kernels were not
