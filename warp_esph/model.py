@@ -994,7 +994,8 @@ class Model(Unpicklable):
     def _particle_rows(self, name: str, value):
         """``value`` as the per-particle array ``name`` (``PARTICLE_ROWS``) is held: any
         array-like of one row per particle (a list of rows, a tuple, a warp or torch array) in
-        the model's dtype, on its device for the kernels' arrays. A list was refused only at the
+        the model's dtype, on its device for the kernels' arrays; a numpy array of reals given
+        for the start as it is (the state copies it in the model's dtype). A list was refused only at the
         next ``state()`` ('must be a numpy array'), a numpy mass array by the step. A warp
         array the kernels take is kept as it is (the caller's, written into later); one of
         another dtype or device stays the caller's too, refused at use (``_check_kernel_array``).
@@ -1026,7 +1027,10 @@ class Model(Unpicklable):
             raise ValueError(f"model.{name}[{', '.join(map(str, i))}] = {a[i].item()!r} is not allowed: {dtype.name} does not "
                              f"hold it")
         if kind == "start":
-            return np.ascontiguousarray(held)
+            # A numpy array of reals stays the caller's, as a warp array above does: a copy in the
+            # model's dtype (a float64 array given a float32 model) left the caller's writes into
+            # it after this unread. Its values are judged above as the model holds them.
+            return value if isinstance(value, np.ndarray) and value.dtype.kind == "f" else np.ascontiguousarray(held)
         return wp.array(held, dtype=wp.int32 if integer else self.scalar, device=self.device)
 
     def _check_parameter_array(self, name: str, value) -> None:
