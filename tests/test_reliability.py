@@ -1913,6 +1913,37 @@ def test_a_start_or_a_particle_array_given_as_any_array_like_is_taken_in_the_mod
         assert getattr(model, name) is before
 
 
+def test_a_mass_or_volume_written_after_the_build_reaches_the_worlds_and_split_copies():
+    """``replicate_worlds`` (a multi-start fit's ``worlds=True``) and ``split_materials`` made
+    their model's masses and volumes again from the bodies, so a mass written after the build (in
+    place, or set as a list) ran in the model and not in its copies: the worlds' fit ran another
+    scene than ``worlds=False``. Each copy takes the model's arrays as they are: a step of each
+    world, and of the split model, gives the model's densities to the bit."""
+    from warp_esph.builder import replicate_worlds
+    from warp_esph.rollout import split_materials
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.101, 0.0), (0.1, 0.1, 0.1), we.Material.preset("rubber"), name="block")
+    model = b.finalize()
+    n = model.particle_count
+    model.particle_mass = list(model.particle_mass.numpy() * np.linspace(1.0, 2.0, n))
+    model.particle_volume.assign(model.particle_volume.numpy() * 1.5)
+
+    model.particle_v0[:] = 2.0 * (model.particle_x0 - model.particle_x0.mean(axis=0)) * np.array([1.0, 0.0, 0.0])
+
+    def after_three_steps(m):  # the densities (the masses weigh them) and the velocities (the volumes the stress)
+        a, c = m.state(), m.state()
+        solver = we.Solver(m)
+        for _ in range(3):
+            solver.step(a, c, 1e-4)
+            a, c = c, a
+        return np.concatenate([a.density.numpy()[:, None], a.v.numpy()], axis=1)
+
+    own = after_three_steps(model)
+    assert np.array_equal(after_three_steps(split_materials(model)), own)
+    assert np.array_equal(after_three_steps(replicate_worlds(model, 2)), np.tile(own, (2, 1)))
+
+
 def test_the_models_materials_written_in_place_are_refused_naming_set_material():
     """``model.materials[0] = Material.preset("rubber", mu=1e3)`` changed the list and not the
     parameter arrays the kernels read: the block stepped at its old modulus while the list (and

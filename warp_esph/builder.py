@@ -2018,7 +2018,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
 def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = None) -> Model:
     """A ``Model`` of ``worlds`` copies of the one-world ``model``, as it is now: its
     initial positions and velocities (``particle_x0``, ``particle_v0``, jitter included),
-    rest densities, current parameter values (``parameter_values()``, which a fit may have
+    rest densities, masses and volumes, current parameter values (``parameter_values()``, which a fit may have
     changed) and force fields. World ``w``'s copy of material ``k`` is material
     ``w * len(model.materials) + k`` (``model.world_materials(w)``). For the multi-start fit
     (``fit(..., starts=K, worlds=True)``), which has a model rather than its builder."""
@@ -2061,5 +2061,8 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
     out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]
     for name, values in model.parameter_values().items():
         getattr(out, name).assign(np.tile(values, W).astype(model.types.np_dtype))
-    out.particle_rest_density.assign(np.tile(model.particle_rest_density.numpy(), W))
+    # The per-particle arrays as they are now, as the parameters: a mass written after the build
+    # (in place, or set) ran in the model and not in its worlds.
+    for name in ("particle_rest_density", "particle_mass", "particle_volume"):
+        getattr(out, name).assign(np.tile(getattr(model, name).numpy(), W))
     return out

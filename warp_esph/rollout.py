@@ -1648,8 +1648,10 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
         for name in ("friction", "static_friction", "keyframe_positions", "keyframe_orientations", "velocity",
                      "angular_velocity"):
             wp.copy(getattr(out.tools, name), getattr(src, name))
-    # Copy the rest density rather than recompute it, so the split model runs identically.
-    wp.copy(out.particle_rest_density, model.particle_rest_density)
+    # Copy the rest density, masses and volumes rather than recompute them, so the split model
+    # runs identically (a mass written after the build ran in the model and not in its split).
+    for name in ("particle_rest_density", "particle_mass", "particle_volume"):
+        wp.copy(getattr(out, name), getattr(model, name))
     # Copy the parameter values too (they may differ from model.materials after a fit).
     for name in PARAMETERS:
         vals = getattr(model, name).numpy()
