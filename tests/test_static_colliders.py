@@ -816,6 +816,19 @@ _BAD_COLLIDER_VALUES = (
 )
 
 
+def _block_among_three_colliders():
+    """A block on the ground beside a sphere and a box collider: its model, a solver and two states."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+    b.add_ground(0.0)
+    b.add_sphere_collider((1.0, 0.0, 0.0), 0.5, friction=0.4)
+    b.add_box_collider((-1.0, 0.0, 0.0), (0.1, 0.1, 0.1), friction=0.3)
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    return m, s, a, c
+
+
 def test_a_static_colliders_values_written_in_place_that_no_collider_takes_are_refused_before_the_step():
     """``add_ground``, ``add_plane``, ``add_sphere_collider`` and ``add_box_collider`` refuse a
     friction that is NaN, inf or negative, a radius or half extent not > 0, by name; written into
@@ -825,14 +838,7 @@ def test_a_static_colliders_values_written_in_place_that_no_collider_takes_are_r
     step now refuses each by name before any launch (``Model.check_colliders``); a valid value
     written in place (another friction, a moved sphere) runs, and an array replaced by one of
     other rows is refused naming what the kernels take."""
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
-    b.add_ground(0.0)
-    b.add_sphere_collider((1.0, 0.0, 0.0), 0.5, friction=0.4)
-    b.add_box_collider((-1.0, 0.0, 0.0), (0.1, 0.1, 0.1), friction=0.3)
-    m = b.finalize()
-    s = we.Solver(m)
-    a, c = m.state(), m.state()
+    m, s, a, c = _block_among_three_colliders()
     s.step(a, c, 1e-4)
     before = c.x.numpy().copy()
     for name, bad, message in _BAD_COLLIDER_VALUES:
@@ -892,14 +898,7 @@ def test_a_collider_replaced_in_the_models_lists_after_the_build_is_refused_befo
     naming the arrays to write; an equal one put back, and the arrays written, step."""
     from warp_esph.sim.colliders import Box, Plane, Sphere
 
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
-    b.add_ground(0.0)
-    b.add_sphere_collider((1.0, 0.0, 0.0), 0.5, friction=0.4)
-    b.add_box_collider((-1.0, 0.0, 0.0), (0.1, 0.1, 0.1), friction=0.3)
-    m = b.finalize()
-    s = we.Solver(m)
-    a, c = m.state(), m.state()
+    m, s, a, c = _block_among_three_colliders()
     s.step(a, c, DT)
     before = c.x.numpy().copy()
     for kind, new, arrays in (("planes", Plane((0.0, 1.0, 0.0), 0.1, 0.5), "plane_offset, plane_normal and plane_friction"),
