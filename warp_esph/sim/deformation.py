@@ -568,7 +568,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image stored a share of a work its force did not do, and an undamped block gained energy
         (docs/physics.md, "Where the imaged ground's images store no energy", "The frictionless
         imaged ground below half a spacing"). Where its particle crosses ``h`` the image's own F
-        is its particle's mirrored (unread and continuous: its fit sees only its mirror's)."""
+        is its particle's mirrored while every partner in its row is over half a spacing up
+        (its fit then sees only its mirror's); with a partner below that, held on the depth
+        ramp, the two differ, and the counted energy jumps as the particle leaves ``h``
+        (docs/physics.md, "Reviewed at 55e0d06f")."""
         c = scalar(1.0)
         if images == 2 and near == 0:
             c = scalar(0.0)
@@ -942,8 +945,8 @@ def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         floor at rest); an image moving with ``i`` keeps its own while ``i`` is within ``h`` of
         the plane (its energy counted there, ``forces.image_energy_share``) and carries its
         particle's new F, ``F_new``, mirrored beyond (``floor_image_share``; the two agree
-        where ``i`` crosses ``h``, every image above half a spacing being its particle's
-        mirror). Returns the image's new F and that share (``State.image_share``: the image's
+        where ``i`` crosses ``h`` while every image in its row is its particle's mirror, its
+        particle over half a spacing up). Returns the image's new F and that share (``State.image_share``: the image's
         hardening is chosen by it too, ``plasticity.image_hardening_update``)."""
         sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
