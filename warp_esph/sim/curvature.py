@@ -76,6 +76,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     gf = guards.guard_funcs(scalar)
     variational_map = forces.funcs(scalar, weight).variational_map
     image_energy_share = forces.funcs(scalar, weight).image_energy_share
+    moving_image_pair_reactions = forces.funcs(scalar, weight).moving_image_pair_reactions
+    image_force_on_particle = forces.funcs(scalar, weight).image_force_on_particle
 
     @wp.func
     def curvature_basis(d: vec3, h: scalar) -> vec3:
@@ -517,7 +519,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                                  nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
                                  h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)):
         """``forces.moving_image_pair_forces`` with the corrected fit's pair force (``o = xb -
-        K^T q(xb)``; an image-image pair weighed as its particles' pair, ``floor_image_moment``)."""
+        K^T q(xb)``; an image-image pair weighed as its particles' pair, ``floor_image_moment``),
+        its pairs' reactions routed by ``forces.moving_image_pair_reactions``."""
         xi = x[i]
         bi = body[i]
         c6 = fw.coef(h)
@@ -529,18 +532,12 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gj = df.floor_image(xj, gn, goff, gmin)
-                Jj = df.floor_image_jacobian(xj, gn, goff, gmin)
-                g = variational_pair_force(M, K, gj - xi, h, c6)
-                gr = variational_pair_force(Mg, Kg, xj - gi, h, c6)
-                fi += g
-                fg += gr
-                fj = -(Jj * g) - gr
-                if j != i:
-                    gg = image_pair_force(Mg, Kg, gj - gi, xj - xi, h, c6)
-                    fg += gg
-                    wp.atomic_add(f, j, fj - Jj * gg)
-                else:
-                    fi += fj
+                dfi, dfg = moving_image_pair_reactions(
+                    i, j, df.floor_image_jacobian(xj, gn, goff, gmin), variational_pair_force(M, K, gj - xi, h, c6),
+                    variational_pair_force(Mg, Kg, xj - gi, h, c6), image_pair_force(Mg, Kg, gj - gi, xj - xi, h, c6),
+                    f)
+                fi += dfi
+                fg += dfg
         return fi, fg
 
     @wp.func
@@ -549,7 +546,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                             h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
         """``forces.moving_image_forces`` with the corrected fit's pair force."""
         fi, fg = moving_image_pair_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, f)
-        return fi + df.floor_image_jacobian(x[i], gn, goff, gmin) * fg
+        return image_force_on_particle(fi, fg, x[i], gn, goff, gmin)
 
     @wp.func
     def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),

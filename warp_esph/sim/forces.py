@@ -332,6 +332,34 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return fw.w_c(wp.dot(pb, pb), h, c6) * (M * gb)
 
     @wp.func
+    def moving_image_pair_reactions(i: int, j: int, Jj: mat33, g: vec3, gr: vec3, gg: vec3,
+                                    f: wp.array(dtype=vec3)):
+        """One pair of a row of images moving with their particles (``moving_image_pair_forces``,
+        either fit's), given its pair forces: ``g`` on ``x_i`` from ``g_j`` (``i``'s energy),
+        ``gr`` on ``g_i`` from ``x_j`` and ``gg`` on ``g_i`` from ``g_j`` (its image's; unread
+        for ``j == i``). Each reaction on an image reaches its particle through ``J`` (the image's
+        chain rule): ``-J_j (g + gg) - gr`` on ``j``, added to ``f`` (to ``i``'s own for ``j ==
+        i``). Returns what the pair adds to the force on ``x_i`` and to the one on ``g_i``
+        (``image_force_on_particle`` sends that to ``i``)."""
+        fi = g
+        fg = gr
+        fj = -(Jj * g) - gr
+        if j != i:
+            fg = fg + gg
+            wp.atomic_add(f, j, fj - Jj * gg)
+        else:
+            fi = fi + fj
+        return fi, fg
+
+    @wp.func
+    def image_force_on_particle(fi: vec3, fg: vec3, xi: vec3, gn: vec3, goff: scalar, gmin: scalar) -> vec3:
+        """The force on a particle ``fi`` with the one on its image moving with it, ``fg``,
+        sent through ``J(x_i)``: applied to the pairs' loop's sums by its caller, not in the
+        loop's function, whose sum Warp's generated adjoint would not replay (it lost ``J``'s
+        slope: docs/method.md, Warp pitfall 1)."""
+        return fi + floor_image_jacobian(xi, gn, goff, gmin) * fg
+
+    @wp.func
     def moving_image_pair_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                                  nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
                                  gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)):
@@ -351,18 +379,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gj = floor_image(xj, gn, goff, gmin)
-                Jj = floor_image_jacobian(xj, gn, goff, gmin)
-                g = variational_pair_force(M, gj - xi, h, c6)
-                gr = variational_pair_force(Mg, xj - gi, h, c6)
-                fi += g
-                fg += gr
-                fj = -(Jj * g) - gr
-                if j != i:
-                    gg = image_pair_force(Mg, gj - gi, xj - xi, h, c6)
-                    fg += gg
-                    wp.atomic_add(f, j, fj - Jj * gg)
-                else:
-                    fi += fj
+                dfi, dfg = moving_image_pair_reactions(
+                    i, j, floor_image_jacobian(xj, gn, goff, gmin), variational_pair_force(M, gj - xi, h, c6),
+                    variational_pair_force(Mg, xj - gi, h, c6), image_pair_force(Mg, gj - gi, xj - xi, h, c6), f)
+                fi += dfi
+                fg += dfg
         return fi, fg
 
     @wp.func
@@ -372,11 +393,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         """``floor_image_forces`` of images moving with their particles (``g(x)``, Jacobian
         ``J``): every pair's reaction on an image goes to the image's particle through ``J``
         (symmetric), so the force is minus the gradient of the energy the images store
-        (``moving_image_pair_forces``; the force on ``g_i`` reaches ``i`` as ``J_i`` of it,
-        outside the pairs' loop, whose sum Warp's generated adjoint would not replay:
-        docs/method.md, Warp pitfall 1)."""
+        (``moving_image_pair_forces``, ``moving_image_pair_reactions``; the force on ``g_i``
+        reaches ``i`` by ``image_force_on_particle``)."""
         fi, fg = moving_image_pair_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, f)
-        return fi + floor_image_jacobian(x[i], gn, goff, gmin) * fg
+        return image_force_on_particle(fi, fg, x[i], gn, goff, gmin)
 
     @wp.func
     def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -455,6 +475,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fit_variational_forces=fit_variational_forces,
         image_map=image_map, floor_image_forces=floor_image_forces, image_energy_share=image_energy_share,
         image_pair_force=image_pair_force, image_pair_adjoint_vectors=image_pair_adjoint_vectors,
+        moving_image_pair_reactions=moving_image_pair_reactions, image_force_on_particle=image_force_on_particle,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         corotated_principal_stress=corotated_principal_stress, corotated_stress=corotated_stress,
         principal_strain_trace=principal_strain_trace,
