@@ -282,6 +282,34 @@ def test_save_state_refuses_a_state_of_another_scene(tmp_path):
     load_state(tmp_path / "c.npz", _model())
 
 
+def test_a_checkpoint_of_a_ground_moved_in_place_resumes_only_where_the_ground_is_so(tmp_path):
+    """A plane moved the way docs/errors.md gives, by writing its array
+    (``model.plane_offset.assign``), runs moved, but the fingerprint hashed ``model.planes``, the
+    build's record: a checkpoint of the ground raised to 0.02 m resumed into a model on the
+    ground at 0 without a word, and went on over another scene. It is refused now; it resumes
+    into a model moved the same way, and into one built there (the same scene to the kernels)."""
+    def moved():
+        m = _model()
+        m.plane_offset.assign(np.array([0.02], dtype=np.float32))
+        return m
+
+    def built_there():
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.5, -1.0, 0.0))
+        b.add_sphere((0.25, 0.1, 0.0), 0.05, we.Material.preset("clay"))
+        b.add_ground(0.02, friction=0.5)
+        return b.finalize()
+
+    model = moved()
+    state = _advance(model, model.state(), 3)
+    path = save_state(tmp_path / "c.npz", model, state, step=3, frame=0)
+    with pytest.raises(ValueError, match=r"written for another scene .* was the scene edited"):
+        load_state(path, _model())
+    for other in (moved(), built_there()):
+        resumed, _ = load_state(path, other)
+        np.testing.assert_array_equal(resumed.x.numpy(), state.x.numpy())
+
+
 def test_save_state_judges_a_state_by_the_scene_its_model_had_when_it_made_it(tmp_path):
     """A state made by a model that was jittered since (``calibrate.jitter_model``) holds the
     rest positions it was made with: saved into a model of those positions it was refused,

@@ -916,6 +916,58 @@ def test_a_collider_replaced_in_the_models_lists_after_the_build_is_refused_befo
     np.testing.assert_array_equal(c.x.numpy(), before)
 
 
+def _ground_and_sphere(ground, sphere):
+    """The block of ``_block`` resting at ``GROUND_AT``, a ground at height ``ground`` and a sphere
+    collider at ``sphere`` (no contact with the block)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box(GROUND_AT, (0.06, 0.06, 0.06), we.Material.from_young(1e5, 0.3, density=1000.0, viscosity=1.0), name="block")
+    b.add_ground(ground, friction=0.5)
+    b.add_sphere_collider(sphere, 0.3, friction=0.4)
+    return b.finalize()
+
+
+def test_a_collider_moved_in_place_is_recorded_as_the_one_built_there():
+    """docs/errors.md moves a collider by writing its arrays (``model.plane_offset.assign``); the
+    kernels ran it moved, but what reads a collider for a record read ``model.planes``, which
+    only records the build: the reaction log's reference point of a ground raised to TOP read
+    (0, 0, 0), while the kernels took the torques about (0, TOP, 0); the divergence check's floor
+    stood at 0, and a model made from it (``replicate_worlds``) ran the ground at 0. Moved in place
+    (the ground and a sphere), the scene now records what the same scene built there does: the
+    colliders (``Model.static_colliders``), the log's rows (reference points, forces, torques)
+    to the bit, the divergence check's fall height and the copy's colliders; the log reads the
+    ground lowered between two frames where it is at the later one."""
+    from warp_esph.simulate import DivergenceMonitor
+    from warp_esph.tools import ReactionLog
+
+    moved = _ground_and_sphere(0.0, (1.0, 0.0, 0.0))
+    moved.plane_offset.assign(np.array([TOP], dtype=np.float32))
+    moved.sphere_center.assign(np.array([(1.5, 0.2, 0.0)], dtype=np.float32))
+    built = _ground_and_sphere(TOP, (1.5, 0.2, 0.0))
+    assert moved.static_colliders() == built.static_colliders()
+    logs = []
+    for m in (moved, built):
+        # From the top layer (0.02 above the block's centre) to the ground at TOP, not at 0.
+        assert DivergenceMonitor(m, m.state()).fall_height == pytest.approx(GROUND_AT[1] + 0.02 - TOP, abs=1e-6)
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        log = ReactionLog(s)
+        log.record(0, a)
+        for frame in (1, 2):
+            if frame == 2:  # lowered between frames: the last frame's torques are about the lowered ground's point
+                m.plane_offset.assign(np.array([TOP / 2.0], dtype=np.float32))
+            for _ in range(20):
+                s.step(a, c, DT)
+                a, c = c, a
+            log.record(frame, a)
+        logs.append(log.rows)
+    assert logs[0] == logs[1]
+    ground = [r for r in logs[0] if r["tool"] == "plane0"]
+    assert [r["position"] for r in ground] == [[0.0, TOP, 0.0]] * 2 + [[0.0, TOP / 2.0, 0.0]]
+    assert ground[1]["force"][1] > 0.0  # the ground carried the block before it was lowered
+    assert [r["position"] for r in logs[0] if r["tool"] == "sphere0"] == [[1.5, 0.2, 0.0]] * 3
+    assert we.replicate_worlds(moved, 2).static_colliders() == built.static_colliders()
+
+
 def test_a_unit_normal_written_with_float32_round_off_runs_a_float64_model_as_the_exact_one():
     """``check_colliders`` refuses a plane normal not of unit length; its tolerance was 64 of the
     model's epsilons, so a float64 model refused a unit normal made in float32 (a float32

@@ -919,3 +919,27 @@ def test_each_bodys_material_is_recorded_whole_and_a_file_without_the_later_fiel
     with UsdWriter(path, m, 30, append=True) as w:
         w.write_frame(2, m.state())
     assert len(UsdFrames(str(path)).particles(2)["points"]) == m.particle_count
+
+
+def test_colliders_moved_in_place_are_exported_where_the_kernels_run_them(tmp_path):
+    """docs/errors.md moves a static collider by writing its arrays
+    (``model.plane_offset.assign``); the export drew it from ``model.planes``, which only records
+    the build: a ground raised to 0.05 m was exported at 0, a sphere and a box where they were
+    built. Each is now exported as its arrays hold it (``Model.static_colliders``)."""
+    b = SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.12, 0.0), (0.08, 0.08, 0.08), Material.preset("dough"))
+    b.add_ground()
+    b.add_sphere_collider((0.0, -0.5, 1.0), 0.2)
+    b.add_box_collider((1.0, -0.5, 0.0), (0.1, 0.2, 0.3))
+    model = b.finalize()
+    model.plane_offset.assign(np.array([0.05], dtype=np.float32))
+    model.sphere_radius.assign(np.array([0.25], dtype=np.float32))
+    model.box_center.assign(np.array([(1.5, -0.5, 0.0)], dtype=np.float32))
+    path = tmp_path / "moved.usda"
+    writer = UsdWriter(path, model, 30)
+    writer.write_frame(0, model.state())
+    writer.close()
+    ground, sphere, box = UsdFrames(path).colliders
+    assert ground.offset == 0.05 and ground.normal == pytest.approx([0.0, 1.0, 0.0])
+    assert sphere.size == pytest.approx([0.25] * 3, abs=0.0) and sphere.center == pytest.approx([0.0, -0.5, 1.0])
+    assert box.center == pytest.approx([1.5, -0.5, 0.0], abs=0.0) and box.size == pytest.approx([0.1, 0.2, 0.3])

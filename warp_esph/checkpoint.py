@@ -75,7 +75,8 @@ def scene_record(model: Model, version: int = FINGERPRINT_VERSION, fit_weight: s
         "bodies": [(b.name, b.start, b.count, b.material, b.kind) for b in model.bodies],
         "materials": [(m.density, m.model, m.deformation, m.elastic_force, bool(m.clamp_pressure), m.pressure_force)
                       for m in model.materials],
-        "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
+        # As the kernels run them (their arrays): a ground moved in place is another scene.
+        "colliders": [repr(c) for kind in model.static_colliders() for c in kind],
         "fields": [repr(f) for f in model.force_fields],
     }
     fit_weight = model.fit_weight if fit_weight is None else fit_weight

@@ -522,6 +522,11 @@ IMAGE_MIN_DEPTH = 0.5
 COLLIDER_FIELDS = (("plane_friction", "planes", 1), ("plane_offset", "planes", 1), ("plane_normal", "planes", 3),
                    ("sphere_friction", "spheres", 1), ("sphere_radius", "spheres", 1), ("sphere_center", "spheres", 3),
                    ("box_friction", "boxes", 1), ("box_half", "boxes", 3), ("box_center", "boxes", 3))
+#: The field of ``Plane``, ``Sphere`` or ``Box`` each of ``COLLIDER_FIELDS`` holds
+#: (``Model.static_colliders``).
+COLLIDER_ATTRIBUTES = {"plane_friction": "friction", "plane_offset": "offset", "plane_normal": "normal",
+                       "sphere_friction": "friction", "sphere_radius": "radius", "sphere_center": "center",
+                       "box_friction": "friction", "box_half": "half_extents", "box_center": "center"}
 
 #: The per-particle and per-material arrays that ``Model.check_particles`` judges: each with
 #: what its rows are and whether it holds integers (else the model's scalars).
@@ -875,6 +880,33 @@ class Model(Unpicklable):
             out[name] = flat[at:at + rows * width].reshape(rows, width)
             at += rows * width
         return out
+
+    def static_colliders(self) -> tuple[list[Plane], list[Sphere], list[Box]]:
+        """The static colliders ``(planes, spheres, boxes)`` as the step's kernels run them, read
+        from their arrays (``COLLIDER_FIELDS``): a collider whose arrays hold the build's values is
+        the entry of ``model.planes``, ``spheres`` or ``boxes`` itself (so its ``repr``, which a
+        checkpoint's fingerprint hashes, is the build's), one written in place
+        (``model.plane_offset.assign(...)``) a copy of it with the values its arrays hold, each the
+        shortest number that is that value in the model's precision (0.1, not 0.100000001490116):
+        the record of a plane moved to 0.1 is that of one built there, as the kernels run both
+        alike. The lists only record the build: what read them for a record or a check (a
+        checkpoint's fingerprint, the reaction rows' reference points, the divergence check's
+        floor, the USD export, a model made from this one) read a ground moved to 0.1 m at 0,
+        and a checkpoint of the moved scene resumed into one on the ground at 0. Each call reads
+        the arrays (on a GPU, one transfer): for records, not for each step."""
+        lists = tuple(list(c) for c in (self.planes, self.spheres, self.boxes))
+        now, built = self._collider_values(), self._collider_built
+        if now.tobytes() == built.tobytes():
+            return lists
+        values, built = self._collider_rows(now), self._collider_rows(built)
+        kinds, shown = ("planes", "spheres", "boxes"), self._shown_plane_value
+        for name, kind, width in self._collider_fields:
+            colliders = lists[kinds.index(kind)]
+            for k, (v, b) in enumerate(zip(values[name], built[name])):
+                if v.tobytes() != b.tobytes():
+                    value = float(shown(v[0])) if width == 1 else tuple(float(shown(c)) for c in v)
+                    colliders[k] = dataclasses.replace(colliders[k], **{COLLIDER_ATTRIBUTES[name]: value})
+        return lists
 
     def check_colliders(self) -> None:
         """Refuse (``ValueError``) the static colliders' arrays (``COLLIDER_FIELDS``) written in
@@ -1594,8 +1626,9 @@ class Model(Unpicklable):
     def settings(self) -> dict:
         """This model's scene-wide constructor arguments (spacing, support radius, gravity,
         static colliders, neighbour rows, device, precision), for a model made from it."""
-        return dict(spacing=self.spacing, support_radius=self.support_radius, gravity=self.gravity, planes=self.planes,
-                    spheres=self.spheres, boxes=self.boxes, max_neighbors=self.max_neighbors,
+        planes, spheres, boxes = self.static_colliders()  # as they run: a plane moved in place moves in the copy
+        return dict(spacing=self.spacing, support_radius=self.support_radius, gravity=self.gravity, planes=planes,
+                    spheres=spheres, boxes=boxes, max_neighbors=self.max_neighbors,
                     bodies_interact=self.bodies_interact, device=self.device, scalar=self.scalar,
                     fit_weight=self.fit_weight)
 

@@ -294,15 +294,16 @@ class DivergenceMonitor:
         self.g = float(np.linalg.norm(g))
         self.up = -g / self.g if self.g > 0.0 else np.array([0.0, 1.0, 0.0])
         self.h0 = x0 @ self.up
-        floors = [p.offset / float(np.dot(p.normal, self.up)) for p in model.planes
+        planes, spheres, boxes = model.static_colliders()  # as they run: a ground moved in place is where it is
+        floors = [p.offset / float(np.dot(p.normal, self.up)) for p in planes
                   if float(np.dot(p.normal, self.up)) >= self.FLOOR_COSINE * float(np.linalg.norm(p.normal))]
         self.fall_height = float(self.h0.max() - min(floors + [float(self.h0.min())])) if floors else None
         if not self.keep.any():
             return
         lo, hi = x0.min(axis=0), x0.max(axis=0)
-        for sph in model.spheres:
+        for sph in spheres:
             lo, hi = np.minimum(lo, np.subtract(sph.center, sph.radius)), np.maximum(hi, np.add(sph.center, sph.radius))
-        for box in model.boxes:
+        for box in boxes:
             lo, hi = np.minimum(lo, np.subtract(box.center, box.half_extents)), np.maximum(hi, np.add(box.center, box.half_extents))
         self.lo, self.hi = lo, hi
         poses = [p for d in driven if d is not None for p in d[2]]

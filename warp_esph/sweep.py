@@ -1529,8 +1529,8 @@ def _model_digest(model) -> str:
         a = np.ascontiguousarray(a)
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
-    h.update(repr((model.spacing, tuple(model.gravity), model.materials, model.planes, model.spheres,
-                   model.boxes, scene_record(model))).encode())
+    h.update(repr((model.spacing, tuple(model.gravity), model.materials, *model.static_colliders(),
+                   scene_record(model))).encode())
     return h.hexdigest()[:16]
 
 

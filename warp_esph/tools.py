@@ -1986,7 +1986,6 @@ class ReactionLog:
             rows = len(self.tools.row_names)
             solver.tool_impulse = (wp.zeros(rows, dtype=vec3, device=dev), wp.zeros(rows, dtype=vec3, device=dev))
         self.static_names = integrate.static_collider_names(m)
-        self.static_refs = integrate.static_collider_references(m)
         if self.static_names:
             rows = len(self.static_names)
             solver.collider_impulse = (wp.zeros(rows, dtype=vec3, device=dev), wp.zeros(rows, dtype=vec3, device=dev))
@@ -2063,7 +2062,12 @@ class ReactionLog:
                 p, q = self.tools.pose_at(k % self.tools.count, state.time)
                 row(name, p, q, *tool, k)
         if static is not None:
-            for k, (name, ref) in enumerate(zip(self.static_names, self.static_refs)):
+            # Read at each frame, as the kernels read the arrays: a plane moved in place between
+            # frames has its torque about its new point.
+            from .sim.integrate import static_collider_references  # noqa: PLC0415
+
+            refs = static_collider_references(self.solver.model)
+            for k, (name, ref) in enumerate(zip(self.static_names, refs)):
                 row(name, ref, identity, *static, k)
 
     def write(self, stem: str) -> tuple[str, str]:

@@ -572,14 +572,16 @@ class UsdWriter:
 
     def _author_colliders(self, stage: Usd.Stage):
         m = self.model
-        if not (m.planes or m.spheres or m.boxes):
+        # As the kernels run them (their arrays): a ground moved in place is drawn where it is.
+        planes, spheres, boxes = m.static_colliders()
+        if not (planes or spheres or boxes):
             return
         UsdGeom.Scope.Define(stage, _COLLIDERS)
         x0 = np.asarray(m.particle_x0, dtype=np.float64)
         center = 0.5 * (x0.min(axis=0) + x0.max(axis=0))
         size = self._plane_quad_size()
         grey = Vt.Vec3fArray([Gf.Vec3f(0.55, 0.55, 0.6)])
-        for k, p in enumerate(m.planes):
+        for k, p in enumerate(planes):
             n = np.asarray(p.normal, dtype=np.float64)
             origin = center - (n @ center - p.offset) * n
             t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
@@ -598,7 +600,7 @@ class UsdWriter:
             mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*c.min(axis=0)), Gf.Vec3f(*c.max(axis=0))]))
             mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
             self._collider_data(mesh.GetPrim(), "plane", friction=p.friction, normal=Gf.Vec3d(*p.normal), offset=p.offset)
-        for k, s in enumerate(m.spheres):
+        for k, s in enumerate(spheres):
             sph = UsdGeom.Sphere.Define(stage, f"{_COLLIDERS}/sphere_{k}")
             sph.CreateRadiusAttr(float(s.radius))
             r = float(s.radius)
@@ -606,7 +608,7 @@ class UsdWriter:
             sph.AddTranslateOp().Set(Gf.Vec3d(*s.center))
             sph.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
             self._collider_data(sph.GetPrim(), "sphere", friction=s.friction, center=Gf.Vec3d(*s.center), radius=s.radius)
-        for k, b in enumerate(m.boxes):
+        for k, b in enumerate(boxes):
             cube = UsdGeom.Cube.Define(stage, f"{_COLLIDERS}/box_{k}")
             cube.CreateSizeAttr(2.0)
             cube.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-1, -1, -1), Gf.Vec3f(1, 1, 1)]))

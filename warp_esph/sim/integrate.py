@@ -199,9 +199,10 @@ def launch_floor_image_reaction(model, state_in, state_out):
     k = reaction_kernels(m.scalar)
     rows = m._image_reaction_rows
     if rows is None:
-        # The imaged plane's row and reference point (static_collider_references), made once.
+        # The imaged plane's row and reference point, made once from the plane built: the step
+        # refuses it moved (Model.check_colliders), and reading its arrays here waited for the device.
         plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
-        ref = m.types.vec3(*static_collider_references(m)[plane])
+        ref = m.types.vec3(*plane_reference(m.planes[plane]))
         rows = m._image_reaction_rows = [m.particle_world, ref, plane, len(m.planes) + len(m.spheres) + len(m.boxes)]
     m.launches(k.floor_image_reaction, m.particle_count, [state_out.force, state_in.x, *rows],
                [state_out.collider_force, state_out.collider_torque], device=m.device)
@@ -318,10 +319,17 @@ def accumulate_impulse(model, state_out, dt, impulse):
 
 def static_collider_references(model) -> list:
     """Reference point of each row of ``static_collider_names`` (the torque's origin: a
-    plane's point ``offset * normal``, a sphere's or box's centre), as 3-tuples."""
-    refs = ([tuple(p.offset * float(n) for n in p.normal) for p in model.planes] + [tuple(s.center) for s in model.spheres]
-            + [tuple(b.center) for b in model.boxes])
+    plane's point ``offset * normal``, a sphere's or box's centre), as 3-tuples, of the
+    colliders as their arrays hold them (``Model.static_colliders``), which the kernels'
+    torques are about."""
+    planes, spheres, boxes = model.static_colliders()
+    refs = [plane_reference(p) for p in planes] + [tuple(s.center) for s in spheres] + [tuple(b.center) for b in boxes]
     return refs * model.world_count
+
+
+def plane_reference(plane) -> tuple:
+    """A plane's reference point, the torque's origin: its point ``offset * normal``."""
+    return tuple(plane.offset * float(n) for n in plane.normal)
 
 
 def static_collider_names(model) -> list[str]:
