@@ -889,7 +889,9 @@ class Model(Unpicklable):
         (``model.plane_offset.assign(...)``) a copy of it with the values its arrays hold, each the
         shortest number that is that value in the model's precision (0.1, not 0.100000001490116):
         the record of a plane moved to 0.1 is that of one built there, as the kernels run both
-        alike. The lists only record the build: what read them for a record or a check (a
+        alike. A value the precision does not hold records as its shortest number (a float32
+        plane moved to 1/3 as one built at 0.33333334, not at 1/3, whose entry keeps the decimal it
+        was given: the array cannot say which decimal it came from). The lists only record the build: what read them for a record or a check (a
         checkpoint's fingerprint, the reaction rows' reference points, the divergence check's
         floor, the USD export, a model made from this one) read a ground moved to 0.1 m at 0,
         and a checkpoint of the moved scene resumed into one on the ground at 0. Each call reads
