@@ -85,3 +85,11 @@ def image_heights(y, spacing: float) -> np.ndarray:
     w = 0.5 * m
     t = np.clip(1.0 + (y - m) / w, 0.0, 1.0)
     return -np.where(y >= m, y, m + w * t * t * (t - 1.0))
+
+
+def image_energy_share(y, h: float, spacing: float) -> np.ndarray:
+    """The share ``c`` of each particle's image's energy at heights ``y`` over the plane y = 0
+    on the frictionless imaged ground (``forces.image_energy_share``, written again here):
+    1/2 up to half a spacing under ``h``, fading to 0 at ``h`` by the smoothstep."""
+    t = np.clip((h - y) / (0.5 * spacing), 0.0, 1.0)
+    return 0.5 * t * t * (3.0 - 2.0 * t)

@@ -340,7 +340,8 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
 def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
                                model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky",
                                second_pressure_force: str | None = None, ground: float | None = None,
-                               fit: str | None = None, pair_repulsion: float = 0.0, friction: float = 0.5):
+                               fit: str | None = None, pair_repulsion: float = 0.0, friction: float = 0.5,
+                               image_jitter: float = 0.0):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones; with
     ``second_pressure_force`` a second block of that force touches the first; with ``ground``
@@ -348,7 +349,8 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     (``add_ground(images=True)``, of ``friction``: 0, the images moving with their particles,
     and the block then also sliding along x at 0.3 m/s), squeezed towards it; ``fit``: ``Solver(fit=...)``; with
     ``pair_repulsion`` (``Material``'s) its particle 1 starts 0.3 dx from particle 0, within
-    the repulsion's range (0.5 dx)."""
+    the repulsion's range (0.5 dx); with ``image_jitter`` the images' initial F is moved from
+    ``I`` by up to that in each entry (no mirrors of their particles')."""
     import warp_esph as we  # noqa: PLC0415
 
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
@@ -377,6 +379,9 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     states = [model.state() for _ in range(steps + 1)]
     states[0].alpha.fill_(0.02)
     states[0].alpha_image.fill_(0.02)  # the images' hardening as their particles'
+    if image_jitter:
+        Fg = np.eye(3) + np.random.default_rng(6).uniform(-image_jitter, image_jitter, size=(model.particle_count, 3, 3))
+        states[0].F_image.assign(Fg)
     w = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=type_set(scalar).vec3)
     tape = wp.Tape()
     with tape:
@@ -629,11 +634,12 @@ def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_forc
                                    elastic_force=elastic_force)
 
 
-@pytest.mark.parametrize("ground,fit", [(-0.045, None), (-0.037, None), (-0.031, None), (-0.045, "curvature_corrected"),
-                                        (-0.037, "curvature_corrected")],
-                         ids=["linear", "linear-ramp", "linear-contact", "corrected", "corrected-ramp"])
+@pytest.mark.parametrize("ground,fit,image_jitter", [
+    (-0.045, None, 0.0), (-0.037, None, 0.0), (-0.031, None, 0.0), (-0.045, "curvature_corrected", 0.0),
+    (-0.037, "curvature_corrected", 0.0), (-0.045, None, 0.01), (-0.045, "curvature_corrected", 0.01)],
+    ids=["linear", "linear-ramp", "linear-contact", "corrected", "corrected-ramp", "linear-fade", "corrected-fade"])
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
-def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground, fit):
+def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground, fit, image_jitter):
     """On the frictionless imaged ground (``friction = 0``) the images move with their
     particles over the step (``deformation.partner_displacement``: ``J(x_j) u_j`` in both fits'
     image pairs and in each image's own fit, ``J(x_j) v_j`` in the SPH viscosity), and the
@@ -644,8 +650,13 @@ def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground
     ``mirrored_motion_adjoint``) and 0.05 dx (held at half a spacing deep, and the collider's
     contact). The elastic force sends every image's reaction to its particle through ``J``
     (``forces.moving_image_forces``), so its adjoint carries ``J``'s slope too: without it the
-    ramp's case read 1.3e-4 off (measured)."""
-    _assert_hand_matches_generated(scalar, tol, pressure_force="energy", ground=ground, friction=0.0, fit=fit)
+    ramp's case read 1.3e-4 off (measured). The image's share of the energy fades over the last
+    half spacing under ``h`` (``forces.image_energy_share``), where the second layer stands at
+    0.75 dx: with the images' F no mirrors (``image_jitter``) its slope's force and the maps'
+    dependence on it (``forces.image_share_adjoint``) enter; without the share's second slope
+    the fade cases read FILL off, without the maps' slope FILL (measured)."""
+    _assert_hand_matches_generated(scalar, tol, pressure_force="energy", ground=ground, friction=0.0, fit=fit,
+                                   image_jitter=image_jitter)
 
 
 _gf = guards.guard_funcs(S)

@@ -14,8 +14,8 @@ import warp as wp
 
 import warp_esph as we
 from taped_loss import random_weights, taped_rollout_loss
-from energy_fd import (central_gradient, continued_stvk_energy, corotated_energy, image_heights, mover,
-                       stvk_energy, stvk_psi)
+from energy_fd import (central_gradient, continued_stvk_energy, corotated_energy, image_energy_share, image_heights,
+                       mover, stvk_energy, stvk_psi)
 from warp_esph import tools
 from warp_esph.scenes import FIG8_PLASTIC_MIN_SCALE, FIGURE_SCENES, SCENES
 
@@ -967,11 +967,12 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     assert err < FORCE_GRADIENT_RTOL, err
 
 
-@pytest.mark.parametrize("fused, base, fit", [
-    (False, 0.6, "linear"), (True, 0.6, "linear"), (False, 0.2, "linear"), (True, 0.2, "linear"),
-    (False, 0.6, "curvature_corrected"), (False, 0.2, "curvature_corrected")])
+@pytest.mark.parametrize("fused, base, fit, image_jitter", [
+    (False, 0.6, "linear", 0.0), (True, 0.6, "linear", 0.0), (False, 0.2, "linear", 0.0), (True, 0.2, "linear", 0.0),
+    (False, 0.6, "curvature_corrected", 0.0), (False, 0.2, "curvature_corrected", 0.0),
+    (False, 0.6, "linear", 3e-4), (True, 0.6, "linear", 3e-4), (False, 0.6, "curvature_corrected", 3e-4)])
 def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the_particles_and_images_energies(
-        fused, base, fit):
+        fused, base, fit, image_jitter):
     """``add_ground(friction=0, images=True)``: the images move with their particles (``g(x)``,
     Jacobian ``J``). A cube whose bottom layer stands ``base`` spacings above the plane, ``F`` up
     to 15 % from I, each image's F its particle's mirrored, jittered: its elastic force against
@@ -984,7 +985,13 @@ def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the
     half a spacing up (the images mirrors) and below it (0.2). Before, below half a spacing
     the force was not this gradient: 0.36 (the linear fit) and 0.39 (the corrected) off, the
     images' reactions on the floor and their F blended towards their particles' (docs/physics.md,
-    "The frictionless imaged ground below half a spacing")."""
+    "The frictionless imaged ground below half a spacing"). The image's share fades from 1/2 to 0
+    over the last half spacing under ``h`` (``forces.image_energy_share``; the cube's second layer
+    at ``base`` 0.6 stands there), so with the images' F no mirrors (``image_jitter``: each
+    entry moved by up to that) the share's slope pushes that layer by ``c' (psi_g - psi)``
+    (``forces.image_share_force``): measured 3.6e-10 (the fused linear fit), 3.8e-10 (unfused) and
+    7.2e-10 (corrected); without that force 2.5e-4 to 2.7e-4 off, with the share 1/2 up to ``h``
+    as before (and no force) 0.011."""
     model, x0, F0 = _deformed_cube_on_the_imaged_ground(base, 0.0, "biweight")
     n = model.particle_count
     R = np.diag([1.0, -1.0, 1.0])
@@ -992,23 +999,60 @@ def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the
     a, c = model.state(), model.state()
     a.x.assign(x0)
     a.F.assign(F0)
-    a.F_image.assign(R @ F0 @ R)
+    jitter = np.random.default_rng(4).uniform(-image_jitter, image_jitter, size=F0.shape)
+    a.F_image.assign(R @ F0 @ R + jitter)
     moved = mover(solver, a, c)
-    near = x0[:, 1] < model.support_radius
+    h = model.support_radius
+    near = x0[:, 1] < h
+    fading = (x0[:, 1] > h - 0.5 * SPACING) & near
     V = model.particle_volume.numpy()
 
     def energy(k, delta):
         s = moved(k, delta)
         psi, psi_g = stvk_psi(model, s.F.numpy()), stvk_psi(model, s.F_image.numpy())
-        return float((V * np.where(near, 0.5 * (psi + psi_g), psi)).sum())
+        share = image_energy_share(s.x.numpy()[:, 1], h, SPACING)
+        return float((V * ((1.0 - share) * psi + share * psi_g)).sum())
 
     force = moved(0, 0.0).force.numpy().ravel().copy()
     dEdx = central_gradient(energy, range(3 * n))
     assert sum(solver.guard_counts().values()) == 0
     assert near.sum() >= 24  # not vacuous: two layers within h, their images in the sum
+    assert fading.sum() >= 12 or base < 0.5  # not vacuous: a layer where the image's share fades
     err = np.abs(force + dEdx).max() / np.abs(dEdx).max()
-    print(f"fused {fused}, base {base}: |f + dE/dx| / max |dE/dx| = {err:.3g}")
+    print(f"fused {fused}, base {base}, jitter {image_jitter}: |f + dE/dx| / max |dE/dx| = {err:.3g}")
     assert err < FORCE_GRADIENT_RTOL, err
+
+
+@pytest.mark.parametrize("fused, fit", [(True, "linear"), (False, "linear"), (False, "curvature_corrected")])
+def test_the_frictionless_imaged_grounds_force_is_continuous_where_a_particle_crosses_h(fused, fit):
+    """Beyond ``h`` a moving image carries its particle's F mirrored and no energy; inside, its
+    own fit's F, which is no mirror of its particle's where a partner was on the depth ramp. The
+    image's share fades to 0 at ``h`` with its slope (``forces.image_energy_share``,
+    ``forces.image_share_force``), so the force is continuous where a particle crosses ``h``.
+    The cube of the test above (``base`` 0.6), the images' F their particles' mirrored moved by
+    up to 1e-3, one particle of its second layer set ``1e-9`` spacings under and over ``h``: the
+    forces on every particle differ by FILL of their largest (the fused linear fit; FILL
+    unfused, FILL corrected); with the share 1/2 up to ``h`` (before) by FILL (docs/physics.md,
+    "Where a particle crosses ``h``")."""
+    model, x0, F0 = _deformed_cube_on_the_imaged_ground(0.6, 0.0, "biweight")
+    R = np.diag([1.0, -1.0, 1.0])
+    h = model.support_radius
+    p = int(np.flatnonzero(np.abs(x0[:, 1] - 1.6 * SPACING) < 0.2 * SPACING)[5])
+    solver = we.Solver(model, fused=fused, fit=fit, hourglass=0.0)
+    a, c = model.state(), model.state()
+    a.F.assign(F0)
+    a.F_image.assign(R @ F0 @ R + np.random.default_rng(4).uniform(-1e-3, 1e-3, size=F0.shape))
+    forces = []
+    for side in (-1.0, 1.0):
+        x = x0.copy()
+        x[p, 1] = h + side * 1e-9 * SPACING
+        a.x.assign(x)
+        solver.step(a, c, 1.0e-9)
+        forces.append(c.force.numpy().copy())
+    assert sum(solver.guard_counts().values()) == 0
+    jump = np.abs(forces[1] - forces[0]).max() / np.abs(forces[0]).max()
+    print(f"fused {fused}, {fit}: the force's jump across h {jump:.3g} of its largest")
+    assert jump < 1e-6, jump
 
 
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])

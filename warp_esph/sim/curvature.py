@@ -76,6 +76,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     gf = guards.guard_funcs(scalar)
     variational_map = forces.funcs(scalar, weight).variational_map
     image_energy_share = forces.funcs(scalar, weight).image_energy_share
+    image_share_force = forces.funcs(scalar, weight).image_share_force
     moving_image_pair_reactions = forces.funcs(scalar, weight).moving_image_pair_reactions
     image_force_on_particle = forces.funcs(scalar, weight).image_force_on_particle
 
@@ -794,14 +795,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         # accumulator (docs/method.md, Warp pitfall 1).
         A, C, D, same = position_moments(i, x, body, nbr, n, h, gn, goff, gmin, images)
         K = curvature_projection(A, C, D)
-        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition) * image_energy_share(x[i], n, h, gn, goff, images)
-        M = s_fit * variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K)))
+        s = gf.guard_scale(A, same, min_neighbors, max_condition)
+        own, img, dc, ddc = image_energy_share(x[i], h, gn, goff, gmin, images)
+        M = (s * own) * variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K)))
         fi = variational_forces(i, x, body, nbr, n, M, K, h, f)
         if images != 0:
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             Mg0, Kg = image_map(volume, Pg, Fg, Ag, Cg, Dg)
-            Mg = s_fit * Mg0
+            Mg = (s * img) * Mg0
             fi += floor_image_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, images, f)
+            if images == 2:
+                fi += image_share_force(volume, s, dc, P, F, Pg, Fg, gn)
         return fi
 
     # The fit's side of the update kernels (``deformation.update_kernels``), as
@@ -1001,16 +1005,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
-        # The fade s(A, same) of both maps (guards.guard) and the energies' share
-        # (forces.image_energy_share): M = s c M0, Mg = s c Mg0.
+        # The fade s(A, same) of both maps (guards.guard) and the energies' shares
+        # (forces.image_energy_share): M = s (1 - c) M0, Mg = s c Mg0.
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
-        c = fo.image_energy_share(xi, n, h, gn, goff, images)
-        sc = s * c
+        own, img, dc, ddc = fo.image_energy_share(xi, h, gn, goff, gmin, images)
+        so = s * own
         M0 = fo.variational_map(Vi, P, Fi, Ainv)
-        M = sc * M0
+        M = so * M0
         adj_M = S1 - S2 * K
-        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, sc * adj_M)
-        adj_s = c * wp.ddot(adj_M, M0)
+        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, so * adj_M)
+        adj_M0 = wp.ddot(adj_M, M0)
+        adj_s = own * adj_M0
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(S2) * M), C, K, D_inv, kept)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         Mg = mat33()
@@ -1018,19 +1023,32 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_Ag = mat33()
         adj_Cg = mat33()
         adj_Dg = mat33()
+        gx_i = vec3()
         if n_img > 0:
+            sg = s * img
             Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             Kg_, Dg_inv, kept_g = fn.projection_terms(Ag, Cg, Dg)
             Ag_inv = wp.inverse(fn.corrected_moment(Ag, Cg, Kg_))
             Pg = image_stress[i]
             Fg = F_image[i]
             Mg0 = fo.variational_map(Vi, Pg, Fg, Ag_inv)
-            Mg_ = sc * Mg0
+            Mg_ = sg * Mg0
             adj_Mg = S1g - S2g * Kg_
-            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sc * adj_Mg)
+            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
+            adj_Mg0 = wp.ddot(adj_Mg, Mg0)
+            adj_s += img * adj_Mg0
+            if images == 2:
+                # The share's slope: its force's adjoint and the maps' c(x_i).
+                as_, ax, aP, aF, aPg, aFg = fo.image_share_adjoint(Vi, s, dc, ddc, P, Fi, Pg, Fg, gn, ai,
+                                                                   s * (adj_Mg0 - adj_M0))
+                adj_s += as_
+                adj_P += aP
+                adj_Fi += aF
+                adj_Pg += aPg
+                adj_Fg += aFg
+                gx_i = ax
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
-            adj_s += c * wp.ddot(adj_Mg, Mg0)
             adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,
                                                               kept_g)
             Mg = Mg_
@@ -1046,7 +1064,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
         # The scatter to the positions.
-        gx_i = vec3()
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:

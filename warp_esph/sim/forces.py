@@ -311,18 +311,72 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     fit_sums = deformation.funcs(scalar, weight).fit_sums
     floor_image_moment = deformation.funcs(scalar, weight).floor_image_moment
     floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+    # R A R: a particle's F or stress as its mirror image carries it.
+    mirror = deformation.funcs(scalar, weight).particle_f_for_image
 
     @wp.func
-    def image_energy_share(xi: vec3, n: int, h: scalar, gn: vec3, goff: scalar, images: int) -> scalar:
-        """The share of a particle's energy, and of its image's, in the energy whose gradient
-        the force is: ``1/2`` each within ``h`` of the plane where the images move with their
-        particles (``images`` 2: ``1/2 (E_i + E_g)``, the particle and its image as the two
-        halves of one mirrored pair, docs/physics.md, "The frictionless imaged ground below half
-        a spacing"), else 1 (its image, if any, at rest: the floor's own energy)."""
-        c = scalar(1.0)
-        if images == 2 and image_row_length(xi, n, h, gn, goff) > 0:
-            c = scalar(0.5)
-        return c
+    def image_energy_share(xi: vec3, h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int):
+        """The shares of a particle's energy and of its image's in the energy whose gradient the
+        force is, and the image's share's slope and second slope in the particle's height ``d``:
+        ``(1 - c, c, c', c'')``. Where the images move with their particles (``images`` 2) ``c``
+        is ``1/2`` within ``h - gmin`` of the plane (``1/2 (E_i + E_g)``, the particle and its
+        image as the two halves of one mirrored pair, docs/physics.md, "The frictionless imaged
+        ground below half a spacing") and fades to 0 at ``h`` by the smoothstep ``c = t^2 (3 - 2
+        t) / 2``, ``t = (h - d) / gmin``: beyond ``h`` the image carries its particle's F mirrored
+        (``deformation.floor_image_share``), which its own F differs from where a partner was on
+        the depth ramp, and a share that jumped there made the counted energy and the force jump
+        as the particle crossed ``h`` (docs/physics.md, "Where a particle crosses ``h``"). ``c``
+        and ``c'`` are continuous, ``c''`` jumps at both ends of the fade (read by the adjoints
+        alone). Images at rest (1): ``(1, 1, 0, 0)``, the floor's own energy beside the
+        particle's."""
+        own = scalar(1.0)
+        img = scalar(1.0)
+        dc = scalar(0.0)
+        ddc = scalar(0.0)
+        if images == 2:
+            img = scalar(0.0)
+            d = wp.dot(gn, xi) - goff
+            if d < h:
+                t = (h - d) / gmin
+                img = scalar(0.5)
+                if t < scalar(1.0):
+                    img = scalar(0.5) * t * t * (scalar(3.0) - scalar(2.0) * t)
+                    dc = -(scalar(3.0) * t * (scalar(1.0) - t)) / gmin
+                    ddc = scalar(3.0) * (scalar(1.0) - scalar(2.0) * t) / (gmin * gmin)
+                own = scalar(1.0) - img
+        return own, img, dc, ddc
+
+    @wp.func
+    def image_energy_difference(P: mat33, F: mat33, Pg: mat33, Fg: mat33, gn: vec3) -> scalar:
+        """``psi(F_g) - psi(F)`` of a particle (stress ``P``) and its image (``Pg``), by the
+        trapezoid rule along the straight path from the particle's mirror ``R F R`` to the
+        image's ``F_g``: ``1/2 (P_g + R P R) : (F_g - R F R)`` (an isotropic ``psi`` is the
+        same at ``F`` and ``R F R``, with stress ``R P R`` there). From the stresses the force
+        has, for any stress model; exact for an energy quadratic in ``F``, its error third
+        order in ``F_g - R F R`` otherwise. 0 where the image is its particle's mirror."""
+        return scalar(0.5) * wp.ddot(Pg + mirror(P, gn, 2), Fg - mirror(F, gn, 2))
+
+    @wp.func
+    def image_share_force(volume: scalar, s: scalar, dc: scalar, P: mat33, F: mat33, Pg: mat33, Fg: mat33,
+                          gn: vec3) -> vec3:
+        """The force on a particle of its image's share's slope (``image_energy_share``): ``-s V
+        c' (psi(F_g) - psi(F)) n`` (``image_energy_difference``), with the guards' fade ``s``
+        of its fit (a guarded particle's energy applies no force)."""
+        return -(s * volume * dc * image_energy_difference(P, F, Pg, Fg, gn)) * gn
+
+    @wp.func
+    def image_share_adjoint(volume: scalar, s: scalar, dc: scalar, ddc: scalar, P: mat33, F: mat33, Pg: mat33,
+                            Fg: mat33, gn: vec3, ai: vec3, adj_c: scalar):
+        """Adjoint of ``image_share_force`` against ``ai = adj f_i``, and of the share ``c`` given
+        the adjoint ``adj_c`` of the maps it scales: ``(adj s, adj x_i, adj P, adj F, adj P_g,
+        adj F_g)``, ``adj x_i`` through ``c'`` and ``c''`` along ``n``."""
+        an = -volume * wp.dot(gn, ai)
+        dpsi = image_energy_difference(P, F, Pg, Fg, gn)
+        a = s * an * dc * scalar(0.5)
+        dFm = Fg - mirror(F, gn, 2)
+        Psum = Pg + mirror(P, gn, 2)
+        return (an * dc * dpsi, (s * an * ddc * dpsi + dc * adj_c) * gn, mirror(a * dFm, gn, 2), -mirror(a * Psum, gn, 2),
+                a * dFm, a * Psum)
 
     @wp.func
     def image_pair_force(M: mat33, gb: vec3, pb: vec3, h: scalar, c6: scalar) -> vec3:
@@ -463,17 +517,22 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         # function: an inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1).
         A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
         A_inv = wp.inverse(A)
-        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition) * image_energy_share(x[i], n, h, gn, goff, images)
-        M = s_fit * variational_map(volume, P, F, A_inv)
+        s = gf.guard_scale(A, same, min_neighbors, max_condition)
+        own, img, dc, ddc = image_energy_share(x[i], h, gn, goff, gmin, images)
+        M = (s * own) * variational_map(volume, P, F, A_inv)
         fi = variational_forces(i, x, body, nbr, n, M, h, f)
         if images != 0:
-            Mg = s_fit * image_map(volume, Pg, Fg, floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+            Mg = (s * img) * image_map(volume, Pg, Fg, floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
             fi += floor_image_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, images, f)
+            if images == 2:
+                fi += image_share_force(volume, s, dc, P, F, Pg, Fg, gn)
         return fi
 
     return types.SimpleNamespace(
         fit_variational_forces=fit_variational_forces,
         image_map=image_map, floor_image_forces=floor_image_forces, image_energy_share=image_energy_share,
+        image_share_force=image_share_force, image_share_adjoint=image_share_adjoint,
+        image_energy_difference=image_energy_difference,
         image_pair_force=image_pair_force, image_pair_adjoint_vectors=image_pair_adjoint_vectors,
         moving_image_pair_reactions=moving_image_pair_reactions, image_force_on_particle=image_force_on_particle,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
@@ -706,6 +765,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_F: wp.array(dtype=mat33),
         adj_image_stress: wp.array(dtype=mat33),
         adj_F_image: wp.array(dtype=mat33),
+        adj_x: wp.array(dtype=vec3),
     ):
         """The part of ``variational_forces_adjoint`` before its scatter pass: ``adj M`` (and
         ``adj Mg``), the maps' adjoints into ``adj P``, ``adj F`` (and the image's), and what
@@ -745,30 +805,44 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 if images == 2 and j != i:
                     pb = xj - xi
                     adj_Mg += fw.w_c(wp.dot(pb, pb), h, c6) * wp.outer(ag, gj - gi)
-        # The energies' share (image_energy_share) scales both maps with the fade: M = s c M0.
-        c = fn.image_energy_share(xi, n, h, gn, goff, images)
-        sc = s * c
+        # The energies' shares (image_energy_share) scale the maps with the fade: M = s (1 - c) M0,
+        # Mg = s c Mg0.
+        own, img, dc, ddc = fn.image_energy_share(xi, h, gn, goff, gmin, images)
+        so = s * own
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
         M0 = fn.variational_map(Vi, P, Fi, Ainv)
-        M = sc * M0
-        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, sc * adj_M)
-        adj_s = c * wp.ddot(adj_M, M0)
+        M = so * M0
+        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, so * adj_M)
+        adj_M0 = wp.ddot(adj_M, M0)
+        adj_s = own * adj_M0
         Mg = mat33()
         adj_Ag = mat33()
         if n_img > 0:
+            sg = s * img
             Ag_inv = wp.inverse(image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
             Pg = image_stress[i]
             Fg = F_image[i]
             Mg0 = fn.variational_map(Vi, Pg, Fg, Ag_inv)
-            Mg = sc * Mg0
-            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sc * adj_Mg)
+            Mg = sg * Mg0
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
+            adj_Mg0 = wp.ddot(adj_Mg, Mg0)
+            adj_s += img * adj_Mg0
+            if images == 2:
+                # The share's slope: its force's adjoint and the maps' c(x_i).
+                as_, ax, aP, aF, aPg, aFg = fn.image_share_adjoint(Vi, s, dc, ddc, P, Fi, Pg, Fg, gn, ai,
+                                                                   s * (adj_Mg0 - adj_M0))
+                adj_s += as_
+                adj_P += aP
+                adj_Fi += aF
+                adj_Pg += aPg
+                adj_Fg += aFg
+                wp.atomic_add(adj_x, i, ax)
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
             adj_Ag = adj_Ag_
-            adj_s += c * wp.ddot(adj_Mg, Mg0)
         adj_A = adj_A + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
@@ -860,7 +934,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if elastic_force[material[i]] == 1:
             applied, M, adj_A, adj_A_sym, adj_same, Mg, adj_Ag, adj_Ag_sym, n_img, gi = variational_adjoint_maps(
                 i, x, body, nbr, n, h, volume, stress, F, min_neighbors, max_condition, gn, goff, gmin, images,
-                image_stress, F_image, adj_f, adj_stress, adj_F, adj_image_stress, adj_F_image)
+                image_stress, F_image, adj_f, adj_stress, adj_F, adj_image_stress, adj_F_image, adj_x)
         if applied == 0 and sph == 0:
             return
         xi = x[i]

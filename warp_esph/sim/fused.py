@@ -184,13 +184,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             code, s_fit, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
             if code == 0:
                 A_inv = wp.inverse(A)
-                s_fit = s_fit * fo.image_energy_share(xi, count[i], h, gn, goff, images)
-                M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
+                own, img, dc, ddc = fo.image_energy_share(xi, h, gn, goff, gmin, images)
+                M = (s_fit * own) * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
                     # The image's own stress and F (State.F_image): its energy's work is stored there.
                     Ag = df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
-                    Mg = s_fit * fo.image_map(Vol_i, image_stress[i], F_image[i], Ag)
+                    Mg = (s_fit * img) * fo.image_map(Vol_i, image_stress[i], F_image[i], Ag)
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, images, f)
+                    if images == 2:
+                        fi += fo.image_share_force(Vol_i, s_fit, dc, P, Fe, image_stress[i], F_image[i], gn)
             else:
                 kind_el = 2
         elif kind_el == 0 and images != 0:
