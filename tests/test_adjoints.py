@@ -654,7 +654,8 @@ def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground
     half spacing under ``h`` (``forces.image_energy_share``), where the second layer stands at
     0.75 dx: with the images' F no mirrors (``image_jitter``) its slope's force and the maps'
     dependence on it (``forces.image_share_adjoint``) enter; without the share's second slope
-    the fade cases read FILL off, without the maps' slope FILL (measured)."""
+    the fade cases read 6.0e-6 off, without the maps' slope 1.1e-3 / 1.6e-3 (linear / corrected;
+    measured)."""
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy", ground=ground, friction=0.0, fit=fit,
                                    image_jitter=image_jitter)
 

@@ -989,9 +989,11 @@ def test_the_frictionless_imaged_grounds_force_is_minus_the_gradient_of_half_the
     over the last half spacing under ``h`` (``forces.image_energy_share``; the cube's second layer
     at ``base`` 0.6 stands there), so with the images' F no mirrors (``image_jitter``: each
     entry moved by up to that) the share's slope pushes that layer by ``c' (psi_g - psi)``
-    (``forces.image_share_force``): measured 3.6e-10 (the fused linear fit), 3.8e-10 (unfused) and
-    7.2e-10 (corrected); without that force 2.5e-4 to 2.7e-4 off, with the share 1/2 up to ``h``
-    as before (and no force) 0.011."""
+    (``forces.image_share_force``): measured 1.9e-10 (linear, either schedule) and 1.7e-10
+    (corrected); without that force 1.6e-4 / 1.2e-4 off, and so at the parent, the share 1/2 up
+    to ``h``. Its energy difference is the trapezoid's (``forces.image_energy_difference``),
+    whose error is third order in the images' F's distance from the mirror: 5.7e-9 with 1e-3,
+    5.6e-6 with 1e-2 (measured)."""
     model, x0, F0 = _deformed_cube_on_the_imaged_ground(base, 0.0, "biweight")
     n = model.particle_count
     R = np.diag([1.0, -1.0, 1.0])
@@ -1031,8 +1033,8 @@ def test_the_frictionless_imaged_grounds_force_is_continuous_where_a_particle_cr
     ``forces.image_share_force``), so the force is continuous where a particle crosses ``h``.
     The cube of the test above (``base`` 0.6), the images' F their particles' mirrored moved by
     up to 1e-3, one particle of its second layer set ``1e-9`` spacings under and over ``h``: the
-    forces on every particle differ by FILL of their largest (the fused linear fit; FILL
-    unfused, FILL corrected); with the share 1/2 up to ``h`` (before) by FILL (docs/physics.md,
+    forces on every particle differ by 9.4e-10 of their largest (either linear schedule; 7.1e-10
+    corrected); with the share 1/2 up to ``h`` (before) by 4.1e-4 (3.3e-4) (docs/physics.md,
     "Where a particle crosses ``h``")."""
     model, x0, F0 = _deformed_cube_on_the_imaged_ground(0.6, 0.0, "biweight")
     R = np.diag([1.0, -1.0, 1.0])

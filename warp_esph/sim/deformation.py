@@ -570,8 +570,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         imaged ground below half a spacing"). Where its particle crosses ``h`` the image's own F
         is its particle's mirrored while every partner in its row is over half a spacing up
         (its fit then sees only its mirror's); with a partner below that, held on the depth
-        ramp, the two differ, and the counted energy jumps as the particle leaves ``h``
-        (docs/physics.md, "Reviewed at 55e0d06f")."""
+        ramp, the two differ, and the image's share of the energy fades to 0 at ``h``
+        (``forces.image_energy_share``) so that neither the energy nor the force jumps as the
+        particle leaves (docs/physics.md, "Where a particle crosses ``h``")."""
         c = scalar(1.0)
         if images == 2 and near == 0:
             c = scalar(0.0)
