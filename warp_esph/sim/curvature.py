@@ -1073,8 +1073,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                                             gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
-        # Moving images: g_i's pairs' forces, sent to x_i through J_i (its slope's adjoint).
-        fg = vec3()
         for k in range(n_img):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
@@ -1097,18 +1095,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     gg_i -= gg
                     gx_i -= gp
                 if images == 2:
-                    # The reactions -J_j (g + gg) on j and J_i (gr + gg) on i: J's slope.
-                    g = fn.variational_pair_force(M, K, gj - xi, h, c6)
-                    gr = fn.variational_pair_force(Mg, Kg, xj - gi, h, c6)
                     gg = vec3()
                     if j != i:
                         gg = fn.image_pair_force(Mg, Kg, gj - gi, xj - xi, h, c6)
-                    fg += gr + gg
-                    sj, uj = df.mirrored_motion_adjoint(xj, g + gg, aj, gn, goff, gmin)
-                    wp.atomic_sub(adj_x, j, sj)
-        if images == 2:
-            si, ui = df.mirrored_motion_adjoint(xi, fg, ai, gn, goff, gmin)
-            gx_i += si
+                    g = fn.variational_pair_force(M, K, gj - xi, h, c6)
+                    gr = fn.variational_pair_force(Mg, Kg, xj - gi, h, c6)
+                    gx_i += fo.moving_image_pair_slopes(j, xi, xj, ai, aj, g, gr, gg, gn, goff, gmin, adj_x)
         df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
 
     # Eq. 8's update, its adjoint and the elastic forces are the linear fit's kernels on

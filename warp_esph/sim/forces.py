@@ -313,6 +313,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
     # R A R: a particle's F or stress as its mirror image carries it.
     mirror = deformation.funcs(scalar, weight).particle_f_for_image
+    mirrored_motion_adjoint = deformation.funcs(scalar, weight).mirrored_motion_adjoint
 
     @wp.func
     def image_energy_share(xi: vec3, h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int):
@@ -375,8 +376,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         a = s * an * dc * scalar(0.5)
         dFm = Fg - mirror(F, gn, 2)
         Psum = Pg + mirror(P, gn, 2)
-        return (an * dc * dpsi, (s * an * ddc * dpsi + dc * adj_c) * gn, mirror(a * dFm, gn, 2), -mirror(a * Psum, gn, 2),
-                a * dFm, a * Psum)
+        return (an * dc * dpsi, (s * an * ddc * dpsi + dc * adj_c) * gn, mirror(a * dFm, gn, 2),
+                -mirror(a * Psum, gn, 2), a * dFm, a * Psum)
 
     @wp.func
     def image_pair_force(M: mat33, gb: vec3, pb: vec3, h: scalar, c6: scalar) -> vec3:
@@ -412,6 +413,20 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         loop's function, whose sum Warp's generated adjoint would not replay (it lost ``J``'s
         slope: docs/method.md, Warp pitfall 1)."""
         return fi + floor_image_jacobian(xi, gn, goff, gmin) * fg
+
+    @wp.func
+    def moving_image_pair_slopes(j: int, xi: vec3, xj: vec3, ai: vec3, aj: vec3, g: vec3, gr: vec3, gg: vec3,
+                                 gn: vec3, goff: scalar, gmin: scalar, adj_x: wp.array(dtype=vec3)) -> vec3:
+        """Adjoint of ``J``'s slope in one pair's reactions (``moving_image_pair_reactions``, either
+        fit's pair forces ``g``, ``gr``, ``gg``; ``gg`` 0 for ``j == i``) against ``ai = adj f_i``,
+        ``aj = adj f_j``: of ``-J_j (g + gg)`` on ``j``, taken from ``adj x_j``, and of the pair's
+        ``J_i (gr + gg)`` on ``i`` (``image_force_on_particle`` applies ``J_i`` to the pairs'
+        sum, linear in it: the sum of each pair's), returned for ``adj x_i``
+        (``deformation.mirrored_motion_adjoint``)."""
+        sj, uj = mirrored_motion_adjoint(xj, g + gg, aj, gn, goff, gmin)
+        wp.atomic_sub(adj_x, j, sj)
+        si, ui = mirrored_motion_adjoint(xi, gr + gg, ai, gn, goff, gmin)
+        return si
 
     @wp.func
     def moving_image_pair_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -535,6 +550,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image_energy_difference=image_energy_difference,
         image_pair_force=image_pair_force, image_pair_adjoint_vectors=image_pair_adjoint_vectors,
         moving_image_pair_reactions=moving_image_pair_reactions, image_force_on_particle=image_force_on_particle,
+        moving_image_pair_slopes=moving_image_pair_slopes,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         corotated_principal_stress=corotated_principal_stress, corotated_stress=corotated_stress,
         principal_strain_trace=principal_strain_trace,
@@ -623,7 +639,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     image_row_particle = deformation.image_row_particle
     scatter_partner_adjoint = deformation.funcs(scalar, weight).scatter_partner_adjoint
     scatter_own_adjoint = deformation.funcs(scalar, weight).scatter_own_adjoint
-    mirrored_motion_adjoint = deformation.funcs(scalar, weight).mirrored_motion_adjoint
 
     @wp.kernel(enable_backward=False, module="unique")
     def elastic_forces_adjoint(
@@ -911,7 +926,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         ``deformation.floor_image_jacobian``. Images moving with their particles (``images`` 2,
         ``moving_image_forces``) weigh each pair against ``image_pair_adjoint_vectors`` (their
         reactions reach the particles through ``J``), their image-image pairs' forces too, both
-        maps scaled by ``image_energy_share``, and ``J``'s slope (``mirrored_motion_adjoint``)
+        maps scaled by ``image_energy_share``, and ``J``'s slope (``moving_image_pair_slopes``)
         on the particles whose ``J`` carries a reaction.
 
         With ``sph`` 1 the scatter pass also takes every particle's SPH pressure and viscosity
@@ -982,8 +997,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if applied != 0:
             # Through g_i (summed, then by d g_i / d x_i).
             gg_i = vec3()
-            # Moving images: g_i's pairs' forces, sent to x_i through J_i (its slope's adjoint).
-            fg = vec3()
             for k in range(n_img):
                 j = image_row_particle(i, k, n, nbr)
                 if body[j] == bi:
@@ -1005,18 +1018,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                         gg_i -= gg
                         gx_i -= gp
                     if images == 2:
-                        # The reactions -J_j (g + gg) on j and J_i (gr + gg) on i: J's slope.
-                        g = fn.variational_pair_force(M, gj - xi, h, c6)
-                        gr = fn.variational_pair_force(Mg, xj - gi, h, c6)
                         gg = vec3()
                         if j != i:
                             gg = fn.image_pair_force(Mg, gj - gi, xj - xi, h, c6)
-                        fg += gr + gg
-                        sj, uj = mirrored_motion_adjoint(xj, g + gg, aj, gn, goff, gmin)
-                        wp.atomic_sub(adj_x, j, sj)
-            if images == 2:
-                si, ui = mirrored_motion_adjoint(xi, fg, ai, gn, goff, gmin)
-                gx_i += si
+                        g = fn.variational_pair_force(M, gj - xi, h, c6)
+                        gr = fn.variational_pair_force(Mg, xj - gi, h, c6)
+                        gx_i += fn.moving_image_pair_slopes(j, xi, xj, ai, aj, g, gr, gg, gn, goff, gmin, adj_x)
             scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         if sph != 0:
             wp.atomic_add(adj_x, i, gp_i)
