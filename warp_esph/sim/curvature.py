@@ -1034,19 +1034,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Mg0 = fo.variational_map(Vi, Pg, Fg, Ag_inv)
             Mg_ = sg * Mg0
             adj_Mg = S1g - S2g * Kg_
-            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
-            adj_Mg0 = wp.ddot(adj_Mg, Mg0)
-            adj_s += img * adj_Mg0
-            if images == 2:
-                # The share's slope: its force's adjoint and the maps' c(x_i).
-                as_, ax, aP, aF, aPg, aFg = fo.image_share_adjoint(Vi, s, dc, ddc, P, Fi, Pg, Fg, gn, ai,
-                                                                   s * (adj_Mg0 - adj_M0))
-                adj_s += as_
-                adj_P += aP
-                adj_Fi += aF
-                adj_Pg += aPg
-                adj_Fg += aFg
-                gx_i = ax
+            adj_Pg_, adj_Fg_, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
+            adj_s, gx_i, adj_P, adj_Fi, adj_Pg, adj_Fg = fo.image_shares_adjoint(
+                Vi, s, img, dc, ddc, P, Fi, Pg, Fg, gn, ai, adj_M0, adj_Mg, Mg0, images, adj_s, adj_P, adj_Fi, adj_Pg_,
+                adj_Fg_)
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
             adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,

@@ -380,6 +380,28 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 -mirror(a * Psum, gn, 2), a * dFm, a * Psum)
 
     @wp.func
+    def image_shares_adjoint(volume: scalar, s: scalar, img: scalar, dc: scalar, ddc: scalar, P: mat33, F: mat33,
+                             Pg: mat33, Fg: mat33, gn: vec3, ai: vec3, adj_M0: scalar, adj_Mg: mat33, Mg0: mat33,
+                             images: int, adj_s: scalar, adj_P: mat33, adj_F: mat33, adj_Pg: mat33, adj_Fg: mat33):
+        """The image's share in either fit's adjoint (``adj_M0 = adj M : M0``, ``adj_Mg`` of
+        ``Mg = s c Mg0``): ``c adj Mg : Mg0`` added to ``adj s``, and where the images move with
+        their particles (``images`` 2) ``image_share_adjoint``'s terms added to ``adj s``, ``adj
+        P``, ``adj F``, ``adj P_g``, ``adj F_g``; returns them with ``adj x_i``."""
+        adj_Mg0 = wp.ddot(adj_Mg, Mg0)
+        adj_s = adj_s + img * adj_Mg0
+        ax = vec3()
+        if images == 2:
+            as_, ax_, aP, aF, aPg, aFg = image_share_adjoint(volume, s, dc, ddc, P, F, Pg, Fg, gn, ai,
+                                                             s * (adj_Mg0 - adj_M0))
+            adj_s = adj_s + as_
+            adj_P = adj_P + aP
+            adj_F = adj_F + aF
+            adj_Pg = adj_Pg + aPg
+            adj_Fg = adj_Fg + aFg
+            ax = ax_
+        return adj_s, ax, adj_P, adj_F, adj_Pg, adj_Fg
+
+    @wp.func
     def image_pair_force(M: mat33, gb: vec3, pb: vec3, h: scalar, c6: scalar) -> vec3:
         """The pair force of an image's energy on another image, ``w(|pb|^2) M gb``
         (``gb = g_r - g_i``), weighed as its particles' pair ``pb = x_r - x_i``
@@ -547,6 +569,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fit_variational_forces=fit_variational_forces,
         image_map=image_map, floor_image_forces=floor_image_forces, image_energy_share=image_energy_share,
         image_share_force=image_share_force, image_share_adjoint=image_share_adjoint,
+        image_shares_adjoint=image_shares_adjoint,
         image_energy_difference=image_energy_difference,
         image_pair_force=image_pair_force, image_pair_adjoint_vectors=image_pair_adjoint_vectors,
         moving_image_pair_reactions=moving_image_pair_reactions, image_force_on_particle=image_force_on_particle,
@@ -842,18 +865,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Fg = F_image[i]
             Mg0 = fn.variational_map(Vi, Pg, Fg, Ag_inv)
             Mg = sg * Mg0
-            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
-            adj_Mg0 = wp.ddot(adj_Mg, Mg0)
-            adj_s += img * adj_Mg0
+            adj_Pg_, adj_Fg_, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, sg * adj_Mg)
+            adj_s, ax, adj_P, adj_Fi, adj_Pg, adj_Fg = fn.image_shares_adjoint(
+                Vi, s, img, dc, ddc, P, Fi, Pg, Fg, gn, ai, adj_M0, adj_Mg, Mg0, images, adj_s, adj_P, adj_Fi, adj_Pg_,
+                adj_Fg_)
             if images == 2:
-                # The share's slope: its force's adjoint and the maps' c(x_i).
-                as_, ax, aP, aF, aPg, aFg = fn.image_share_adjoint(Vi, s, dc, ddc, P, Fi, Pg, Fg, gn, ai,
-                                                                   s * (adj_Mg0 - adj_M0))
-                adj_s += as_
-                adj_P += aP
-                adj_Fi += aF
-                adj_Pg += aPg
-                adj_Fg += aFg
                 wp.atomic_add(adj_x, i, ax)
             adj_image_stress[i] = adj_image_stress[i] + adj_Pg
             adj_F_image[i] = adj_F_image[i] + adj_Fg
