@@ -651,9 +651,9 @@ def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground
     contact). The elastic force sends every image's reaction to its particle through ``J``
     (``forces.moving_image_forces``), so its adjoint carries ``J``'s slope too: without it the
     ramp's case read 1.3e-4 off (measured). The image's share of the energy fades over the last
-    half spacing under ``h`` (``forces.image_energy_share``), where the second layer stands at
-    0.75 dx: with the images' F no mirrors (``image_jitter``) its slope's force and the maps'
-    dependence on it (``forces.image_share_adjoint``) enter; without the share's second slope
+    half spacing under ``h`` (``forces.image_energy_share``), where the second layer stands,
+    1.75 dx over the plane in the mirrors' case: with the images' F no mirrors (``image_jitter``)
+    its slope's force and the maps' dependence on it (``forces.image_share_adjoint``) enter; without the share's second slope
     the fade cases read 6.0e-6 off, without the maps' slope 1.1e-3 / 1.6e-3 (linear / corrected;
     measured)."""
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy", ground=ground, friction=0.0, fit=fit,
