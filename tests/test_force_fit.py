@@ -585,6 +585,30 @@ def test_a_force_log_row_cut_short_or_too_long_is_refused_not_read_as_its_number
         ReactionForceLoss.from_csv(long, "plane0", {1: 10})
 
 
+def test_a_force_log_header_of_empty_or_repeated_names_is_read_or_refused_by_that_column(tmp_path):
+    """The reader's rows keep one cell per header name, so a header naming a column twice had
+    every row refused as one field short ('it has 6 fields, the header 7'), which it was not:
+    a sheet exported wider than its data (every line, the header's too, ending in ',,') was
+    refused so, and a log naming fy twice was refused for a cut file, not for its header, or
+    (without fx) told to write 0 in fx as for a load cell of two axes."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+    from warp_esph.losses import read_tools_csv  # noqa: PLC0415
+
+    rows = ["0,0,plane0,0,0,0", "1,0.005,plane0,0,-1.5,0", "2,0.01,plane0,0,-2.5,0"]
+    wide = _write(tmp_path / "wide.csv", "".join(f"{line},,\n" for line in ["frame,time,tool,fx,fy,fz"] + rows))
+    assert [r["force"][1] for r in read_tools_csv(wide)] == [0.0, -1.5, -2.5]
+    for name, extra in (("twice", "fy"), ("units", "Fy [N]")):
+        path = _write(tmp_path / f"{name}.csv", f"frame,time,tool,fx,fy,fz,{extra}\n" + "".join(f"{r},-9\n" for r in rows))
+        with pytest.raises(ValueError) as e:
+            read_tools_csv(path)
+        assert str(e.value) == (f"{path} is not allowed as a force target: its header names the column 'fy' 2 times "
+                                f"('fy', {extra!r}); which one to read is not ours to choose: name each column once")
+    mislabelled = _write(tmp_path / "nofx.csv", "frame,time,tool,fy,fy,fz\n" + "".join(f"{r}\n" for r in rows))
+    with pytest.raises(ValueError, match=r"it lacks fx \(its header: 'frame,time,tool,fy,fy,fz'\); it names fy more than "
+                                         r"once \(a mislabelled column\?\): name each column once$"):
+        load_target(mislabelled, tool="plane0")
+
+
 def _write(path, text):
     path.write_text(text)
     return path

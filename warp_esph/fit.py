@@ -4338,7 +4338,11 @@ def _refuse_other_force_logs(p: str) -> None:
         extra = ("; a log by time alone is not resampled: average its samples over each frame's interval "
                  "((k - 1) / fps, k / fps] and number the rows by frame k")
     forces = [c for c in ("fx", "fy", "fz") if c not in missing]
-    if forces and len(forces) < 3:
+    twice = [c for c in forces if header.count(c) > 1]
+    if twice:
+        # 'frame,time,tool,fy,fy,fz': a mislabelled column, not a load cell of fewer axes.
+        extra += f"; it names {', '.join(twice)} more than once (a mislabelled column?): name each column once"
+    elif forces and len(forces) < 3:
         # A single-axis load cell's log (frame, time, tool, fy): the refusal named what it
         # lacked, not that such a log is fitted with zeros in the other columns left unfitted.
         unmeasured = [c for c in ("fx", "fy", "fz") if c in missing]

@@ -1873,7 +1873,18 @@ def read_tools_csv(path) -> list[dict]:
                         raise ValueError(f"{shown} is not allowed as a force target: its column {cell.strip()!r} is in "
                                          f"{unit}; give {name} in {TOOLS_CSV_UNITS[name]} (header '{name}' or "
                                          f"'{name} [{TOOLS_CSV_UNITS[name]}]')")
-                reader.fieldnames = [name for name, _ in columns]
+                names = [name for name, _ in columns]
+                twice = [n for n in dict.fromkeys(names) if n and names.count(n) > 1]
+                if twice:
+                    # The reader's rows keep one cell per name (the last): a log naming fy twice had
+                    # its rows refused as one field short, which they were not.
+                    cells = [cell.strip() for (name, _), cell in zip(columns, reader.fieldnames) if name == twice[0]]
+                    raise ValueError(f"{shown} is not allowed as a force target: its header names the column "
+                                     f"{twice[0]!r} {checks.plural(len(cells), 'time')} ({', '.join(map(repr, cells))}); "
+                                     "which one to read is not ours to choose: name each column once")
+                # A spreadsheet's export of a sheet wider than its data ends every line, the header's
+                # too, in empty cells (',,'): unnamed columns, each its own, so rows count them all.
+                reader.fieldnames = [name or f"\0{i}" for i, name in enumerate(names)]
             missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
             if missing:
                 raise ValueError(f"{shown} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
