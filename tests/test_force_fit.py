@@ -412,7 +412,8 @@ GOOD_ROWS = ["0,0,plane0,0,0,0", "1,0.005,plane0,0,-1.5,0", "2,0.01,plane0,0,-2.
 def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_and_frame(tmp_path):
     """Two rows of one tool for one frame were accepted (the last won), a negative frame was
     dropped, and a NaN or 1e400 force was refused as 'targets with shape (2, 3) is not
-    allowed: must be (2, 3) finite newtons' naming no file. Each is refused where the log is
+    allowed: must be (2, 3) finite newtons' naming no file, as a 1e300 one still was (past
+    what the loss squares). Each is refused where the log is
     read, by the file, the row (line), the frame and the column."""
     from warp_esph.fit import load_target  # noqa: PLC0415
     from warp_esph.losses import read_tools_csv  # noqa: PLC0415
@@ -430,6 +431,12 @@ def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_
                 r"a frame not measured is left out of the log \(no row\), as NaN marks a missing marker in positions"),
         "huge": ([GOOD_ROWS[0], GOOD_ROWS[1], "2,0.01,plane0,0,-2.5,1e400"],
                  r"huge\.csv, row 4 \(frame 2, tool 'plane0'\): fz = '1e400' is not allowed: must be a finite number"),
+        # Finite but past what the loss squares: it was refused as the loss's 'targets' (a name the
+        # command line never gave) by window and step, not by the file's row and column.
+        "square": ([GOOD_ROWS[0], GOOD_ROWS[1], "2,0.01,plane0,0,-1e300,0"],
+                   r"square\.csv, row 4 \(frame 2, tool 'plane0'\) is not allowed: it holds the force -1e\+300 \(fy\), past "
+                   r"what the float64 loss can square \(at most 1\.3e\+153 N; the float64 max is 1\.8e\+308\): give forces "
+                   r"in newtons$"),
         "time": ([GOOD_ROWS[0], "1,inf,plane0,0,-1.5,0"],
                  r"time\.csv, row 3 \(frame 1, tool 'plane0'\): time = 'inf' is not allowed: must be a finite number \(s\)"),
     }

@@ -1934,13 +1934,18 @@ def read_tools_csv(path) -> list[dict]:
                                "in positions") if math.isnan(v) else ""
                         raise ValueError(f"{shown}, row {line} (frame {frame}, tool {tool!r}): {c} = {row[c]!r} is not "
                                          f"allowed: must be a finite number{' (s)' if c == 'time' else ' (N)'}{gap}")
+                force = np.array([values["fx"], values["fy"], values["fz"]])
+                # Refused as the loss's 'targets' (a name the command line never gave) by window and
+                # step, not by the file's row and column.
+                checks.squarable_coordinates(f"{shown}, row {line} (frame {frame}, tool {tool!r})", force, "float64",
+                                             lambda w: ("fx", "fy", "fz")[w[0]], quantity="force", unit="N",
+                                             hint="give forces in newtons")
                 if (tool, frame) in seen:
                     # Silently the last row won: which of two measurements is the force is not ours to choose.
                     raise ValueError(f"{shown}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
                                      f"{seen[tool, frame]} already gives it (one row per tool and frame)")
                 seen[tool, frame] = line
-                out.append({"frame": frame, "time": values["time"], "tool": tool, "row": line,
-                            "force": np.array([values["fx"], values["fy"], values["fz"]])})
+                out.append({"frame": frame, "time": values["time"], "tool": tool, "row": line, "force": force})
     except OSError as e:
         raise ValueError(f"force log {shown} cannot be read: {e.strerror or e}") from None
     except (UnicodeDecodeError, csv.Error) as e:
