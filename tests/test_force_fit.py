@@ -616,6 +616,28 @@ def test_a_force_log_header_of_empty_or_repeated_names_is_read_or_refused_by_tha
         load_target(mislabelled, tool="plane0")
 
 
+def test_a_force_log_with_a_preamble_in_windows_code_page_reads_and_a_cell_it_reads_is_held_to_utf8(tmp_path):
+    """An instrument's preamble saved in Windows' code page ('# 23 °C' in cp1252) was refused
+    as "'utf-8' codec can't decode byte 0xb0 in position 33 ... (a damaged or foreign file?)",
+    where '#' lines before the header are read past (and a point cloud's so saved reads). A
+    header or tool cell the log reads is refused by its row, as not UTF-8, not misread."""
+    from warp_esph.losses import read_tools_csv  # noqa: PLC0415
+
+    body = "frame,time,tool,fx,fy,fz\n0,0,plane0,0,0,0\n1,0.005,plane0,0,-1.5,0\n"
+    pre = tmp_path / "pre.csv"
+    pre.write_bytes(("# Instron 5965\n# Temperature: 23 \u00b0C\n" + body).encode("cp1252"))
+    assert [r["force"][1] for r in read_tools_csv(pre)] == [0.0, -1.5]
+    for name, text, row in (("head", body.replace("fy", "fy (\u00b5N)"), "row 1 ('frame,time,tool,fx,fy (\ufffdN),fz')"),
+                            ("tool", body.replace("plane0", "Pl\u00e4tte"), "row 2 ('0,0,Pl\ufffdtte,0,0,0')")):
+        path = tmp_path / f"{name}.csv"
+        path.write_bytes(text.encode("cp1252"))
+        with pytest.raises(ValueError) as e:
+            read_tools_csv(path)
+        assert str(e.value) == (f"force log {path} cannot be read: {row} is not UTF-8 text (\ufffd marks a byte that is "
+                                "not): save the file as UTF-8 (a spreadsheet's 'CSV UTF-8'; one saved in Windows' cp1252?), "
+                                "or it is no force log (a damaged or foreign file?)")
+
+
 def _write(path, text):
     path.write_text(text)
     return path

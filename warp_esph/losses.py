@@ -1843,6 +1843,13 @@ def is_tools_csv(path) -> bool:
     return cols is not None and all(c in cols for c in TOOLS_CSV_COLUMNS)
 
 
+def _not_utf8(shown: str, line: int, text: str) -> str:
+    """The refusal of a force log's row that is not UTF-8 text (read with its bytes replaced)."""
+    return (f"force log {shown} cannot be read: row {line} ({checks.shorten(text.strip())!r}) is not UTF-8 text (\ufffd "
+            "marks a byte that is not): save the file as UTF-8 (a spreadsheet's 'CSV UTF-8'; one saved in Windows' "
+            "cp1252?), or it is no force log (a damaged or foreign file?)")
+
+
 def read_tools_csv(path) -> list[dict]:
     """Rows of a reaction-force log: ``{frame, time, tool, force (3,)}``; one row per tool
     and frame, frames >= 0, finite numbers (a ``ValueError`` naming the file and row
@@ -1859,8 +1866,13 @@ def read_tools_csv(path) -> list[dict]:
     out = []
     seen: dict[tuple[str, int], int] = {}
     try:
-        with open(p, newline="", encoding=checks.text_encoding(p)) as fh:
+        # errors="replace": an instrument's preamble saved in Windows' code page ('# 23 °C' in
+        # cp1252) was refused as 'utf-8' codec can't decode byte 0xb0 in position 33', where '#'
+        # lines are read past (as a point cloud's are); a cell the log reads is held to UTF-8 below.
+        with open(p, newline="", encoding=checks.text_encoding(p), errors="replace") as fh:
             head, skipped = tools_log_head(fh)
+            if "\ufffd" in head:
+                raise ValueError(_not_utf8(shown, skipped + 1, head))
             # 'frame, time, tool, ...' (spaces after the commas) read as the columns ' time',
             # ' tool', ... and the log was refused as lacking them, printed beside it.
             reader = csv.DictReader(itertools.chain([head], fh), skipinitialspace=True,
@@ -1896,7 +1908,10 @@ def read_tools_csv(path) -> list[dict]:
                 line = reader.line_num + skipped
                 if not row.get(None) and not any((v or "").strip() for key, v in row.items() if key is not None):
                     continue  # a spreadsheet's empty row (',,,,,') holds nothing
-                fields = sum(v is not None for key, v in row.items() if key is not None) + len(row.get(None) or [])
+                cells = [v for key, v in row.items() if key is not None and v is not None] + (row.get(None) or [])
+                if any("\ufffd" in v for v in cells):
+                    raise ValueError(_not_utf8(shown, line, ",".join(cells)))
+                fields = len(cells)
                 if fields != width:
                     # A row cut inside its fz read the digits left as the force (the torque columns
                     # after it unread), and a longer row was read as if it were this table's.
