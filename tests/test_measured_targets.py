@@ -224,6 +224,13 @@ def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_pa
     ("flat.xyz", "0.1 0.2\n0.3 0.4\n", r"is not allowed as a point cloud: it holds points of shape \(2, 2\)"),
     ("empty.xyz", "", r"is not allowed as a point cloud: it holds no points"),
     ("header_only.csv", "x,y,z\n", r"is not allowed as a point cloud: it holds no points"),
+    # A column named twice: the first was read and the other left without a word (two markers a
+    # row fitted the first marker's points alone; 'X [mm]' beside 'x' was not even unit-checked).
+    ("two_markers.csv", "x,y,z,x,y,z\n0.1,0.2,0.3,0.5,0.6,0.7\n",
+     r"its header names the column x twice \('x' in column 1, 'x' in column 4\); which one to read is not ours to "
+     r"choose: give one point a row, its columns x, y, z named once$"),
+    ("mm_beside.csv", "x,y,z,Z [mm]\n0.1,0.2,0.3,300\n", r"its header names the column z twice \('z' in column 3, "
+                                                           r"'Z \[mm\]' in column 4\)"),
 ])
 def test_a_cloud_text_file_that_is_no_cloud_in_metres_is_refused_by_name(tmp_path, name, text, message):
     (tmp_path / name).write_text(text)

@@ -4172,7 +4172,14 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         found, units = {}, {}
         for i, f in enumerate(fields):
             m = re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, f)
-            if m and m.group(1).lower() in ("x", "y", "z") and m.group(1).lower() not in found:
+            if m and m.group(1).lower() in found:
+                # The first was read and the other left without a word: 'x,y,z,x,y,z' (two markers
+                # a row) fitted the first marker's points alone.
+                axis = m.group(1).lower()
+                raise ValueError(f"its header names the column {axis} twice ({fields[found[axis]]!r} in column "
+                                 f"{found[axis] + 1}, {f!r} in column {i + 1}); which one to read is not ours to choose: "
+                                 "give one point a row, its columns x, y, z named once")
+            if m and m.group(1).lower() in ("x", "y", "z"):
                 found[m.group(1).lower()] = i
                 units[m.group(1).lower()] = (m.group(2) or "m").lower()
         if len(found) < 3:
