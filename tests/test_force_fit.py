@@ -864,6 +864,40 @@ def test_one_tools_force_log_in_two_experiments_at_a_shared_frame_is_refused(tmp
             assert err.endswith("stopped by the test with 2 experiments\n"), err
 
 
+def test_worlds_with_a_force_log_target_is_refused_by_the_option_before_any_scene_is_built(tmp_path, capsys, monkeypatch,
+                                                                                          dough_scene):
+    """``warp-esph fit --starts 2 --worlds`` with a force log (the command line's or an
+    experiment's) was refused by fit() after the scene was built, in its own words:
+    'worlds=True is not allowed with ReactionForceLoss ... (use worlds=False)', which the
+    command line never gave. It is refused by the option, before any scene or kernel."""
+    import warp  # noqa: PLC0415
+
+    from warp_esph import scenes  # noqa: PLC0415
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    def built(*args, **kwargs):
+        raise AssertionError("built or launched before the refusal")
+
+    monkeypatch.setattr(scenes, "load_scaled_scene", built)
+    monkeypatch.setattr(warp, "launch", built)
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{3.0 * k},0" for k in range(3)])
+    positions = tmp_path / "x.npy"
+    np.save(positions, np.zeros((3, 64, 3)))
+    experiments = tmp_path / "exp.json"
+    experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv"}]))
+    for target, extra in ((log, []), (positions, ["--experiments", str(experiments)])):
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(target), "--starts", "2", "--worlds", "--iterations", "0",
+                     "--no-usd", "--no-progress", "--params", "yield_stress", "--output-dir", str(tmp_path / "out")]
+                    + extra) == 2
+        err = capsys.readouterr().err
+        assert err == (f"warp-esph: error: --worlds is not allowed with the force-log target '{log}': a force curve's loss "
+                       "is evaluated on the host for one model, not per world; leave --worlds out (the --starts then run "
+                       "one after another)\n"), err
+
+
 def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refused_where_nothing_reads_it(
         tmp_path, capsys, dough_scene):
     """``--noise`` is metres, read by position, cloud and mesh targets: a force-only fit had

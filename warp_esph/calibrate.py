@@ -290,6 +290,16 @@ def run_fit(args, out=None, err=None) -> int:
     # A file that two experiments name is read then too, and one observed alike by both at
     # frames known so far refused (the frames a scene sets, once it is built, below): it was
     # refused after every scene was built and their kernels had run.
+    if _arg(args, "worlds", False):
+        from .losses import is_tools_csv  # noqa: PLC0415
+
+        logs = [path for _, spec in specs for path in _targets_of(spec) if is_tools_csv(path)]
+        if logs:
+            # fit() refused it after the scenes were built, in its own words ('worlds=True ...
+            # (use worlds=False)'), which the command line never gave.
+            raise ValueError(f"--worlds is not allowed with the force-log target {checks.shown_path(logs[0])}: a force curve's "
+                             "loss is evaluated on the host for one model, not per world; leave --worlds out (the --starts "
+                             "then run one after another)")
     named = [{checks.file_identity(path) for path in _targets_of(spec)} for _, spec in specs]
     shared = {real for i, mine in enumerate(named) for real in mine if any(real in other for other in named[i + 1:])}
     chosen = [load(where, spec, targets_only=True, shared=shared) for where, spec in specs]
