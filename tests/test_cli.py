@@ -907,6 +907,14 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, f"{tmp_path / 'exp.json'}: experiment #1: target file "
                                                    f"{tmp_path / 'missing.usdc'} does not exist")
+    # An empty list, and one experiment's object not in a list, were both told to 'give a list of
+    # experiments': each is said as what it is.
+    for doc, words in (([], "it lists no experiments: give one or more objects with the keys scene and target"),
+                       ({"scene": "s.toml", "target": "other.usdc"},
+                        "it is one experiment's object, not a list of them: write it in brackets, [{...}]")):
+        (tmp_path / "exp.json").write_text(json.dumps(doc))
+        assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+        assert_one_line_error(capsys.readouterr().err, f"--experiments {tmp_path / 'exp.json'} is not allowed: {words}")
     # A negative weight would maximise that experiment's loss.
     (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "other.usdc", "weight": -1}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

@@ -635,10 +635,15 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
 
     p = os.fspath(path)
     doc = checks.json_file("--experiments", p)
+    # Said what it is: an empty list and one experiment's object were both told to give a list.
+    single = isinstance(doc, dict) and "experiments" not in doc and bool(set(doc) & {"scene", "target"})
     if isinstance(doc, dict):
         doc = doc.get("experiments")
     if not isinstance(doc, list) or not doc:
-        raise ValueError(f"--experiments {checks.shown_path(p, False)} is not allowed: give a list of experiments (or {{\"experiments\": [...]}})")
+        why = ("it is one experiment's object, not a list of them: write it in brackets, [{...}]" if single else
+               "it lists no experiments: give one or more objects with the keys scene and target" if doc == [] else
+               "give a list of experiments (or {\"experiments\": [...]})")
+        raise ValueError(f"--experiments {checks.shown_path(p, False)} is not allowed: {why}")
     base = os.path.dirname(os.path.abspath(p))
     out = []
     for k, spec in enumerate(doc):
