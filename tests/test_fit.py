@@ -2739,6 +2739,34 @@ def test_python_fit_refuses_a_force_or_slump_measurement_past_what_the_loss_can_
         fit(model, slump, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
 
 
+def test_python_fit_refuses_a_slump_loss_of_another_spacing_axis_or_floor_than_the_models_pile(no_rollout_block):
+    """A ``SlumpLoss`` reads the measured edge half its ``spacing`` past the outer particles'
+    centres and the spread from the axis through ``center``: spacing=0.2 on a 0.02 m model added
+    0.1 m to what it compared, and a pile built away from the default axis (0, 0), or above a
+    ``floor`` given too high, was fitted against another place; each ran without a word. Each
+    is refused before any rollout, naming the value and what the model holds."""
+    model = no_rollout_block.finalize(dtype=wp.float64, requires_grad=True)  # x, z in [-0.01, 0.01], y from 0.04
+
+    def refused(message, **given):
+        slump = we.losses.SlumpLoss(0.05, 0.04, 4, **{"spacing": 0.02, **given})
+        with pytest.raises(ValueError) as e:
+            fit(model, slump, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
+        assert str(e.value) == f"target: SlumpLoss {message}"
+
+    refused("spacing = 0.2 is not allowed: the model's spacing is 0.02 m, and the loss reads the measured height and "
+            "spread half of it past the outer particles' centres; give spacing=model.spacing", spacing=0.2)
+    refused("center = (0.3, 0) is not allowed: the spread is measured from the vertical axis through it, and the "
+            "observed particles start at x in [-0.01, 0.01], z in [-0.01, 0.01] m: give the pile's axis (x, z)",
+            center=(0.3, 0.0))
+    refused("floor = 0.1 is not allowed: the observed particles start as low as y = 0.04 m, below it; give the height (y) "
+            "of the plate the pile rests on", floor=0.1)
+    # The pile's own geometry passes on to the rollout: an axis on its edge, a floor below it.
+    for given in ({}, {"center": (0.02, -0.02)}, {"floor": 0.035}, {"spacing": 0.02 * (1 + 1e-9)}):
+        with pytest.raises(AssertionError, match="a rollout ran"):
+            fit(model, we.losses.SlumpLoss(0.05, 0.04, 4, **{"spacing": 0.02, **given}), ["yield_stress"], steps=4,
+                dt=2e-4, iterations=1, progress=False, diagnostics=False)
+
+
 def test_evaluations_past_the_stable_step_are_warned_of_once_until_the_step_is_further_past_it():
     """A fit (or a torch loop) sets new parameter values before each evaluation, which moves
     ``Model.stable_dt`` a little each time. The solver warned once per ``(dt, limit)``, so a

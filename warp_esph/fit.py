@@ -473,6 +473,36 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
             checks.squarable_coordinates(what, t, precision, place)
 
 
+def _check_slump_geometry(loss: Loss, model: Model, what: str) -> None:
+    """Refuse, before any rollout, a ``SlumpLoss`` that cannot describe this model's pile: a
+    ``spacing`` other than the model's (the measured edge is read half of it past the outer
+    particles' centres: spacing=0.2 on a 0.02 m model added 0.1 m to the height and spread it
+    compared), an axis (``center``) outside the observed particles' horizontal extent at the
+    start, or a ``floor`` above any of them there (the default (0, 0) and 0 for a pile built
+    elsewhere measured it from another place). Each was fitted without a word."""
+    for leaf, world in _world_leaves(loss, None):
+        if not isinstance(leaf, SlumpLoss):
+            continue
+        at = f"{what} (world {world})" if world is not None else what
+        if not math.isclose(leaf.spacing, model.spacing, rel_tol=1e-6):
+            raise ValueError(f"{at}: SlumpLoss spacing = {leaf.spacing!r} is not allowed: the model's spacing is "
+                             f"{model.spacing!r} m, and the loss reads the measured height and spread half of it past the "
+                             "outer particles' centres; give spacing=model.spacing")
+        if world is not None or model.world_count != 1:
+            continue  # a world's particles are its own slice, placed at its origin
+        x = np.asarray(model.particle_x0, dtype=np.float64)
+        x = x if leaf.particles is None else x[leaf.particles]
+        lo, hi = x[:, [0, 2]].min(axis=0), x[:, [0, 2]].max(axis=0)
+        if leaf.spread is not None and ((leaf.center < lo - 0.5 * leaf.spacing) | (leaf.center > hi + 0.5 * leaf.spacing)).any():
+            raise ValueError(f"{at}: SlumpLoss center = ({leaf.center[0]:g}, {leaf.center[1]:g}) is not allowed: the spread "
+                             "is measured from the vertical axis through it, and the observed particles start at x in "
+                             f"[{lo[0]:g}, {hi[0]:g}], z in [{lo[1]:g}, {hi[1]:g}] m: give the pile's axis (x, z)")
+        low = float(x[:, 1].min())
+        if low < leaf.floor - 0.5 * leaf.spacing:
+            raise ValueError(f"{at}: SlumpLoss floor = {leaf.floor:g} is not allowed: the observed particles start as low "
+                             f"as y = {low:g} m, below it; give the height (y) of the plate the pile rests on")
+
+
 #: The factor between the spread of target positions about their centroid and the scene's
 #: particles' at the start past which ``_warn_target_scale`` asks for the units: far above
 #: what a body's flow makes of its shape (a slump's pancake spreads 2-3 times), below
@@ -1123,6 +1153,7 @@ class _Run(_Values):
         except ValueError as e:
             raise ValueError(f"{name}: target is not allowed for this model: {e}") from None
         _check_target_range(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
+        _check_slump_geometry(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         _warn_target_scale(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         _warn_target_below_planes(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         _watch_scan_coverage(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
