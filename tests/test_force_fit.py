@@ -574,6 +574,38 @@ def test_a_force_log_frame_named_twice_is_refused_as_every_target_frame(tmp_path
     assert not (tmp_path / "fit").exists()
 
 
+def test_force_log_frames_chosen_that_it_holds_no_row_of_are_refused_by_the_option_before_any_scene(
+        tmp_path, capsys, monkeypatch, dough_scene):
+    """``--target-frames 1,5`` of a log of frames 0-2 (or an experiment's ``target_frames``) was
+    refused by the loss, after the scene was built, as 'frames [5] are not allowed: log.csv has
+    no row of tool ...', a name the command line never gave. It is refused by the option, naming
+    the frames the log holds, before any scene is built."""
+    import warp  # noqa: PLC0415
+
+    from warp_esph import scenes  # noqa: PLC0415
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    def built(*args, **kwargs):
+        raise AssertionError("built or launched before the refusal")
+
+    monkeypatch.setattr(scenes, "load_scaled_scene", built)
+    monkeypatch.setattr(warp, "launch", built)
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{k},0" for k in range(3)])
+    experiments = tmp_path / "exp.json"
+    experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv", "target_frames": "2:4"}]))
+    fit = ["fit", str(scene), "--iterations", "0", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]
+    held = f"the force log {log} holds frames 0, 1, 2 of tool 'plane0', not"
+    for args, said in ((["--target", str(log), "--target-frames", "1,5"], f"--target-frames = '1,5' is not allowed: {held} 5"),
+                       (["--target", str(tmp_path / "x.npy"), "--experiments", str(experiments)],
+                        f"{experiments}: experiment #1: target_frames = '2:4' is not allowed: {held} 3, 4")):
+        np.save(tmp_path / "x.npy", np.zeros((3, 64, 3)))
+        capsys.readouterr()
+        assert main(fit + args) == 2
+        assert capsys.readouterr().err == f"warp-esph: error: {said}\n"
+
+
 def test_a_force_log_row_cut_short_or_too_long_is_refused_not_read_as_its_numbers(tmp_path):
     """A log cut inside the last row's fz (a copy stopped short, another program's file) read
     '-2.5' of '-2.5031' as the force, the missing torque columns unchecked; a row with more

@@ -768,7 +768,22 @@ def _chosen_frames(t, fspec, name: str):
     usd = os.path.splitext(str(t.path))[1].lower() in (".usd", ".usda", ".usdc")
     if fspec is None or usd or t.frames_stored:
         return None if t.frames is None else list(t.frames)
-    return _numbered_frames(fspec, name)
+    chosen = _numbered_frames(fspec, name)
+    _refuse_frames_not_logged(t, chosen, fspec, name)
+    return chosen
+
+
+def _refuse_frames_not_logged(t, chosen, fspec, name: str) -> None:
+    """Refuse frames chosen (``--target-frames``) that force log ``t`` holds no row of: the
+    loss refused them as 'frames [5] are not allowed', a name the command never gave, after
+    the scene was built."""
+    if t.kind != "forces":
+        return
+    held = sorted({r["frame"] for r in t.data})
+    absent = [f for f in chosen if f not in held]
+    if absent:
+        raise ValueError(f"{name} = {checks.shorten(fspec)!r} is not allowed: the force log {checks.shown_path(t.path, False)} holds "
+                         f"{_frames_said(held)} of tool {t.tool!r}, not {', '.join(map(str, absent))}")
 
 
 def _frames_said(frames) -> str:
@@ -976,6 +991,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                     # while fit.json recorded [2, 2], where every other target refuses it.
                     raise ValueError(f"{where}{key('target_frames')} = {checks.shorten(fspec)!r} is not allowed: it names frame {twice} twice; "
                                      "name each frame once")
+            _refuse_frames_not_logged(t, chosen, fspec, f"{where}{key('target_frames')}")
             t.frames = chosen
             numbered.add(id(t))
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
