@@ -1424,6 +1424,30 @@ def test_fit_dt_is_refused_by_the_option(tmp_path, capsys, dough_scene, dt, mess
     assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {message}"), err
 
 
+def test_fit_a_scene_files_dt_that_does_not_fill_its_frame_is_named_by_the_file_and_table(tmp_path, capsys, dough_scene):
+    """A scene file's own ``dt`` that does not divide its own frame was refused by ``fit`` as a
+    bare 'dt = 0.0007 is not allowed', a name typed nowhere, where ``run`` names the file and its
+    table; an experiment's scene file so too, after the experiment."""
+    from warp_esph.cli import main
+
+    good = tmp_path / "good.toml"
+    good.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    bad = tmp_path / "bad.toml"
+    bad.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0).replace("fps = 30", "fps = 30\ndt = 0.0007"))
+    np.savez(tmp_path / "t.npz", positions=np.zeros((64, 3)))
+    np.savez(tmp_path / "u.npz", positions=np.ones((64, 3)))
+    experiments = tmp_path / "exp.json"
+    experiments.write_text(json.dumps([{"scene": "bad.toml", "target": "u.npz"}]))
+    said = "[scene] dt = 0.0007 is not allowed: a frame (1/fps = 0.0333333 s) must be a whole number of steps"
+    for scene, extra, prefix in ((bad, [], f"{bad}: "), (good, ["--experiments", str(experiments)],
+                                                          f"{experiments}: experiment #1: bad.toml: ")):
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(tmp_path / "t.npz"), "--no-progress", "--output-dir",
+                     str(tmp_path / "out"), *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {prefix}{said}"), err
+
+
 def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_fit_s_options(tmp_path, capsys, dough_scene):
     """Frames of 10000 s at the stable step: the advice was Python's 'give dt or substeps', and
     'warp-esph fit' has no substeps; it names the command's options."""

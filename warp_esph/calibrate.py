@@ -1062,6 +1062,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}{e.reason}: use {cure}, a larger spacing,{higher} or give "
                          f"{'its dt' if where else '--dt'}") from None
     except ValueError as e:
+        if (not given["dt"] and scene.dt is not None and not (given["fps"] or stored) and str(e).startswith("dt = ")
+                and str(spec["scene"]).lower().endswith(".toml")):
+            # The scene file's own dt at its own rate: named as a bare 'dt', typed nowhere, where
+            # 'warp-esph run' names the file and its table.
+            raise ValueError(f"{where}{checks.shown_path(spec['scene'], False)}: [scene] {e}") from None
         if given["dt"] or scene.dt is None or "whole number of steps" not in str(e) or not (given["fps"] or stored):
             raise
         # The scene's own step (a figure's) at a rate the fit set: resolve_timestep named a bare
