@@ -3170,6 +3170,19 @@ def test_the_fit_says_the_fitted_values_as_a_lab_measures_them(tmp_path, capsys,
                  "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
     out = capsys.readouterr().out
     assert f"  as a lab measures them: plastic_viscosity = {fitted.plastic_viscosity:.6g} Pa s (" in out, out
+    # mu fitted with the flow rate held moves the plastic viscosity (mu / flow_rate): a scene's
+    # plastic_viscosity (a rheometer's) ended elsewhere, and no line said it.
+    assert main(["fit", str(scene), "--target", str(run), "--params", "mu", "--iterations", "0",
+                 "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
+    out = capsys.readouterr().out
+    assert (f"  as a lab measures them: plastic_viscosity = {fitted.plastic_viscosity:.6g} Pa s (mu / flow_rate, the flow "
+            "rate held: it moved with the fitted mu) (Material.from_rheology's)\n") in out, out
+    # A material that never flows has none to say.
+    elastic = tmp_path / "elastic.toml"
+    elastic.write_text(dough_scene(yield_stress="inf", flow_rate=10.0, frames=2))
+    assert main(["fit", str(elastic), "--target", str(run), "--params", "mu", "--iterations", "0",
+                 "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 0
+    assert "as a lab measures them" not in capsys.readouterr().out
 
 
 def test_fit_material_selects_a_scene_files_material_by_its_name(tmp_path, capsys, monkeypatch, two_materials_scene):

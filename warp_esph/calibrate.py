@@ -1293,13 +1293,18 @@ def _lab_values(result) -> str | None:
     properties), one value per fitted material; None where neither is fitted or a fitted
     material is no Bingham fluid (the properties refuse it)."""
     materials = [result.materials[k] for k in result.material_indices]
+    # mu fitted with the flow rate held moves the plastic viscosity (mu / flow_rate) with it: a
+    # scene's plastic_viscosity = 5 Pa s (a rheometer's) ended as 2.37 Pa s, and nothing said so.
+    moved = "mu" in result.params and "flow_rate" not in result.params and all(m.plastic for m in materials)
     names = (["shear_yield_stress", "uniaxial_yield_stress"] if "yield_stress" in result.params else []) + (
-        ["plastic_viscosity"] if "flow_rate" in result.params else [])
+        ["plastic_viscosity"] if "flow_rate" in result.params or moved else [])
     try:
         said = [f"{name} = {', '.join(f'{getattr(m, name):.6g}' for m in materials)} {'Pa s' if 'visc' in name else 'Pa'}"
                 for name in names]
     except ValueError:
         return None
+    if moved:
+        said[-1] += " (mu / flow_rate, the flow rate held: it moved with the fitted mu)"
     return ", ".join(said) or None
 
 
