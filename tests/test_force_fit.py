@@ -574,22 +574,28 @@ def test_a_force_log_frame_named_twice_is_refused_as_every_target_frame(tmp_path
     assert not (tmp_path / "fit").exists()
 
 
-def test_force_log_frames_chosen_that_it_holds_no_row_of_are_refused_by_the_option_before_any_scene(
-        tmp_path, capsys, monkeypatch, dough_scene):
-    """``--target-frames 1,5`` of a log of frames 0-2 (or an experiment's ``target_frames``) was
-    refused by the loss, after the scene was built, as 'frames [5] are not allowed: log.csv has
-    no row of tool ...', a name the command line never gave. It is refused by the option, naming
-    the frames the log holds, before any scene is built."""
+@pytest.fixture
+def no_scene_built(monkeypatch):
+    """Every scene build and kernel launch made a failure: a refusal must come before them."""
     import warp  # noqa: PLC0415
 
     from warp_esph import scenes  # noqa: PLC0415
-    from warp_esph.cli import main  # noqa: PLC0415
 
     def built(*args, **kwargs):
         raise AssertionError("built or launched before the refusal")
 
     monkeypatch.setattr(scenes, "load_scaled_scene", built)
     monkeypatch.setattr(warp, "launch", built)
+
+
+def test_force_log_frames_chosen_that_it_holds_no_row_of_are_refused_by_the_option_before_any_scene(
+        tmp_path, capsys, no_scene_built, dough_scene):
+    """``--target-frames 1,5`` of a log of frames 0-2 (or an experiment's ``target_frames``) was
+    refused by the loss, after the scene was built, as 'frames [5] are not allowed: log.csv has
+    no row of tool ...', a name the command line never gave. It is refused by the option, naming
+    the frames the log holds, before any scene is built."""
+    from warp_esph.cli import main  # noqa: PLC0415
+
     scene = tmp_path / "guess.toml"
     scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
     log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{k},0" for k in range(3)])
@@ -897,22 +903,14 @@ def test_one_tools_force_log_in_two_experiments_at_a_shared_frame_is_refused(tmp
             assert err.endswith("stopped by the test with 2 experiments\n"), err
 
 
-def test_worlds_with_a_force_log_target_is_refused_by_the_option_before_any_scene_is_built(tmp_path, capsys, monkeypatch,
+def test_worlds_with_a_force_log_target_is_refused_by_the_option_before_any_scene_is_built(tmp_path, capsys, no_scene_built,
                                                                                           dough_scene):
     """``warp-esph fit --starts 2 --worlds`` with a force log (the command line's or an
     experiment's) was refused by fit() after the scene was built, in its own words:
     'worlds=True is not allowed with ReactionForceLoss ... (use worlds=False)', which the
     command line never gave. It is refused by the option, before any scene or kernel."""
-    import warp  # noqa: PLC0415
-
-    from warp_esph import scenes  # noqa: PLC0415
     from warp_esph.cli import main  # noqa: PLC0415
 
-    def built(*args, **kwargs):
-        raise AssertionError("built or launched before the refusal")
-
-    monkeypatch.setattr(scenes, "load_scaled_scene", built)
-    monkeypatch.setattr(warp, "launch", built)
     scene = tmp_path / "guess.toml"
     scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
     log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{3.0 * k},0" for k in range(3)])
