@@ -3851,7 +3851,12 @@ class Target:
             if surface_offset >= r:
                 raise ValueError(f"surface_offset (--cloud-offset) = {surface_offset:g} m is not allowed: must be below the "
                                  f"search radius (--radius) = {r:g} m (a scanned point is matched within the radius)")
-            return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset)
+            # Pinned particles (a particle floor's, a clamp's) are held: a scan of the sample need not
+            # show them, and no parameter moves them (ChamferLoss's held).
+            tools = getattr(model, "tools", None)
+            held = None if tools is None else np.flatnonzero(tools.pin.numpy() >= 0)
+            return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset,
+                               held=held if held is not None and held.size else None)
         return MeshLoss(self.data, frames=steps, mode=mode)
 
 
