@@ -236,6 +236,16 @@ def test_a_clouds_fit_leaves_a_particle_floors_particles_out_of_its_particle_sid
     assert loss.value({0: wp.array(np.asarray(model.particle_x0), dtype=wp.vec3d)}) == 0.0
     assert loss.observation_count() == 2 * int((~pinned).sum())
     np.testing.assert_array_equal(loss.held, np.flatnonzero(pinned))
+    # A mesh of the scan compares each particle with its surface alone: the floor's are left out
+    # (they had counted as 104 of the 168 observations, doubling the noise the diagnostics read).
+    from warp_esph.meshes import write_mesh
+    from warp_esph.surface import particle_surface
+
+    write_mesh(tmp_path / "scan.obj", *particle_surface(np.asarray(model.particle_x0)[~pinned], 0.02))
+    mesh = load_target(tmp_path / "scan.obj").loss(model, {0: 0})
+    x0 = {0: wp.array(np.asarray(model.particle_x0), dtype=wp.vec3d)}
+    assert mesh.value(x0) == pytest.approx(type(mesh)(mesh.meshes, particles=np.flatnonzero(~pinned)).value(x0), rel=1e-12)
+    assert mesh.observation_count() == int((~pinned).sum())
 
 
 PILE = """

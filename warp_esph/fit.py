@@ -3857,7 +3857,12 @@ class Target:
             held = None if tools is None else np.flatnonzero(tools.pin.numpy() >= 0)
             return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset,
                                held=held if held is not None and held.size else None)
-        return MeshLoss(self.data, frames=steps, mode=mode)
+        # A mesh compares each particle with its surface alone: the pinned ones (held, as above)
+        # are left out.
+        tools = getattr(model, "tools", None)
+        pinned = None if tools is None else tools.pin.numpy() >= 0
+        free = None if pinned is None or not pinned.any() or pinned.all() else np.flatnonzero(~pinned)
+        return MeshLoss(self.data, frames=steps, mode=mode, particles=free)
 
 
 _CLOUD_TEXT = (".xyz", ".txt", ".csv", ".pts")
