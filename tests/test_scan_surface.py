@@ -248,6 +248,39 @@ def test_a_clouds_fit_leaves_a_particle_floors_particles_out_of_its_particle_sid
     assert mesh.observation_count() == int((~pinned).sum())
 
 
+def test_a_camera_fit_of_a_pile_on_a_particle_floor_draws_the_pile_alone(tmp_path, monkeypatch, capsys):
+    """``warp-esph fit --cameras`` of a pile on a particle floor drew the floor's pinned
+    particles into the soft silhouette, a slab under the pile that a mask of the sample leaves
+    empty. The command's silhouette loss now draws the unpinned particles alone."""
+    import json
+
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scaled_scene
+
+    (tmp_path / "pile.toml").write_text(PILE)
+    model = load_scaled_scene(str(tmp_path / "pile.toml"), 1.0).builder.finalize(dtype=wp.float64)
+    free = np.flatnonzero(model.tools.pin.numpy() < 0)
+    assert 0 < len(free) < model.particle_count
+    K = [[100.0, 0.0, 15.5], [0.0, 100.0, 11.5], [0.0, 0.0, 1.0]]
+    (tmp_path / "cameras.json").write_text(json.dumps({"cameras": [
+        {"name": "front", "width": 32, "height": 24, "K": K, "R": np.diag([1.0, -1.0, -1.0]).tolist(), "t": [0.0, 0.03, 0.5]}],
+        "radius": 0.01}))
+    np.savez(tmp_path / "masks.npz", front_2=np.zeros((24, 32), dtype=np.uint8))
+    seen = []
+
+    def stand_in(experiments, *args, **kwargs):
+        seen.extend(experiments)
+        raise ValueError("stopped by the test")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    assert main(["fit", str(tmp_path / "pile.toml"), "--target", str(tmp_path / "masks.npz"), "--cameras",
+                 str(tmp_path / "cameras.json"), "--params", "yield_stress", "--no-progress", "--output-dir",
+                 str(tmp_path / "out")]) == 2
+    assert "stopped by the test" in capsys.readouterr().err
+    np.testing.assert_array_equal(seen[0].target.particles, free)
+
+
 PILE = """
 [scene]
 spacing = 0.02

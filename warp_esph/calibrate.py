@@ -1123,7 +1123,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
             source = (key("frames") if spec.get("frames") is not None else
                       "the targets' last frame" if shown else "the scene's frames")
-            term = silhouette_target(t, frames, substeps, source, camera_file=cameras)
+            from .fit import unpinned_particles  # noqa: PLC0415
+
+            # A camera's mask shows the sample, not a particle floor's pinned particles under it,
+            # which had been drawn into the silhouette as a slab the masks leave empty.
+            term = silhouette_target(t, frames, substeps, source, camera_file=cameras,
+                                     particles=unpinned_particles(model))
         else:
             if t.frames is None:
                 t.frames = [frames]

@@ -473,6 +473,21 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
             checks.squarable_coordinates(what, t, precision, place)
 
 
+def pinned_particles(model: Model) -> np.ndarray | None:
+    """Which of the model's particles are pinned (a particle floor's, a clamp's: no parameter
+    moves them; a boolean mask), or None where none is."""
+    tools = getattr(model, "tools", None)
+    pinned = None if tools is None else tools.pin.numpy() >= 0
+    return pinned if pinned is not None and pinned.any() else None
+
+
+def unpinned_particles(model: Model) -> np.ndarray | None:
+    """The indices of the model's particles that are not pinned, for a loss's ``particles``
+    (a measurement of the sample: a mesh, camera masks); None where none is pinned (or all)."""
+    pinned = pinned_particles(model)
+    return None if pinned is None or pinned.all() else np.flatnonzero(~pinned)
+
+
 def _check_slump_geometry(loss: Loss, model: Model, what: str) -> None:
     """Refuse, before any rollout, a ``SlumpLoss`` that cannot describe this model's pile: a
     ``spacing`` other than the model's (the measured edge is read half of it past the outer
@@ -3853,16 +3868,12 @@ class Target:
                                  f"search radius (--radius) = {r:g} m (a scanned point is matched within the radius)")
             # Pinned particles (a particle floor's, a clamp's) are held: a scan of the sample need not
             # show them, and no parameter moves them (ChamferLoss's held).
-            tools = getattr(model, "tools", None)
-            held = None if tools is None else np.flatnonzero(tools.pin.numpy() >= 0)
+            pinned = pinned_particles(model)
             return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset,
-                               held=held if held is not None and held.size else None)
+                               held=None if pinned is None else np.flatnonzero(pinned))
         # A mesh compares each particle with its surface alone: the pinned ones (held, as above)
         # are left out.
-        tools = getattr(model, "tools", None)
-        pinned = None if tools is None else tools.pin.numpy() >= 0
-        free = None if pinned is None or not pinned.any() or pinned.all() else np.flatnonzero(~pinned)
-        return MeshLoss(self.data, frames=steps, mode=mode, particles=free)
+        return MeshLoss(self.data, frames=steps, mode=mode, particles=unpinned_particles(model))
 
 
 _CLOUD_TEXT = (".xyz", ".txt", ".csv", ".pts")

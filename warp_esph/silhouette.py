@@ -639,10 +639,12 @@ def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, 
     return cameras, options, masks
 
 
-def silhouette_target(read, frames: int, substeps: int, source: str = "--frames", camera_file=None) -> SilhouetteLoss:
+def silhouette_target(read, frames: int, substeps: int, source: str = "--frames", camera_file=None,
+                      particles=None) -> SilhouetteLoss:
     """The ``SilhouetteLoss`` of ``read`` (``read_silhouette_masks``) for a run of ``frames``
     frames (``source`` names what set it) at ``substeps`` steps per frame; ``camera_file``:
-    the file ``read`` took the cameras and radius from, named where the radius is refused."""
+    the file ``read`` took the cameras and radius from, named where the radius is refused;
+    ``particles``: those the masks show (the loss's)."""
     cameras, options, masks = read
     masks = {frames if f is None else f: m for f, m in masks.items()}
     bad = [f for f in masks if f > frames or f <= 0]
@@ -651,7 +653,8 @@ def silhouette_target(read, frames: int, substeps: int, source: str = "--frames"
         # targets' last frame, or the scene's).
         raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} ({source})")
     return SilhouetteLoss({f * substeps: m for f, m in masks.items()}, cameras, radius=float(options["radius"]),
-                          opacity=float(options.get("opacity", DEFAULT_OPACITY)), camera_file=camera_file)
+                          opacity=float(options.get("opacity", DEFAULT_OPACITY)), camera_file=camera_file,
+                          particles=particles)
 
 
 def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
