@@ -1,6 +1,7 @@
 """The float64 loss the gradient tests differentiate: ``sum_i dot(x_i, w_i)`` over the last
 state of a taped rollout, with fixed random weights ``w`` (every particle and every direction
-reaches the loss, with no symmetry that could hide a wrong adjoint)."""
+reaches the loss, with no symmetry that could hide a wrong adjoint); and a loss's central
+differences in the positions it compares."""
 
 import numpy as np
 import warp as wp
@@ -124,3 +125,16 @@ def assert_central_differences_converge(g: float, loss_at, step: float, ladder, 
         assert max(rings, default=0.0) <= spread, ("a ring's slope strays from the tape: a jump", what, steps, rings)
     return errors, rings
 
+
+def loss_central_differences(loss, x, entries, frame: int, eps: float = 1e-7) -> list:
+    """d loss / d x[i, c] by central differences of ``loss.value`` at ``frame`` (float64
+    positions ``x``), for each ``(i, c)`` of ``entries``."""
+    fd = []
+    for i, c in entries:
+        vals = []
+        for d in (eps, -eps):
+            p = x.copy()
+            p[i, c] += d
+            vals.append(loss.value({frame: wp.array(p, dtype=wp.vec3d)}))
+        fd.append((vals[0] - vals[1]) / (2 * eps))
+    return fd

@@ -14,6 +14,8 @@ from warp_esph.fit import fit
 from warp_esph.losses import ChamferLoss, surface_particles
 from warp_esph.rollout import Rollout
 
+from taped_loss import loss_central_differences
+
 NOISE = 2e-4  # a lab scanner's 0.2 mm
 
 
@@ -64,15 +66,7 @@ def test_the_one_way_loss_is_the_scans_mean_squared_distance_and_its_gradient_is
     assert len(seen) > 5 and len(unseen) > 20
     assert np.all(g[unseen] == 0.0), "a particle no scan point is nearest to is not pulled"
     entries = [(int(i), c) for i in seen[:4] for c in range(3)] + [(int(unseen[0]), 1)]
-    eps = 1e-6
-    fd = []
-    for i, c in entries:
-        vals = []
-        for d in (eps, -eps):
-            p = x.copy()
-            p[i, c] += d
-            vals.append(loss.value({3: wp.array(p, dtype=wp.vec3d)}))
-        fd.append((vals[0] - vals[1]) / (2 * eps))
+    fd = loss_central_differences(loss, x, entries, 3, eps=1e-6)
     assert np.array([g[i, c] for i, c in entries]) == pytest.approx(np.array(fd), rel=1e-6, abs=0.0)
     r2 = loss.residuals({3: x})
     assert np.sum(r2**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10, abs=0.0)

@@ -13,6 +13,8 @@ import warp_esph as we
 from warp_esph.losses import ChamferLoss
 from warp_esph.rollout import Rollout
 
+from taped_loss import loss_central_differences
+
 DX = 0.02
 
 
@@ -28,19 +30,6 @@ def _host(x, y, r, s, coverage="full"):
 
     one = side(d2.min(axis=0))
     return one if coverage == "partial" else one + side(d2.min(axis=1))
-
-
-def _central_differences(loss, x, entries, eps=1e-7):
-    """d loss / d x[i, c] at frame 2 by central differences, for each ``(i, c)`` of ``entries``."""
-    fd = []
-    for i, c in entries:
-        vals = []
-        for d in (eps, -eps):
-            p = x.copy()
-            p[i, c] += d
-            vals.append(loss.value({2: wp.array(p, dtype=wp.vec3d)}))
-        fd.append((vals[0] - vals[1]) / (2 * eps))
-    return fd
 
 
 @pytest.mark.parametrize("coverage", ["full", "partial"])
@@ -60,7 +49,7 @@ def test_the_offset_loss_and_its_gradient_are_exact(coverage):
     assert value == pytest.approx(_host(x, y, r, s, coverage), rel=1e-12, abs=0.0)
     g = grads[2].numpy()
     entries = [(0, 0), (0, 1), (0, 2), (3, 0), (7, 1), (12, 2), (30, 0), (38, 1)]
-    fd = _central_differences(loss, x, entries)
+    fd = loss_central_differences(loss, x, entries, 2)
     assert np.any(np.abs(fd) > 1e-4)
     assert np.array([g[i, c] for i, c in entries]) == pytest.approx(np.array(fd), rel=1e-6, abs=0.0)
     res = loss.residuals({2: x})
@@ -210,7 +199,7 @@ def test_held_particles_are_left_out_of_the_particle_side_and_stay_candidates_of
     assert value == pytest.approx(want, rel=1e-12, abs=0.0)
     g = grads[2].numpy()
     entries = [(0, 0), (3, 1), (5, 2), (12, 0), (20, 1)]
-    fd = _central_differences(loss, x, entries)
+    fd = loss_central_differences(loss, x, entries, 2)
     assert np.count_nonzero(np.abs(fd) > 1e-5) >= 3
     assert np.array([g[i, c] for i, c in entries]) == pytest.approx(np.array(fd), rel=1e-6, abs=1e-12)
     res = loss.residuals({2: x})
