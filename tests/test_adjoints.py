@@ -341,7 +341,7 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
                                model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky",
                                second_pressure_force: str | None = None, ground: float | None = None,
                                fit: str | None = None, pair_repulsion: float = 0.0, friction: float = 0.5,
-                               image_jitter: float = 0.0):
+                               image_jitter: float = 0.0, max_condition: float | None = None):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones; with
     ``second_pressure_force`` a second block of that force touches the first; with ``ground``
@@ -350,7 +350,8 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     and the block then also sliding along x at 0.3 m/s), squeezed towards it; ``fit``: ``Solver(fit=...)``; with
     ``pair_repulsion`` (``Material``'s) its particle 1 starts 0.3 dx from particle 0, within
     the repulsion's range (0.5 dx); with ``image_jitter`` the images' initial F is moved from
-    ``I`` by up to that in each entry (no mirrors of their particles')."""
+    ``I`` by up to that in each entry (no mirrors of their particles'); with ``max_condition``
+    ``Solver(max_condition=...)``."""
     import warp_esph as we  # noqa: PLC0415
 
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
@@ -372,7 +373,7 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     model.particle_v0 = (20.0 if ground is None else -20.0) * model.particle_x0 * np.array([1.0, -0.5, 0.0])
     if friction == 0.0:
         model.particle_v0 = model.particle_v0 + np.array([0.3, 0.0, 0.0])
-    solver = we.Solver(model, fit=fit)
+    solver = we.Solver(model, fit=fit, **({} if max_condition is None else {"max_condition": max_condition}))
     solver.hand_adjoints = hand
     # The fused forward with the hand-written adjoints, or neither (the corrected fit is not fused).
     assert solver.fast_under_tape() == (hand and fit in (None, "linear"))
@@ -658,6 +659,19 @@ def test_hand_written_adjoints_carry_the_moving_floor_images(scalar, tol, ground
     measured)."""
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy", ground=ground, friction=0.0, fit=fit,
                                    image_jitter=image_jitter)
+
+
+@pytest.mark.parametrize("fit", [None, "curvature_corrected"], ids=["linear", "corrected"])
+def test_hand_written_adjoints_carry_the_image_share_force_through_the_guards_fade(fit):
+    """The image's share's force (``forces.image_share_force``, ``-s V c' (psi_g - psi) n``)
+    carries the guards' fade ``s`` of its particle's fit, and its adjoint a term in ``adj s``
+    (``forces.image_share_adjoint``), read through ``ds/dA`` only where the fade is neither 0
+    nor 1. The fade case above with ``max_condition`` 1.3, so that the condition guard fades
+    many fits (none from 3 up to the default 20: there that term read nothing, removed or
+    not): within 1e-10 (measured 2.0e-14 / 4.7e-15, linear / corrected); without the term
+    2.6e-5 / 2.0e-5 off (measured)."""
+    _assert_hand_matches_generated(wp.float64, 1e-10, pressure_force="energy", ground=-0.045, friction=0.0, fit=fit,
+                                   image_jitter=0.01, max_condition=1.3)
 
 
 _gf = guards.guard_funcs(S)
