@@ -11,7 +11,7 @@ import warp as wp
 
 import warp_esph as we
 
-from energy_fd import corotated_psi
+from energy_fd import corotated_psi, image_energy_share
 
 DX = 0.02
 
@@ -287,13 +287,14 @@ def test_a_block_floating_on_the_frictionless_imaged_ground_is_its_own_mirror_im
 def test_an_undamped_block_resting_below_half_a_spacing_on_the_frictionless_imaged_ground_gains_no_energy(fused, fit):
     """Below half a spacing the frictionless imaged ground's images are no mirrors (held on the
     depth ramp, ``deformation.image_depth``); its force is minus the gradient of the energy it
-    stores, ``1/2 (E_i + E_g)`` within ``h`` of the plane (``forces.image_energy_share``,
-    ``forces.moving_image_forces``), so an undamped body resting there keeps its energy but for
+    stores, ``(1 - c) E_i + c E_g`` with the image's share ``c`` 1/2 within ``h - dx/2`` of the
+    plane, fading to 0 at ``h`` (``forces.image_energy_share``, ``forces.moving_image_forces``;
+    no particle of this block reaches the fade: measured), so an undamped body resting there keeps its energy but for
     the step's own error. A 4 x 3 x 4 elastic block (5 mm spacing, mu 3.6 kPa, nu 0.2, 1000
     kg/m^3, no SPH pressure, float64, gravity) let go with its bottom layer 0.4 spacings up and
     random velocities of 2 mm/s, at half the stable step for 0.2 s: its total energy (the
-    kinetic of the half-step velocities' mean, gravity's, and ``V psi(F)`` stored, halved with
-    the image's within ``h``) against its start. The bound: the step's own error, first order
+    kinetic of the half-step velocities' mean, gravity's, and ``V psi(F)`` stored, shared with
+    the image's as the force shares them) against its start. The bound: the step's own error, first order
     in the step and of either sign (the fits' F updated from the step's positions), was
     measured from 0.025 (a block floating free) to 0.09 (this form, a larger block with the SPH
     pressure) of the ringing's kinetic energy a second (docs/physics.md, "The frictionless
@@ -325,7 +326,8 @@ def test_an_undamped_block_resting_below_half_a_spacing_on_the_frictionless_imag
             vbar = 0.5 * (v0 + c.v.numpy())
             ke = 0.5 * float((mass[:, None] * vbar * vbar).sum())
             psi, psi_g = corotated_psi(m, F), corotated_psi(m, Fg)
-            stored = float((V * np.where(x[:, 1] < h, 0.5 * (psi + psi_g), psi)).sum())
+            share = image_energy_share(x[:, 1], h, dx)
+            stored = float((V * ((1.0 - share) * psi + share * psi_g)).sum())
             total.append(ke + g * float((mass * x[:, 1]).sum()) + stored)
             kinetic.append(ke)
             lowest.append(x[:, 1].min())
