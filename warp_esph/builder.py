@@ -536,6 +536,7 @@ class SceneBuilder:
         self._count += len(floor)
         self._floors.add(bd.name)
         pin = self.pin(indices=np.arange(start, self._count), name=name)
+        self.pins[-1] = dataclasses.replace(self.pins[-1], floor=True)
         if default_layers:
             self._default_floors[pin] = (layers, self.support_radius)
         return pin

@@ -473,18 +473,23 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
             checks.squarable_coordinates(what, t, precision, place)
 
 
-def pinned_particles(model: Model) -> np.ndarray | None:
+def pinned_particles(model: Model, floors: bool = False) -> np.ndarray | None:
     """Which of the model's particles are pinned (a particle floor's, a clamp's: no parameter
-    moves them; a boolean mask), or None where none is."""
+    moves them; a boolean mask), or None where none is; ``floors``: a particle floor's alone
+    (``add_particle_floor``: no part of the sample)."""
     tools = getattr(model, "tools", None)
-    pinned = None if tools is None else tools.pin.numpy() >= 0
+    pin_of = None if tools is None else tools.pin.numpy()
+    if pin_of is not None and floors:
+        pin_of = np.where(np.isin(pin_of, [len(tools.colliders) + j for j, p in enumerate(tools.pins) if p.floor]), pin_of, -1)
+    pinned = None if pin_of is None else pin_of >= 0
     return pinned if pinned is not None and pinned.any() else None
 
 
-def unpinned_particles(model: Model) -> np.ndarray | None:
-    """The indices of the model's particles that are not pinned, for a loss's ``particles``
-    (a measurement of the sample: a mesh, camera masks); None where none is pinned (or all)."""
-    pinned = pinned_particles(model)
+def unpinned_particles(model: Model, floors: bool = False) -> np.ndarray | None:
+    """The indices of the model's particles that are not pinned (``floors``: not a particle
+    floor's), for a loss's ``particles`` (a measurement of the sample: a mesh, camera masks);
+    None where none is pinned (or all)."""
+    pinned = pinned_particles(model, floors)
     return None if pinned is None or pinned.all() else np.flatnonzero(~pinned)
 
 

@@ -280,6 +280,9 @@ class PinSet:
     name: str
     indices: np.ndarray
     motion: object
+    #: A particle floor's (``SceneBuilder.add_particle_floor``): no part of the sample, which a
+    #: camera's mask of the sample leaves empty (``fit.floor_particles``).
+    floor: bool = False
 
 
 def shape_param(kind: str, *, normal=None, half_extents=None, radius=None, half_height=None) -> tuple:
