@@ -2767,6 +2767,32 @@ def test_python_fit_refuses_a_slump_loss_of_another_spacing_axis_or_floor_than_t
                 dt=2e-4, iterations=1, progress=False, diagnostics=False)
 
 
+
+def test_python_fit_refuses_a_slump_loss_observing_a_particle_floors_pinned_particles(no_rollout_block):
+    """A pile on a particle floor observed whole (``particles=None``): the floor's pinned layers
+    under it were refused as a ``floor`` given too high ('give the height (y) of the plate'), the
+    plate given right, and the floor's margin, wider than the pile, would read as its spread.
+    Refused naming the pinned particles observed; the pile's own particles pass to the rollout."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    b.add_particle_floor(0, margin=0.02)  # layers at y = 0.02, 0.0 under the pile's 0.04: its plate at 0.03
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    pile = np.flatnonzero(model.tools.pin.numpy() < 0)
+    held = model.particle_count - len(pile)
+    assert len(pile) == 8 and held > 8
+
+    def run(particles):
+        fit(model, we.losses.SlumpLoss(0.05, 0.04, 4, spacing=0.02, floor=0.03, particles=particles), ["yield_stress"],
+            steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
+
+    with pytest.raises(ValueError) as e:
+        run(None)
+    assert str(e.value) == (f"target: SlumpLoss particles = None (every particle) is not allowed: they include {held} pinned "
+                            "particles (a particle floor's, a clamp's), whose height and spread are no pile's; give "
+                            "particles= the pile's (np.flatnonzero(model.tools.pin.numpy() < 0))")
+    with pytest.raises(AssertionError, match="a rollout ran"):
+        run(pile)
+
 def test_evaluations_past_the_stable_step_are_warned_of_once_until_the_step_is_further_past_it():
     """A fit (or a torch loop) sets new parameter values before each evaluation, which moves
     ``Model.stable_dt`` a little each time. The solver warned once per ``(dt, limit)``, so a

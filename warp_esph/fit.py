@@ -511,6 +511,14 @@ def _check_slump_geometry(loss: Loss, model: Model, what: str) -> None:
         if world is not None or model.world_count != 1:
             continue  # a world's particles are its own slice, placed at its origin
         x = np.asarray(model.particle_x0, dtype=np.float64)
+        pinned = pinned_particles(model)
+        held = 0 if pinned is None else int(np.count_nonzero(pinned if leaf.particles is None else pinned[leaf.particles]))
+        if held:
+            # A particle floor's, observed: its layers under the pile were refused as a floor given
+            # too high (the plate given right), and its margin wider than the pile read as spread.
+            raise ValueError(f"{at}: SlumpLoss particles = {'None (every particle)' if leaf.particles is None else checks.shorten(leaf.particles)} is not allowed: they include "
+                             f"{checks.plural(held, 'pinned particle')} (a particle floor's, a clamp's), whose height and "
+                             "spread are no pile's; give particles= the pile's (np.flatnonzero(model.tools.pin.numpy() < 0))")
         x = x if leaf.particles is None else x[leaf.particles]
         lo, hi = x[:, [0, 2]].min(axis=0), x[:, [0, 2]].max(axis=0)
         if leaf.spread is not None and ((leaf.center < lo - 0.5 * leaf.spacing) | (leaf.center > hi + 0.5 * leaf.spacing)).any():
