@@ -911,6 +911,9 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     # experiments': each is said as what it is.
     for doc, words in (([], "it lists no experiments: give one or more objects with the keys scene and target"),
                        ({"scene": "s.toml", "target": "other.usdc"},
+                        "it is one experiment's object, not a list of them: write it in brackets, [{...}]"),
+                       # Under the key too: it was told to give {"experiments": [...]}, which it did, but for the brackets.
+                       ({"experiments": {"scene": "s.toml", "target": "other.usdc"}},
                         "it is one experiment's object, not a list of them: write it in brackets, [{...}]")):
         (tmp_path / "exp.json").write_text(json.dumps(doc))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

@@ -636,9 +636,11 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
     p = os.fspath(path)
     doc = checks.json_file("--experiments", p)
     # Said what it is: an empty list and one experiment's object were both told to give a list.
-    single = isinstance(doc, dict) and "experiments" not in doc and bool(set(doc) & {"scene", "target"})
+    if isinstance(doc, dict) and "experiments" in doc:
+        doc = doc["experiments"]  # {"experiments": {...}}: the one object under the key, likewise
+    single = isinstance(doc, dict) and bool(set(doc) & {"scene", "target"})
     if isinstance(doc, dict):
-        doc = doc.get("experiments")
+        doc = None
     if not isinstance(doc, list) or not doc:
         why = ("it is one experiment's object, not a list of them: write it in brackets, [{...}]" if single else
                "it lists no experiments: give one or more objects with the keys scene and target" if doc == [] else
