@@ -224,6 +224,10 @@ def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_pa
     ("flat.xyz", "0.1 0.2\n0.3 0.4\n", r"is not allowed as a point cloud: it holds points of shape \(2, 2\)"),
     ("empty.xyz", "", r"is not allowed as a point cloud: it holds no points"),
     ("header_only.csv", "x,y,z\n", r"is not allowed as a point cloud: it holds no points"),
+    # A force log cut after its preamble: told of points alone, as if it were taken for a cloud.
+    ("preamble_only.csv", "# Instron 5965\n# 23 C\n", r"it holds no points; it needs one or more points of three "
+                                                       r"coordinates \(x y z\); nor is it a force log, which needs a "
+                                                       r"header naming frame, time, tool, fx, fy, fz$"),
     # A column named twice: the first was read and the other left without a word (two markers a
     # row fitted the first marker's points alone; 'X [mm]' beside 'x' was not even unit-checked).
     ("two_markers.csv", "x,y,z,x,y,z\n0.1,0.2,0.3,0.5,0.6,0.7\n",

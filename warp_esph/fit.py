@@ -4442,8 +4442,12 @@ def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
     a NaN point was named by the step it was compared at)."""
     if pts.ndim != 2 or pts.shape[0] == 0 or pts.shape[1] < 3:
         shape = "no points" if pts.size == 0 else f"points of shape {pts.shape}"
+        # A force log of '#' lines alone (an instrument's export cut after its preamble) was told
+        # of points alone, as if it had been taken for a cloud by its name.
+        log = ("; nor is it a force log, which needs a header naming frame, time, tool, fx, fy, fz" if pts.size == 0
+               and str(path).lower().endswith(".csv") else "")
         raise ValueError(f"target {checks.shown_path(path, False)} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
-                         "of three coordinates (x y z)")
+                         f"of three coordinates (x y z){log}")
     pts = pts[:, :3]
     bad = np.flatnonzero(np.isinf(pts).any(axis=1))
     if bad.size:
