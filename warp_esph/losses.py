@@ -1074,8 +1074,8 @@ class ChamferLoss(Loss):
         s.unmatched.zero_()
         wp.launch(k.to_float32, n, [x], [s.x32], device=dev, record_tape=False)
         full = self.coverage == "full"
-        if full:
-            # Particles -> nearest target point (grid on the target, built once).
+        if full and self.held is None:
+            # Particles -> nearest target point (grid on the target, built once); the free ones' below.
             wp.launch(k.nearest, n, [ygrid.id, s.x32, x, y, r], [s.idx_x, s.unmatched[0:1]], device=dev, record_tape=False)
         # Target points -> nearest particle (grid on the particles, rebuilt now).
         xs = s.x32.numpy()
