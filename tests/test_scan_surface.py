@@ -299,3 +299,27 @@ name = "clamp"
 body = "dough"
 region = [[-1, 0.07, -1], [1, 1, 1]]
 """
+
+
+def test_a_cloud_or_mesh_target_of_a_model_pinned_whole_is_refused_by_the_target(tmp_path):
+    """Every particle pinned (a [[pins]] of the whole body): no fitted parameter moves any, and
+    the cloud's loss, holding them all, was refused at the fit's first evaluation as 'held =
+    every one of the 27 particles compared', a name the command line never gave (the mesh's
+    compared them all). Refused by the target, naming the file and the count."""
+    from warp_esph.fit import load_target
+    from warp_esph.meshes import write_mesh
+    from warp_esph.scenes import load_scaled_scene
+    from warp_esph.surface import particle_surface
+
+    (tmp_path / "all.toml").write_text(PILE.replace("floor_margin = 0.02\n", "") + CLAMP.replace(
+        'region = [[-1, 0.07, -1], [1, 1, 1]]\n', ""))
+    model = load_scaled_scene(str(tmp_path / "all.toml"), 1.0).builder.finalize(dtype=wp.float64)
+    x0 = np.asarray(model.particle_x0)
+    assert (model.tools.pin.numpy() >= 0).all() and len(x0) == 27
+    np.savetxt(tmp_path / "scan.csv", x0, delimiter=",", header="x,y,z", comments="")
+    write_mesh(tmp_path / "scan.obj", *particle_surface(x0, 0.02))
+    for name in ("scan.csv", "scan.obj"):
+        with pytest.raises(ValueError) as e:
+            load_target(tmp_path / name).loss(model, {0: 0})
+        assert str(e.value) == (f"target {tmp_path / name} is not allowed for this model: every one of its 27 particles is "
+                                "pinned, which no fitted parameter moves; pin part of the body (a clamp's region), not all of it")

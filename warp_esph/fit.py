@@ -3874,6 +3874,13 @@ class Target:
             self._check_start_order(model)
             keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
+        pinned = pinned_particles(model)
+        if self.kind in ("points", "mesh") and pinned is not None and pinned.all():
+            # Held, the cloud's particle side was refused at the first evaluation as 'held = every
+            # one of the 27 particles', a name the command never gave; the mesh's compared them all.
+            raise ValueError(f"target {checks.shown_path(self.path, False)} is not allowed for this model: every one of its "
+                             f"{model.particle_count} particles is pinned, which no fitted parameter moves; pin part of "
+                             "the body (a clamp's region), not all of it")
         if self.kind == "points":
             r = radius if radius is not None else 3.0 * model.spacing
             if surface_offset >= r:
@@ -3881,7 +3888,6 @@ class Target:
                                  f"search radius (--radius) = {r:g} m (a scanned point is matched within the radius)")
             # Pinned particles (a particle floor's, a clamp's) are held: a scan of the sample need not
             # show them, and no parameter moves them (ChamferLoss's held).
-            pinned = pinned_particles(model)
             return ChamferLoss(self.data, radius=r, frames=steps, coverage=coverage, surface_offset=surface_offset,
                                held=None if pinned is None else np.flatnonzero(pinned))
         # A mesh compares each particle with its surface alone: the pinned ones (held, as above)
