@@ -231,7 +231,10 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------- floors
-FLOORS = ("ground", "particles", "ground_images", "elastic_particles", "ghost_particles", "slip_ghost_particles")
+#: The frictionless imaged ground that holds its base up to the material's shear yield stress
+#: (``add_ground(friction=0, images=True, shear_cap=1)``, the Tresca ground; ``friction`` unused).
+TRESCA = "tresca_images"
+FLOORS = ("ground", "particles", "ground_images", "elastic_particles", "ghost_particles", "slip_ghost_particles", TRESCA)
 #: The floors of pinned particles (``SceneBuilder.add_particle_floor``), the others colliders.
 PARTICLE_FLOORS = ("particles", "elastic_particles", "ghost_particles", "slip_ghost_particles")
 #: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
@@ -250,6 +253,14 @@ INCLINE_WALLS = ("faces", "centres")
 MIRROR = "mirror"
 #: The floors ``slump`` takes.
 SLUMP_FLOORS = FLOORS + (MIRROR,)
+
+
+def _add_ground(b, floor: str, friction: float) -> None:
+    """The ground collider of ``floor`` (``"ground"``, ``"ground_images"`` or ``TRESCA``)."""
+    if floor == TRESCA:
+        b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+    else:
+        b.add_ground(0.0, friction=friction, images=floor == "ground_images")
 
 
 def _check_floor(floor: str, allowed: tuple = FLOORS):
@@ -296,7 +307,8 @@ class _Mirror:
 def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, friction: float, name: str,
                   layers: int = FLOOR_LAYERS):
     """Adds the body ``points`` (its base at y = 0) on the floor: ``"ground"``, the static
-    ground collider with Coulomb ``friction``; ``"particles"``, FLOOR_LAYERS layers of pinned
+    ground collider with Coulomb ``friction``; ``TRESCA`` (``"tresca_images"``), the
+    frictionless imaged ground holding its base up to the material's shear yield stress; ``"particles"``, FLOOR_LAYERS layers of pinned
     particles of the same body (so in every fit) under a disc of ``radius`` on the body's
     lattice (``SceneBuilder.add_particle_floor``): a rough floor whose first layer of
     material has an interior neighbourhood; ``"elastic_particles"``, the same floor made
@@ -307,8 +319,8 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     frictionless ghost floor (``ghost=True, slip=True``). Returns the mask of the free
     particles (all of them on the ground)."""
     b.add_particles(points, material, name=name)
-    if floor in ("ground", "ground_images"):
-        b.add_ground(0.0, friction=friction, images=floor == "ground_images")
+    if floor in ("ground", "ground_images", TRESCA):
+        _add_ground(b, floor, friction)
         return np.ones(len(points), dtype=bool)
     # A margin of radius + dx reaches the whole disc from the column nearest the axis.
     b.add_particle_floor(name, margin=radius + b.spacing, layers=layers, name="floor",
@@ -474,7 +486,9 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure).
     ``floor``: ``"particles"`` (the default: pinned layers of the same body under a disc of
     ``floor_radius`` R0, ``_add_on_floor``) or ``"ground"`` (the ground collider with Coulomb
-    ``friction``). Both theories assume a no-slip base; the particle floor is the one that
+    ``friction``) or ``"tresca_images"`` (``TRESCA``: the frictionless imaged ground that holds
+    its base up to the material's shear yield stress, ``add_ground(shear_cap=1)``, the
+    continuum's Tresca floor; ``friction`` unused). Both theories assume a no-slip base; the particle floor is the one that
     gives a thin layer its continuum shear strength, the ground collider makes a layer 3
     particles thick about 2.5 x too strong (docs/physics.md, the spread regime, thin layers
     in shear); on it the pile rests where a continuum on a slip floor does, and on
@@ -833,7 +847,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
             raise ValueError(f"floor_margin = {checks.shorten(floor_margin)!r} is not allowed: "
                              f"{str(e).split(' is not allowed: ', 1)[1]}") from None
     else:
-        b.add_ground(0.0, friction=friction, images=floor == "ground_images")
+        _add_ground(b, floor, friction)
     inset = 0.5 * dx if walls == "centres" else 0.0
     b.add_plane((0.0, 0.0, 1.0), inset, 0.0)
     b.add_plane((0.0, 0.0, -1.0), -(W - inset), 0.0)

@@ -547,7 +547,7 @@ class SceneBuilder:
             raise ValueError(f"{kind} colliders = {len(lst) + 1} is not allowed: at most {MAX_PER_KIND} per kind")
         lst.append(item)
 
-    def add_ground(self, height: float = 0.0, friction: float = 0.5, *, images: bool = False):
+    def add_ground(self, height: float = 0.0, friction: float = 0.5, *, images: bool = False, shear_cap: float | None = None):
         """The plane y = ``height``, solid below; Coulomb ``friction`` >= 0.
 
         ``images=True``: the ground is also a rough floor of the material's fits: each
@@ -577,13 +577,34 @@ class SceneBuilder:
         so the force is minus the gradient of the energy stored also where the images, below
         half a spacing, are no mirrors: an undamped body resting there keeps its energy but for
         the step's own error (docs/physics.md, "The frictionless imaged ground below half a
-        spacing")."""
+        spacing").
+
+        ``shear_cap=K`` (``K >= 0``; None or 0: off), with ``images=True`` and ``friction=0``
+        only: the Tresca ground. It holds each base particle tangentially up to ``K`` times its
+        material's shear yield stress ``tau_y = yield_stress / sqrt(2)``
+        (``Material.shear_yield_stress``) over the area ``V^(2/3)`` it stands for: a particle
+        whose centre starts a step within half a spacing of the plane loses up to ``K tau_y
+        V^(2/3) dt / m`` of its tangential speed (sticking below it), the hold fading with zero
+        slope to none at one spacing (``sim/colliders.py``, ``tresca_traction``). ``K = 1`` is
+        the continuum's floor that grips as the material's own yield strength (docs/physics.md,
+        "The Tresca ground (built)"). Its traction is in the ground's reaction row. Refused
+        beside a material without a ``shear_yield_stress`` (another model, or an infinite
+        ``yield_stress``)."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):
             raise ValueError("images = True is not allowed twice: one ground may be a rough floor of the fits")
         y0, friction = checks.number("height", height), checks.non_negative("friction", friction)
-        plane = Plane((0.0, 1.0, 0.0), y0, friction, images)
+        cap = 0.0 if shear_cap is None else checks.non_negative("shear_cap", shear_cap)
+        if cap > 0.0 and not images:
+            raise ValueError(f"shear_cap = {checks.shorten(shear_cap)!r} is not allowed with images = False: the hold "
+                             "is the frictionless imaged ground's (add_ground(friction=0, images=True, shear_cap=K)); "
+                             "a plain ground's grip is its friction")
+        if cap > 0.0 and friction != 0.0:
+            raise ValueError(f"shear_cap = {checks.shorten(shear_cap)!r} is not allowed with friction = "
+                             f"{checks.shorten(friction)!r}: with friction > 0 the images stand still over each step, "
+                             "a rough floor that already holds the base whatever the cap; give friction = 0")
+        plane = Plane((0.0, 1.0, 0.0), y0, friction, images, cap)
         self._refuse_coincident(plane, f"add_ground(height = {checks.shorten(height)!r})")
         self._add_collider(self.planes, plane, "plane")
 

@@ -24,7 +24,7 @@ from ._types import type_set
 from .sim.fields import CompressionField
 from .sim.fields import precision_problem as field_precision_problem
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
-from .material import (DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAB_QUANTITIES, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS,
+from .material import (BINGHAM_MODELS, DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAB_QUANTITIES, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS,
                        Material, SPIKY_DENSITY_FORCES, lab_given, p_wave_speed, young_given)
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
@@ -216,6 +216,24 @@ def check_pressure_forces(materials: Sequence[Material], images: bool = False) -
         raise ValueError(f"Material.pressure_force = 'isotropic' (material {forces.index('isotropic')}) is not allowed "
                          "with floor images (add_ground(images=True)): their pressure is a pair force of the floor's "
                          "mirror images; use a particle or ghost floor or a collider")
+
+
+def check_shear_cap(materials: Sequence[Material], shear_cap: float) -> None:
+    """Refuse the Tresca ground (``add_ground(shear_cap=K)``, ``K > 0``) under a material
+    without a shear yield stress ``tau_y`` for it to hold up to: ``Material.shear_yield_stress``
+    exists for the Bingham models with incremental deformation, and an infinite
+    ``yield_stress`` (an elastic material) would make the hold a wall without a limit.
+    Here, where the materials are given, so that no kernel has run."""
+    if not shear_cap > 0.0:
+        return
+    for k, m in enumerate(materials):
+        if m.model not in BINGHAM_MODELS or m.deformation != "incremental" or not math.isfinite(m.yield_stress):
+            raise ValueError(
+                f"add_ground(shear_cap = {shear_cap!r}) is not allowed with material {k} (model = {m.model!r}, "
+                f"deformation = {m.deformation!r}, yield_stress = {m.yield_stress!r}): the ground holds its base up to "
+                f"shear_cap times the material's shear yield stress yield_stress / sqrt(2), which exists for a finite "
+                f"yield_stress of model {' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental'; give "
+                "such a material, or the ground friction (add_ground(friction=...)) instead")
 
 
 def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
@@ -786,6 +804,11 @@ class Model(Unpicklable):
         self._collider_built = self._collider_values()
         self._colliders_checked = self._collider_built.tobytes()  # the values check_colliders last passed
         check_pressure_forces(materials, self.image_plane is not None)
+        #: ``K`` of the Tresca ground (``SceneBuilder.add_ground(shear_cap=K)``), 0 without one,
+        #: and its row of the plane arrays (None without one).
+        self.shear_cap = float(imaged[0].shear_cap) if imaged else 0.0
+        self.shear_cap_plane = self._image_row if self.shear_cap > 0.0 else None
+        check_shear_cap(materials, self.shear_cap)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
@@ -1329,6 +1352,7 @@ class Model(Unpicklable):
             if not isinstance(m, Material):
                 raise ValueError(f"materials[{k}] = {checks.shorten(m)!r} is not allowed: must be a warp_esph.Material")
         check_pressure_forces(materials, self.image_plane is not None)
+        check_shear_cap(materials, self.shear_cap)
         old = list(self.materials)
         # Each set_material checks the whole combination, which is the new one only at the end.
         self._combination_checked = True
@@ -1374,6 +1398,7 @@ class Model(Unpicklable):
         if not getattr(self, "_combination_checked", False):
             check_pressure_forces([material if k == index else m for k, m in enumerate(self.materials)],
                                   self.image_plane is not None)
+            check_shear_cap([material if k == index else m for k, m in enumerate(self.materials)], self.shear_cap)
         if material.density != old.density:
             # The particles' masses and rest densities come from it when the model is built:
             # a new density changed the stable step and the wave speeds but not the motion, and

@@ -217,7 +217,7 @@ BODY_SHAPES = {
     "mesh": {"file": (STR, True), "scale": (NUM, False), "translation": (VEC3, False), "prim_path": (STR, False)},
 }
 COLLIDER_TYPES = {
-    "ground": {"height": (NUM, False), "friction": (NUM, False), "images": (BOOL, False)},
+    "ground": {"height": (NUM, False), "friction": (NUM, False), "images": (BOOL, False), "shear_cap": (NUM, False)},
     "plane": {"normal": (VEC3, True), "offset": (NUM, True), "friction": (NUM, False)},
     "sphere": {"center": (VEC3, True), "radius": (NUM, True), "friction": (NUM, False)},
     "box": {"center": (VEC3, True), "half_extents": (VEC3, True), "friction": (NUM, False)},

@@ -1008,7 +1008,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             # A pinned particle's place is its pin's: a collider's or tool's response on it
             # was overridden below and yet counted in that collider's reaction (a particle
             # floor under the ground had its weight read twice, once on the ground's row).
-            x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
+            x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque,
+                                        x_in[i], i)
             for c in range(wp.static(counts[0])):
                 k = wp.static(offsets[0]) + c
                 hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])

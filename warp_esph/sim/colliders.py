@@ -52,6 +52,11 @@ DEPTH_ROUND_OFF_ULPS = 2.0
 #: 0.5 m across in steps of 0.1 ms) is all round-off, and one started within half of it of the
 #: surface is taken as resting.
 MAX_ROUND_OFF_SHARE = 0.5
+#: The Tresca ground's band (``tresca_traction``), in spacings from its plane of a particle's
+#: centre at the step's start: full hold below the first, none beyond the second, faded with
+#: zero slope at both ends between (a hard band at one spacing made the hold jump where a
+#: particle crossed it).
+TRESCA_BAND = (0.5, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +68,16 @@ class Plane:
     #: elastic energy as a rough floor (``SceneBuilder.add_ground(images=True)``,
     #: docs/physics.md, "The ground collider's thin-layer strength").
     images: bool = False
+    #: ``K`` of the Tresca ground (``SceneBuilder.add_ground(shear_cap=K)``): the frictionless
+    #: imaged ground holds each particle near it tangentially up to ``K tau_y A`` (``tresca_traction``);
+    #: 0: no hold.
+    shear_cap: float = 0.0
+
+    def __repr__(self) -> str:
+        # A checkpoint's fingerprint hashes the repr: a plane without the cap keeps the one it had.
+        cap = f", shear_cap={self.shear_cap!r}" if self.shear_cap else ""
+        return (f"Plane(normal={self.normal!r}, offset={self.offset!r}, friction={self.friction!r}, "
+                f"images={self.images!r}{cap})")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +100,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     ULP = scalar(DEPTH_ROUND_OFF_ULPS * float(np.finfo(T.np_dtype).eps))
     MAX_E = scalar(MAX_ROUND_OFF_SHARE)
+    BAND_FULL, BAND_END = (scalar(b) for b in TRESCA_BAND)
     smoothstep = smoothing.funcs(scalar).smoothstep
 
     @wp.func
@@ -270,6 +286,46 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x + moved * n + dt * (dv - wp.dot(dv, n) * n), v_new
 
     @wp.func
+    def tresca_band(d: scalar, spacing: scalar) -> scalar:
+        """Share of the Tresca ground's hold on a particle whose centre started the step ``d``
+        above its plane: 1 up to ``TRESCA_BAND[0]`` spacings, 0 from ``TRESCA_BAND[1]``, a
+        smoothstep between (C1 where a particle enters or leaves the band)."""
+        lo = BAND_FULL * spacing
+        hi = BAND_END * spacing
+        w = scalar(1.0)
+        if d >= hi:
+            w = scalar(0.0)
+        elif d > lo:
+            s, ds = smoothstep((d - lo) / (hi - lo))
+            w = scalar(1.0) - s
+        return w
+
+    @wp.func
+    def tresca_traction(x: vec3, v: vec3, x0: vec3, n: vec3, offset: scalar, hold: scalar, mass: scalar, dt: scalar,
+                        spacing: scalar):
+        """The Tresca ground's traction on a particle (``SceneBuilder.add_ground(shear_cap=K)``):
+        its tangential velocity relative to the plane loses up to ``w hold dt / mass``, ``hold =
+        K tau_y A`` the force of the material's shear yield stress ``tau_y`` over the area ``A``
+        the particle stands for, ``w = tresca_band`` of where its centre ``x0`` started the step:
+        a wall that holds the base up to the stress at which the material itself yields (the
+        continuum's Tresca floor, docs/physics.md, "The Tresca continuum"). Sticking while the
+        speed is at most that, else sliding at the excess, rounded as Coulomb's (``slip_speed``,
+        C1 at the transition). The position loses ``dt`` times the velocity removed: the drift
+        moved it with the velocity before (as ``respond``)."""
+        w = tresca_band(wp.dot(n, x0) - offset, spacing)
+        if w <= scalar(0.0) or hold <= scalar(0.0):
+            return x, v
+        vt = v - wp.dot(v, n) * n
+        speed = wp.length(vt)
+        if speed <= scalar(0.0):
+            return x, v
+        limit = w * hold * dt / mass
+        dv = -vt
+        if speed > limit:
+            dv = vt * (slip_speed(speed - limit, limit) / speed - scalar(1.0))
+        return x + dt * dv, v + dv
+
+    @wp.func
     def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar, ramp: scalar):
         depth = offset - wp.dot(n, x)
         if in_reach(wp.dot(v, n), depth, dt, ramp):
@@ -313,5 +369,5 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         coulomb_response=coulomb_response, coulomb_velocity=coulomb_velocity, slip_speed=slip_speed, touchdown_share=touchdown_share,
-        depth_round_off=depth_round_off, max_abs=max_abs, exit_correction=exit_correction, inside_band=inside_band, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        depth_round_off=depth_round_off, max_abs=max_abs, exit_correction=exit_correction, inside_band=inside_band, respond=respond, tresca_band=tresca_band, tresca_traction=tresca_traction, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )

@@ -32,8 +32,9 @@ from .roundoff import compensated_sum
 
 @functools.cache
 def struct(scalar):
-    """The static colliders' arrays (planes, spheres, boxes: ``colliders.py``) and the
-    contact ramp (``Model.contact_ramp``) as one ``wp.struct``, what ``static_colliders``
+    """The static colliders' arrays (planes, spheres, boxes: ``colliders.py``), the contact
+    ramp (``Model.contact_ramp``) and the Tresca ground's hold (``Model.shear_cap``) as one
+    ``wp.struct``, what ``static_colliders``
     reads; ``static_collider_struct(model)`` fills it."""
     T = type_set(scalar)
 
@@ -48,7 +49,15 @@ def struct(scalar):
         box_center: wp.array(dtype=T.vec3)
         box_half: wp.array(dtype=T.vec3)
         box_friction: wp.array(dtype=scalar)
+        # The Tresca ground's hold (``colliders.tresca_traction``): the shear yield stress of each
+        # particle's material over its area, on the plane ``cap_plane`` (-1: none).
+        yield_stress: wp.array(dtype=scalar)
+        particle_material: wp.array(dtype=wp.int32)
+        particle_volume: wp.array(dtype=scalar)
         ramp: scalar
+        cap_plane: int
+        shear_cap: scalar
+        spacing: scalar
 
     return StaticColliders
 
@@ -94,13 +103,24 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
             wp.atomic_add(ctorque, row, wp.cross(x - ref, f))
 
     @wp.func
+    def tresca_hold(sc: StaticColliders, i: int) -> scalar:
+        """``K tau_y A`` of particle ``i`` on the Tresca ground: ``tau_y = yield_stress /
+        sqrt(2)`` of its material (``Material.shear_yield_stress``), ``A = V^(2/3)`` of its volume."""
+        tau_y = sc.yield_stress[sc.particle_material[i]] * scalar(0.7071067811865476)
+        return sc.shear_cap * tau_y * wp.pow(sc.particle_volume[i], scalar(2.0 / 3.0))
+
+    @wp.func
     def static_colliders(x: vec3, v: vec3, dt: scalar, sc: StaticColliders, mass: scalar, row: int,
-                         cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
+                         cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3), x0: vec3, i: int):
         """Every static plane, sphere and box in turn (``colliders.py``), each adding its
-        reaction on this particle to its row ``row + c`` (module doc)."""
+        reaction on this particle to its row ``row + c`` (module doc); the Tresca ground's
+        traction (``x0``: particle ``i``'s position at the step's start) is its plane's."""
         for c in range(wp.static(n_planes)):
             v0 = v
             x, v = col.collide_plane(x, v, sc.plane_normal[c], sc.plane_offset[c], sc.plane_friction[c], dt, sc.ramp)
+            if c == sc.cap_plane:
+                x, v = col.tresca_traction(x, v, x0, sc.plane_normal[c], sc.plane_offset[c], tresca_hold(sc, i), mass, dt,
+                                           sc.spacing)
             react(x, v, v0, mass, dt, sc.plane_offset[c] * sc.plane_normal[c], row + c, cforce, ctorque)
         for c in range(wp.static(n_spheres)):
             v0 = v
@@ -143,7 +163,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         i = wp.tid()
         m = mass[i]
         xe, x_lo, v = fn.symplectic_euler(x_in[i], x_lo_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = fn.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
+        x, v = fn.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque,
+                                   x_in[i], i)
         x_out[i] = x
         x_lo_out[i] = fn.placed_round_off(x, xe, x_lo)
         v_out[i] = v
@@ -215,12 +236,16 @@ def launch_floor_image_reaction(model, state_in, state_out):
                        [state_out.collider_force, state_out.collider_torque], device=m.device)
 
 
+#: ``struct``'s fields that are values, not the model's arrays of that name.
+_STRUCT_VALUES = ("ramp", "cap_plane", "shear_cap", "spacing")
+
+
 def static_collider_struct(model):
     """``struct``'s instance holding the model's static collider arrays (these very arrays)
     and its contact ramp. Filled once and reused while every array, its gradient and the
     ramp are the same (a struct copies the pointers when filled, as
     ``Model.material_arrays``): filling it cost a tenth of a small model's step."""
-    names = [name for name in struct(model.scalar).vars if name != "ramp"]
+    names = [name for name in struct(model.scalar).vars if name not in _STRUCT_VALUES]
     arrays = [getattr(model, name) for name in names]
     key = (pointer_key(arrays), float(model.contact_ramp))
     cached = model._static_collider_struct
@@ -229,6 +254,10 @@ def static_collider_struct(model):
         for name, a in zip(names, arrays):
             setattr(out, name, a)
         out.ramp = model.scalar(model.contact_ramp)
+        cap = model.shear_cap_plane
+        out.cap_plane = -1 if cap is None else cap
+        out.shear_cap = model.scalar(model.shear_cap)
+        out.spacing = model.scalar(model.spacing)
         cached = model._static_collider_struct = (key, out, arrays)
     return cached[1]
 
