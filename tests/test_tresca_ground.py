@@ -1,0 +1,216 @@
+"""The Tresca ground (``SceneBuilder.add_ground(friction=0, images=True, shear_cap=K)``): the
+frictionless imaged ground holding each base particle tangentially up to ``K`` times its
+material's shear yield stress over the area it stands for (``sim/colliders.py``,
+``tresca_traction``; docs/physics.md, "The Tresca ground (built)")."""
+
+import math
+import textwrap
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
+from warp_esph.cli import main
+from warp_esph.scene_file import load_scene_file
+
+G = 9.81
+THETA = math.radians(20.0)
+DX = 0.005
+
+
+def _strip(cap_over_load, tool=False):
+    """A stiff elastic block 6 x 4 x 6 spacings (5 mm) on the Tresca ground (K = 1) under
+    gravity tilted by 20 degrees, its yield stress (no flow: ``flow_rate = 0``) making the
+    base's hold ``tau_y`` the load ``rho h g sin(theta)`` times ``cap_over_load``. ``tool``:
+    a sphere tool parked far away, so the tools' integrator runs the step."""
+    h, rho = 4 * DX, 1000.0
+    cap = cap_over_load * rho * h * G * math.sin(THETA)
+    mat = we.Material(mu=2.0e5, lam=3.0e5, density=rho, viscosity=0.5, yield_stress=cap * math.sqrt(2.0), flow_rate=0.0)
+    b = we.SceneBuilder(spacing=DX, gravity=(G * math.sin(THETA), -G * math.cos(THETA), 0.0))
+    b.add_box((0.0, h / 2, 0.0), (6 * DX, h, 6 * DX), mat)
+    b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+    if tool:
+        b.add_tool("sphere", radius=0.01, position=(0.0, 1.0, 0.0))
+    return b.finalize(), cap, h, rho
+
+
+def _slide(model, duration):
+    """Steps ``model`` for ``duration``; the times, the mean x position, the ground's reaction
+    row's x force at each step, and the last state."""
+    s = we.Solver(model)
+    dt = 0.9 * model.stable_dt()
+    a, c = model.state(), model.state()
+    ts, xs, fx = [], [], []
+    for k in range(1, int(round(duration / dt)) + 1):
+        s.step(a, c, dt)
+        a, c = c, a
+        ts.append(k * dt)
+        xs.append(a.x.numpy().astype(np.float64)[:, 0].mean())
+        fx.append(float(a.collider_force.numpy()[0, 0]))
+    return np.array(ts), np.array(xs), np.array(fx), a, dt
+
+
+@pytest.mark.parametrize("cap_over_load", [0.5, 2.0])
+def test_a_strip_on_the_tresca_ground_slides_at_the_excess_over_its_hold_and_sticks_under_it(cap_over_load):
+    """The strip's load ``rho h g sin(theta)`` twice the hold ``tau_y``: it slides at ``g
+    sin(theta) - tau_y / (rho h)`` (measured 1.6778 against 1.6776 m/s^2 over the second half of
+    40 ms), the ground's row pulling back ``tau_y`` times the base's area (0.03019 against 0.03020
+    N); half of it: it stays (mean speed 4e-4 m/s after 40 ms, where it would slide at 0.134 m/s).
+    Both ways the row's impulse is the strip's momentum change less gravity's (to 1e-6): the
+    traction is in it. Without the traction (``model.shear_cap = 0``) the strip slides at g
+    sin(theta) in both."""
+    model, cap, h, rho = _strip(cap_over_load)
+    ts, xs, fx, last, dt = _slide(model, 0.02)
+    v = last.v.numpy().astype(np.float64)[:, 0].mean()
+    mass = model.particle_mass.numpy().astype(np.float64).sum()
+    drive = G * math.sin(THETA)
+    np.testing.assert_allclose(fx.sum() * dt, mass * v - mass * drive * ts[-1], rtol=1e-4)
+    second = ts >= 0.5 * ts[-1]
+    if cap_over_load < 1.0:
+        accel = 2.0 * np.polyfit(ts[second], xs[second], 2)[0]
+        assert accel == pytest.approx(drive - cap / (rho * h), rel=2e-3)
+        assert fx[second].mean() == pytest.approx(-cap * (6 * DX) ** 2, rel=2e-3)
+    else:
+        assert abs(v) < 0.01 * drive * ts[-1]
+
+
+def test_the_tools_integrator_runs_the_tresca_ground_as_the_plain_one():
+    """With a tool in the scene the step integrates in the tools' kernel (``ToolSet.integrate``),
+    which runs the same static colliders: a sliding strip with a tool parked far away moves as
+    without it, to the bit."""
+    plain, tooled = (_slide(_strip(0.5, tool=t)[0], 0.002)[3] for t in (False, True))
+    np.testing.assert_array_equal(plain.x.numpy(), tooled.x.numpy())
+    np.testing.assert_array_equal(plain.collider_force.numpy(), tooled.collider_force.numpy())
+
+
+@pytest.mark.parametrize("call, said", [
+    (dict(shear_cap=1.0, images=False, friction=0.0), r"shear_cap = 1\.0 is not allowed with images = False: "),
+    (dict(shear_cap=1.0, images=True, friction=0.5), r"shear_cap = 1\.0 is not allowed with friction = 0\.5: "),
+    (dict(shear_cap=-1.0, images=True, friction=0.0), r"shear_cap = -1\.0 is not allowed: must be >= 0"),
+    (dict(shear_cap=float("nan"), images=True, friction=0.0), r"shear_cap = nan is not allowed"),
+    (dict(shear_cap=float("inf"), images=True, friction=0.0), r"shear_cap = inf is not allowed"),
+    (dict(shear_cap="1", images=True, friction=0.0), r"shear_cap = '1' is not allowed"),
+])
+def test_a_shear_cap_the_ground_cannot_take_is_refused_by_name(call, said):
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match="^" + said):
+        b.add_ground(0.0, **call)
+    assert not b.planes
+
+
+def test_the_tresca_ground_is_refused_beside_a_material_without_a_shear_yield_stress():
+    """An elastic material (``yield_stress = inf``) or a non-Bingham model has no ``tau_y`` for
+    the hold: refused at the build and by ``set_material``, naming the material; 0 and None
+    are no cap, accepted with any material."""
+    dough = we.Material.preset("dough")
+    for bad in (we.Material.from_young(2e5, 0.3, density=1000.0), dataclass_replace(dough, model="hyperelastic")):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, bad)
+        b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+        with pytest.raises(ValueError, match=r"^add_ground\(shear_cap = 1\.0\) is not allowed with material 0 \(model = "):
+            b.finalize()
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, dough)
+    b.add_ground(0.0, friction=0.0, images=True, shear_cap=2.0)
+    m = b.finalize()
+    assert m.shear_cap == 2.0 and m.shear_cap_plane == 0
+    with pytest.raises(ValueError, match=r"yield_stress = inf\): the ground holds its base up to shear_cap times"):
+        m.set_material(0, dataclass_replace(dough, yield_stress=math.inf))
+    assert m.materials[0] == dough
+    for off in (0.0, None):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
+        b.add_ground(0.0, friction=0.5, images=True, shear_cap=off)
+        assert b.finalize().shear_cap == 0.0
+
+
+def dataclass_replace(material, **kw):
+    import dataclasses  # noqa: PLC0415
+
+    return dataclasses.replace(material, **kw)
+
+
+SCENE = textwrap.dedent("""
+    [scene]
+    spacing = 0.05
+    frames = 1
+
+    [materials.m]
+    preset = "dough"
+
+    [[bodies]]
+    shape = "box"
+    material = "m"
+    center = [0, 0.1, 0]
+    size = [0.2, 0.2, 0.2]
+
+    [[colliders]]
+    type = "ground"
+    friction = FRICTION
+    images = true
+    shear_cap = 1.0
+    """)
+
+
+def test_a_scene_files_ground_takes_shear_cap_and_the_cli_refuses_a_bad_one_in_one_line(tmp_path, capsys):
+    path = tmp_path / "tresca.toml"
+    path.write_text(SCENE.replace("FRICTION", "0.0"))
+    assert load_scene_file(path).builder.finalize().shear_cap == 1.0
+    path.write_text(SCENE.replace("FRICTION", "0.5"))
+    assert main(["run", str(path), "-o", str(tmp_path / "t.usdc"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "[[colliders]] #1 (type 'ground'): shear_cap = 1.0 is not allowed with friction = 0.5" in err
+    assert not (tmp_path / "t.usdc").exists()
+
+
+STEPS, DT = 8, 5e-4
+
+
+def _grad_model(lift, speed, mu=None, yield_stress=None, v0=None):
+    """A 3 x 2 x 3 yield-stress block (2 cm, float64) on the Tresca ground, its base ``lift``
+    spacings above the plane (0.5: in the full hold; 0.7, 0.85: in its fade), moving at
+    ``speed`` m/s along x (and a little along z) under gravity."""
+    mat = we.Material.from_young(5e3, 0.3, density=1000.0, yield_stress=60.0, flow_rate=50.0, viscosity=1.0)
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, 0.02 * (lift + 0.5), 0.0), (0.06, 0.04, 0.06), mat, velocity=(speed, 0.0, 0.25 * speed))
+    b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
+    for arr, value in ((m.mu, mu), (m.yield_stress, yield_stress)):
+        if value is not None:
+            a = arr.numpy()
+            a[0] = value
+            arr.assign(a)
+    if v0 is not None:
+        v = m.particle_v0.copy()
+        v[:, 0] = v0
+        m.particle_v0 = v
+    return m
+
+
+def _grad_loss(model, grad=False):
+    s = we.Solver(model)
+    states = [model.state(requires_grad=True) for _ in range(STEPS + 1)]
+    loss, tape = taped_rollout_loss(s, states, DT, random_weights(model.particle_count, 7))
+    if not grad:
+        return loss.numpy()[0]
+    tape.backward(loss)
+    return model.mu.grad.numpy()[0], model.yield_stress.grad.numpy()[0], states[0].v.grad.numpy()[:, 0].sum()
+
+
+@pytest.mark.parametrize("lift, speed", [(0.5, 0.3), (0.5, 0.002), (0.7, 0.3), (0.85, 0.002)])
+def test_gradients_through_the_tresca_ground_match_central_differences(lift, speed):
+    """mu, the yield stress (which sets the hold) and the initial speed through 8 steps of a
+    block sliding (0.3 m/s, past the hold) or sticking (2 mm/s, under it) on the Tresca ground,
+    its base in the full hold or in its fade: the float64 tape against central differences
+    at a relative step of 1e-5."""
+    g_mu, g_y, g_v = _grad_loss(_grad_model(lift, speed), grad=True)
+    assert g_y != 0.0  # the hold reaches the loss: the check is not vacuous
+    m0 = _grad_model(lift, speed)
+    for value, key, p0 in ((g_mu, "mu", m0.materials[0].mu), (g_y, "yield_stress", 60.0), (g_v, "v0", speed)):
+        h = 1e-5 * p0
+        fd = (_grad_loss(_grad_model(lift, speed, **{key: p0 + h})) - _grad_loss(_grad_model(lift, speed, **{key: p0 - h}))) / (2 * h)
+        print(key, value, fd)
+        assert value == pytest.approx(fd, rel=1e-5, abs=1e-9 * abs(fd) + 1e-12), key
