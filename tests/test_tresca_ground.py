@@ -12,6 +12,7 @@ import warp as wp
 
 import warp_esph as we
 from taped_loss import random_weights, taped_rollout_loss
+from warp_esph.builder import finalize_worlds
 from warp_esph.cli import main
 from warp_esph.scene_file import load_scene_file
 
@@ -20,7 +21,7 @@ THETA = math.radians(20.0)
 DX = 0.005
 
 
-def _strip(cap_over_load, tool=False):
+def _strip_builder(cap_over_load, tool=False):
     """A stiff elastic block 6 x 4 x 6 spacings (5 mm) on the Tresca ground (K = 1) under
     gravity tilted by 20 degrees, its yield stress (no flow: ``flow_rate = 0``) making the
     base's hold ``tau_y`` the load ``rho h g sin(theta)`` times ``cap_over_load``. ``tool``:
@@ -33,13 +34,18 @@ def _strip(cap_over_load, tool=False):
     b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
     if tool:
         b.add_tool("sphere", radius=0.01, position=(0.0, 1.0, 0.0))
+    return b, cap, h, rho
+
+
+def _strip(cap_over_load, tool=False):
+    b, cap, h, rho = _strip_builder(cap_over_load, tool)
     return b.finalize(), cap, h, rho
 
 
-def _slide(model, duration):
+def _slide(model, duration, fused=True):
     """Steps ``model`` for ``duration``; the times, the mean x position, the ground's reaction
     row's x force at each step, and the last state."""
-    s = we.Solver(model)
+    s = we.Solver(model, fused=fused)
     dt = 0.9 * model.stable_dt()
     a, c = model.state(), model.state()
     ts, xs, fx = [], [], []
@@ -83,6 +89,24 @@ def test_the_tools_integrator_runs_the_tresca_ground_as_the_plain_one():
     plain, tooled = (_slide(_strip(0.5, tool=t)[0], 0.002)[3] for t in (False, True))
     np.testing.assert_array_equal(plain.x.numpy(), tooled.x.numpy())
     np.testing.assert_array_equal(plain.collider_force.numpy(), tooled.collider_force.numpy())
+
+
+def test_worlds_and_the_unfused_step_run_the_tresca_ground_as_one_world_does():
+    """Two worlds in one model (``finalize_worlds``), the strip sliding past its hold in one and
+    held in the other, each as its own model runs it, and the unfused step's integration the
+    fused one's (the same launch after forces that differ by round-off): the traction reads
+    each particle's own material and world row."""
+    dur = 0.002
+    worlds = finalize_worlds([_strip_builder(0.5)[0], _strip_builder(2.0)[0]])
+    both = _slide(worlds, dur)[3]
+    n = worlds.particle_count // 2
+    for w, r in enumerate((0.5, 2.0)):
+        alone = _slide(_strip(r)[0], dur)[3]
+        np.testing.assert_array_equal(both.x.numpy()[w * n:(w + 1) * n], alone.x.numpy())
+        np.testing.assert_array_equal(both.collider_force.numpy()[w], alone.collider_force.numpy()[0])
+    fused, unfused = (_slide(_strip(0.5)[0], dur, fused=f)[3] for f in (True, False))
+    np.testing.assert_allclose(unfused.x.numpy(), fused.x.numpy(), rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(unfused.collider_force.numpy(), fused.collider_force.numpy(), rtol=1e-4)
 
 
 @pytest.mark.parametrize("call, said", [

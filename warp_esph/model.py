@@ -233,7 +233,7 @@ def check_shear_cap(materials: Sequence[Material], shear_cap: float) -> None:
                 f"deformation = {m.deformation!r}, yield_stress = {m.yield_stress!r}): the ground holds its base up to "
                 f"shear_cap times the material's shear yield stress yield_stress / sqrt(2), which exists for a finite "
                 f"yield_stress of model {' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental'; give "
-                "such a material, or the ground friction (add_ground(friction=...)) instead")
+                "such a material, or a ground without shear_cap (its friction grips instead)")
 
 
 def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
