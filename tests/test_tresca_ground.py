@@ -3,6 +3,7 @@ frictionless imaged ground holding each base particle tangentially up to ``K`` t
 material's shear yield stress over the area it stands for (``sim/colliders.py``,
 ``tresca_traction``; docs/physics.md, "The Tresca ground (built)")."""
 
+import dataclasses
 import math
 import textwrap
 
@@ -61,9 +62,9 @@ def _slide(model, duration, fused=True):
 @pytest.mark.parametrize("cap_over_load", [0.5, 2.0])
 def test_a_strip_on_the_tresca_ground_slides_at_the_excess_over_its_hold_and_sticks_under_it(cap_over_load):
     """The strip's load ``rho h g sin(theta)`` twice the hold ``tau_y``: it slides at ``g
-    sin(theta) - tau_y / (rho h)`` (measured 1.6778 against 1.6776 m/s^2 over the second half of
-    40 ms), the ground's row pulling back ``tau_y`` times the base's area (0.03019 against 0.03020
-    N); half of it: it stays (mean speed 4e-4 m/s after 40 ms, where it would slide at 0.134 m/s).
+    sin(theta) - tau_y / (rho h)`` (measured 1.6793 against 1.6776 m/s^2 over the second half of
+    20 ms), the ground's row pulling back ``tau_y`` times the base's area (0.03017 against 0.03020
+    N); half of it: it stays (mean speed 4e-4 m/s after 20 ms, where it would slide at 0.067 m/s).
     Both ways the row's impulse is the strip's momentum change less gravity's (to 1e-6): the
     traction is in it. Without the traction (``model.shear_cap = 0``) the strip slides at g
     sin(theta) in both."""
@@ -129,7 +130,7 @@ def test_the_tresca_ground_is_refused_beside_a_material_without_a_shear_yield_st
     the hold: refused at the build and by ``set_material``, naming the material; 0 and None
     are no cap, accepted with any material."""
     dough = we.Material.preset("dough")
-    for bad in (we.Material.from_young(2e5, 0.3, density=1000.0), dataclass_replace(dough, model="hyperelastic")):
+    for bad in (we.Material.from_young(2e5, 0.3, density=1000.0), dataclasses.replace(dough, model="hyperelastic")):
         b = we.SceneBuilder(spacing=0.02)
         b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, bad)
         b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
@@ -141,19 +142,13 @@ def test_the_tresca_ground_is_refused_beside_a_material_without_a_shear_yield_st
     m = b.finalize()
     assert m.shear_cap == 2.0 and m.shear_cap_plane == 0
     with pytest.raises(ValueError, match=r"yield_stress = inf\): the ground holds its base up to shear_cap times"):
-        m.set_material(0, dataclass_replace(dough, yield_stress=math.inf))
+        m.set_material(0, dataclasses.replace(dough, yield_stress=math.inf))
     assert m.materials[0] == dough
     for off in (0.0, None):
         b = we.SceneBuilder(spacing=0.02)
         b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, we.Material.from_young(2e5, 0.3, density=1000.0))
         b.add_ground(0.0, friction=0.5, images=True, shear_cap=off)
         assert b.finalize().shear_cap == 0.0
-
-
-def dataclass_replace(material, **kw):
-    import dataclasses  # noqa: PLC0415
-
-    return dataclasses.replace(material, **kw)
 
 
 SCENE = textwrap.dedent("""
@@ -194,7 +189,7 @@ STEPS, DT = 8, 5e-4
 
 def _grad_model(lift, speed, mu=None, yield_stress=None, v0=None):
     """A 3 x 2 x 3 yield-stress block (2 cm, float64) on the Tresca ground, its base ``lift``
-    spacings above the plane (0.5: in the full hold; 0.7, 0.85: in its fade), moving at
+    spacings above the plane (0.5: in the full hold; 0.9, 1.1: in its fade), moving at
     ``speed`` m/s along x (and a little along z) under gravity."""
     mat = we.Material.from_young(5e3, 0.3, density=1000.0, yield_stress=60.0, flow_rate=50.0, viscosity=1.0)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
@@ -224,7 +219,7 @@ def _grad_loss(model, grad=False):
     return model.mu.grad.numpy()[0], model.yield_stress.grad.numpy()[0], states[0].v.grad.numpy()[:, 0].sum()
 
 
-@pytest.mark.parametrize("lift, speed", [(0.5, 0.3), (0.5, 0.002), (0.7, 0.3), (0.85, 0.002)])
+@pytest.mark.parametrize("lift, speed", [(0.5, 0.3), (0.5, 0.002), (0.9, 0.3), (1.1, 0.002)])
 def test_gradients_through_the_tresca_ground_match_central_differences(lift, speed):
     """mu, the yield stress (which sets the hold) and the initial speed through 8 steps of a
     block sliding (0.3 m/s, past the hold) or sticking (2 mm/s, under it) on the Tresca ground,

@@ -583,9 +583,9 @@ class SceneBuilder:
         only: the Tresca ground. It holds each base particle tangentially up to ``K`` times its
         material's shear yield stress ``tau_y = yield_stress / sqrt(2)``
         (``Material.shear_yield_stress``) over the area ``V^(2/3)`` it stands for: a particle
-        whose centre starts a step within half a spacing of the plane loses up to ``K tau_y
+        whose centre starts a step within 0.75 spacings of the plane loses up to ``K tau_y
         V^(2/3) dt / m`` of its tangential speed (sticking below it), the hold fading with zero
-        slope to none at one spacing (``sim/colliders.py``, ``tresca_traction``). ``K = 1`` is
+        slope to none at 1.25 spacings (``sim/colliders.py``, ``tresca_traction``). ``K = 1`` is
         the continuum's floor that grips as the material's own yield strength (docs/physics.md,
         "The Tresca ground (built)"). Its traction is in the ground's reaction row. Refused
         beside a material without a ``shear_yield_stress`` (another model, or an infinite
