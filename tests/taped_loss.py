@@ -138,3 +138,14 @@ def loss_central_differences(loss, x, entries, frame: int, eps: float = 1e-7) ->
             vals.append(loss.value({frame: wp.array(p, dtype=wp.vec3d)}))
         fd.append((vals[0] - vals[1]) / (2 * eps))
     return fd
+
+
+def set_first_material(model, **values) -> None:
+    """Writes material 0's row of each named parameter array (``mu=...``, ``yield_stress=...``;
+    a value None leaves its array as built): the perturbed models of a central difference."""
+    for name, value in values.items():
+        if value is not None:
+            arr = getattr(model, name)
+            a = arr.numpy()
+            a[0] = value
+            arr.assign(a)

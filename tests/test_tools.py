@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_rollout_loss
+from taped_loss import random_weights, set_first_material, taped_rollout_loss
 from warp_esph import tools
 from warp_esph.builder import finalize_worlds
 from warp_esph.model import AUTO_HOURGLASS, CONTACTS
@@ -758,11 +758,7 @@ def _floor_grad_model(mu=None, yield_stress=None):
     b.add_particle_floor("block", margin=0.02, elastic=True)
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
-    for arr, value in ((m.mu, mu), (m.yield_stress, yield_stress)):
-        if value is not None:
-            a = arr.numpy()
-            a[0] = value
-            arr.assign(a)
+    set_first_material(m, mu=mu, yield_stress=yield_stress)
     return m
 
 

@@ -5,14 +5,14 @@ material's shear yield stress over the area it stands for (``sim/colliders.py``,
 
 import dataclasses
 import math
-import textwrap
 
 import numpy as np
 import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_rollout_loss
+from run_files import box_on_ground
+from taped_loss import random_weights, set_first_material, taped_rollout_loss
 from warp_esph.builder import finalize_worlds
 from warp_esph.cli import main
 from warp_esph.scene_file import load_scene_file
@@ -151,33 +151,12 @@ def test_the_tresca_ground_is_refused_beside_a_material_without_a_shear_yield_st
         assert b.finalize().shear_cap == 0.0
 
 
-SCENE = textwrap.dedent("""
-    [scene]
-    spacing = 0.05
-    frames = 1
-
-    [materials.m]
-    preset = "dough"
-
-    [[bodies]]
-    shape = "box"
-    material = "m"
-    center = [0, 0.1, 0]
-    size = [0.2, 0.2, 0.2]
-
-    [[colliders]]
-    type = "ground"
-    friction = FRICTION
-    images = true
-    shear_cap = 1.0
-    """)
-
-
 def test_a_scene_files_ground_takes_shear_cap_and_the_cli_refuses_a_bad_one_in_one_line(tmp_path, capsys):
     path = tmp_path / "tresca.toml"
-    path.write_text(SCENE.replace("FRICTION", "0.0"))
+    scene = box_on_ground("tresca", 1, "m", "dough", "2e4") + "friction = FRICTION\nimages = true\nshear_cap = 1.0\n"
+    path.write_text(scene.replace("FRICTION", "0.0"))
     assert load_scene_file(path).builder.finalize().shear_cap == 1.0
-    path.write_text(SCENE.replace("FRICTION", "0.5"))
+    path.write_text(scene.replace("FRICTION", "0.5"))
     assert main(["run", str(path), "-o", str(tmp_path / "t.usdc"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "[[colliders]] #1 (type 'ground'): shear_cap = 1.0 is not allowed with friction = 0.5" in err
@@ -197,11 +176,7 @@ def _grad_model(lift, speed, mu=None, yield_stress=None, v0=None):
     b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
-    for arr, value in ((m.mu, mu), (m.yield_stress, yield_stress)):
-        if value is not None:
-            a = arr.numpy()
-            a[0] = value
-            arr.assign(a)
+    set_first_material(m, mu=mu, yield_stress=yield_stress)
     if v0 is not None:
         v = m.particle_v0.copy()
         v[:, 0] = v0
