@@ -110,6 +110,40 @@ def test_worlds_and_the_unfused_step_run_the_tresca_ground_as_one_world_does():
     np.testing.assert_allclose(unfused.collider_force.numpy(), fused.collider_force.numpy(), rtol=1e-4)
 
 
+def test_the_shear_cap_written_after_a_step_holds_in_the_next():
+    """``model.shear_cap`` written after the model has stepped: the next step from the strip at
+    rest holds with the new value (the static colliders' struct was filled once and kept the
+    first: the strip given 0 after 30 steps slid as at 1). At 0 every particle gains exactly
+    ``g sin(theta) dt`` along x and the row's x force is zero; given 1 back, the first step again
+    to the bit. A value the ground cannot take is refused by name and the old one kept."""
+    model = _strip(0.5)[0]
+    s = we.Solver(model)
+    dt = 0.9 * model.stable_dt()
+
+    def first_step():
+        out = model.state()
+        s.step(model.state(), out, dt)
+        return out.v.numpy()[:, 0], float(out.collider_force.numpy()[0, 0])
+
+    held, row_held = first_step()
+    model.shear_cap = 0.0
+    free, row_free = first_step()
+    np.testing.assert_allclose(free, G * math.sin(THETA) * dt, rtol=1e-5)
+    assert row_free == pytest.approx(0.0, abs=1e-6 * abs(row_held)) and held.min() < 0.9 * free.min()
+    model.shear_cap = 1.0
+    np.testing.assert_array_equal(first_step()[0], held)
+    for bad, said in ((-1.0, r"^shear_cap = -1\.0 is not allowed: must be >= 0"), (math.nan, r"^shear_cap = nan is not allowed")):
+        with pytest.raises(ValueError, match=said):
+            model.shear_cap = bad
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.06,) * 3, we.Material.preset("dough"))
+    b.add_ground(0.0, friction=0.5, images=True)
+    rough = b.finalize()
+    with pytest.raises(ValueError, match=r"^model\.shear_cap = 1\.0 is not allowed: the hold is the frictionless imaged ground's"):
+        rough.shear_cap = 1.0
+    assert model.shear_cap == 1.0 and rough.shear_cap == 0.0 and rough.shear_cap_plane is None
+
+
 @pytest.mark.parametrize("call, said", [
     (dict(shear_cap=1.0, images=False, friction=0.0), r"shear_cap = 1\.0 is not allowed with images = False: "),
     (dict(shear_cap=1.0, images=True, friction=0.5), r"shear_cap = 1\.0 is not allowed with friction = 0\.5: "),

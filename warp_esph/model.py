@@ -804,11 +804,8 @@ class Model(Unpicklable):
         self._collider_built = self._collider_values()
         self._colliders_checked = self._collider_built.tobytes()  # the values check_colliders last passed
         check_pressure_forces(materials, self.image_plane is not None)
-        #: ``K`` of the Tresca ground (``SceneBuilder.add_ground(shear_cap=K)``), 0 without one,
-        #: and its row of the plane arrays (None without one).
-        self.shear_cap = float(imaged[0].shear_cap) if imaged else 0.0
-        self.shear_cap_plane = self._image_row if self.shear_cap > 0.0 else None
-        check_shear_cap(materials, self.shear_cap)
+        self._shear_cap = float(imaged[0].shear_cap) if imaged else 0.0
+        check_shear_cap(materials, self._shear_cap)
         #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
@@ -1114,6 +1111,31 @@ class Model(Unpicklable):
     def _material_array(self, name: str) -> wp.array:
         values = [getattr(m, name) for m in self.materials]
         return wp.array(values, dtype=self.scalar, device=self.device, requires_grad=self.requires_grad)
+
+    @property
+    def shear_cap(self) -> float:
+        """``K`` of the Tresca ground (``SceneBuilder.add_ground(shear_cap=K)``), 0 without one.
+        Written after the build (an ablation, a sweep of ``K``), the next step holds with the
+        new value: the static colliders' struct is refilled when it changes (it was filled once
+        and a later value ignored: a strip stepped 30 times, then given 0 or 3, slid as at 1).
+        ``K > 0`` needs the frictionless imaged ground and a material with a shear yield stress
+        (``check_shear_cap``), as ``add_ground`` does."""
+        return self._shear_cap
+
+    @shear_cap.setter
+    def shear_cap(self, value: float):
+        cap = checks.non_negative("shear_cap", value)
+        if cap > 0.0 and self.image_motion != IMAGES_MOVING:
+            raise ValueError(f"model.shear_cap = {checks.shorten(value)!r} is not allowed: the hold is the frictionless "
+                             "imaged ground's and the model has none; build the scene with add_ground(friction=0, "
+                             "images=True, shear_cap=K)")
+        check_shear_cap(self.materials, cap)
+        self._shear_cap = cap
+
+    @property
+    def shear_cap_plane(self) -> int | None:
+        """The Tresca ground's row of the plane arrays, None while ``shear_cap`` is 0."""
+        return self._image_row if self._shear_cap > 0.0 else None
 
     @property
     def contact_ramp(self) -> float:

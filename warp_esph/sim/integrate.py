@@ -242,12 +242,12 @@ _STRUCT_VALUES = ("ramp", "cap_plane", "shear_cap", "spacing")
 
 def static_collider_struct(model):
     """``struct``'s instance holding the model's static collider arrays (these very arrays)
-    and its contact ramp. Filled once and reused while every array, its gradient and the
-    ramp are the same (a struct copies the pointers when filled, as
+    and its contact ramp. Filled once and reused while every array, its gradient, the
+    ramp and the Tresca ground's ``K`` are the same (a struct copies the pointers when filled, as
     ``Model.material_arrays``): filling it cost a tenth of a small model's step."""
     names = [name for name in struct(model.scalar).vars if name not in _STRUCT_VALUES]
     arrays = [getattr(model, name) for name in names]
-    key = (pointer_key(arrays), float(model.contact_ramp))
+    key = (pointer_key(arrays), float(model.contact_ramp), float(model.shear_cap))
     cached = model._static_collider_struct
     if cached is None or cached[0] != key:
         out = struct(model.scalar)()
