@@ -71,6 +71,9 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
     vec3 = T.vec3
     col = colliders.funcs(scalar)
     StaticColliders = struct(scalar)
+    # Divided in Python (float64) and cast once: Warp evaluates ``2.0 / 3.0`` inside a kernel in
+    # float32, whatever the scalar it is cast to (a float64 hold 2.3e-7 off at V = (2 cm)^3).
+    two_thirds = scalar(2.0 / 3.0)
 
     @wp.func
     def symplectic_euler(x: vec3, x_lo: vec3, v: vec3, f: vec3, mass: scalar, gravity: vec3, dt: scalar):
@@ -107,7 +110,7 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
         """``K tau_y A`` of particle ``i`` on the Tresca ground: ``tau_y = yield_stress /
         sqrt(2)`` of its material (``Material.shear_yield_stress``), ``A = V^(2/3)`` of its volume."""
         tau_y = sc.yield_stress[sc.particle_material[i]] * scalar(0.7071067811865476)
-        return sc.shear_cap * tau_y * wp.pow(sc.particle_volume[i], scalar(2.0 / 3.0))
+        return sc.shear_cap * tau_y * wp.pow(sc.particle_volume[i], two_thirds)
 
     @wp.func
     def static_colliders(x: vec3, v: vec3, dt: scalar, sc: StaticColliders, mass: scalar, row: int,
