@@ -115,7 +115,8 @@ def test_the_shear_cap_written_after_a_step_holds_in_the_next():
     rest holds with the new value (the static colliders' struct was filled once and kept the
     first: the strip given 0 after 30 steps slid as at 1). At 0 every particle gains exactly
     ``g sin(theta) dt`` along x and the row's x force is zero; given 1 back, the first step again
-    to the bit. A value the ground cannot take is refused by name and the old one kept."""
+    to the bit; ``static_colliders`` (a checkpoint's fingerprint) records the value that runs. A
+    value the ground cannot take is refused by name and the old one kept."""
     model = _strip(0.5)[0]
     s = we.Solver(model)
     dt = 0.9 * model.stable_dt()
@@ -130,8 +131,10 @@ def test_the_shear_cap_written_after_a_step_holds_in_the_next():
     free, row_free = first_step()
     np.testing.assert_allclose(free, G * math.sin(THETA) * dt, rtol=1e-5)
     assert row_free == pytest.approx(0.0, abs=1e-6 * abs(row_held)) and held.min() < 0.9 * free.min()
+    assert model.static_colliders()[0][0] == dataclasses.replace(model.planes[0], shear_cap=0.0)  # as it runs
     model.shear_cap = 1.0
     np.testing.assert_array_equal(first_step()[0], held)
+    assert model.static_colliders()[0][0] is model.planes[0]
     for bad, said in ((-1.0, r"^shear_cap = -1\.0 is not allowed: must be >= 0"), (math.nan, r"^shear_cap = nan is not allowed")):
         with pytest.raises(ValueError, match=said):
             model.shear_cap = bad

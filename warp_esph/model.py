@@ -917,6 +917,11 @@ class Model(Unpicklable):
         and a checkpoint of the moved scene resumed into one on the ground at 0. Each call reads
         the arrays (on a GPU, one transfer): for records, not for each step."""
         lists = tuple(list(c) for c in (self.planes, self.spheres, self.boxes))
+        k = self._image_row
+        if k is not None and lists[0][k].shear_cap != self._shear_cap:
+            # ``shear_cap`` written after the build is the one the kernels run (a checkpoint of
+            # a scene held at 0 resumed into one held at the build's K).
+            lists[0][k] = dataclasses.replace(lists[0][k], shear_cap=self._shear_cap)
         now, built = self._collider_values(), self._collider_built
         if now.tobytes() == built.tobytes():
             return lists
@@ -1119,7 +1124,8 @@ class Model(Unpicklable):
         new value: the static colliders' struct is refilled when it changes (it was filled once
         and a later value ignored: a strip stepped 30 times, then given 0 or 3, slid as at 1).
         ``K > 0`` needs the frictionless imaged ground and a material with a shear yield stress
-        (``check_shear_cap``), as ``add_ground`` does."""
+        (``check_shear_cap``), as ``add_ground`` does; ``static_colliders`` (a checkpoint's
+        fingerprint, a model made from this one) records the value written."""
         return self._shear_cap
 
     @shear_cap.setter
