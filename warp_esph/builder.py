@@ -588,8 +588,10 @@ class SceneBuilder:
         slope to none at 1.25 spacings (``sim/colliders.py``, ``tresca_traction``). ``K = 1`` is
         the continuum's floor that grips as the material's own yield strength (docs/physics.md,
         "The Tresca ground (built)"). Its traction is in the ground's reaction row. Refused
-        beside a material without a ``shear_yield_stress`` (another model, or an infinite
-        ``yield_stress``)."""
+        beside a material without a ``shear_yield_stress`` (another model, a deformation other
+        than the incremental one, or an infinite ``yield_stress``), whether or not that body
+        touches the ground. The hold reads the material's ``yield_stress`` as given: a
+        hardening material's grown yield stress does not raise it."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):
