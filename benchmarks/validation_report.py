@@ -426,8 +426,7 @@ def _slump_targets(results, floor: str, weight: str = DEFAULT_FIT_WEIGHT,
     plug target too."""
     out = []
     default = "variational"
-    on = f" on {FLOOR_NAMES[floor]}" if floor in FLOOR_NAMES else ""
-    on += _with_weight(weight, " with")
+    on = _on(floor) + _with_weight(weight, " with")
     base = CONTINUUM_BASE.get(floor)
     named = _base_name(base)
     results = [r for r in results if r["case"] != "slump" or (_floor(r) == floor and _fit_weight(r) == weight)]
@@ -710,6 +709,11 @@ FLOOR_NAMES = {"ghost_particles": "the no-slip ghost floor", "tresca_images": "t
 OPT_IN_FLOORS = ("tresca_images",)
 
 
+def _on(floor: str) -> str:
+    """What a target row on ``floor`` is named for (nothing for the suite's default floor)."""
+    return f" on {FLOOR_NAMES[floor]}" if floor in FLOOR_NAMES else ""
+
+
 def _base_name(base: str | None) -> str | None:
     """A continuum base as the report names it (the MPM's "sticky" is the no-slip floor)."""
     return {"sticky": "no-slip"}.get(base, base)
@@ -809,8 +813,7 @@ def _fitted_yield_target(results, mpm, floor: str = "particles") -> list[tuple[s
         used += [r for r in piles if r["resolution"] == n]
     if not got:
         return []
-    on = f" on {FLOOR_NAMES[floor]}" if floor in FLOOR_NAMES else ""
-    return [(f"a yield stress fitted to a slump is the continuum's{on}: this method's piles fitted to the Bingham "
+    return [(f"a yield stress fitted to a slump is the continuum's{_on(floor)}: this method's piles fitted to the Bingham "
              f"continuum's (MPM, {_base_name(CONTINUUM_BASE[floor])} base) recover its yield stress within 10 %, S in "
              "[0.1, 0.5], at the finer resolution (not a "
              "target of the issue: what its height target stands for; the section below)",
@@ -941,7 +944,7 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     for weight in FIT_WEIGHT_ORDER:
         out += _elastic_targets(results, weight)
     for weight in FIT_WEIGHT_ORDER:
-        for floor in ("particles", "ghost_particles", "tresca_images"):
+        for floor in ("particles", *FLOOR_NAMES):
             out += _slump_targets(results, floor, weight, mpm=mpm)
     out += _fitted_yield_target(results, mpm)
     out += _fitted_yield_target(results, mpm, "tresca_images")
@@ -961,7 +964,7 @@ def _unmet(met: str) -> bool:
 
 def _opt_in(target: str) -> bool:
     """Whether a target row is one of an opt-in floor's (``OPT_IN_FLOORS``), as its name says."""
-    return any(f" on {FLOOR_NAMES[f]}" in target for f in OPT_IN_FLOORS)
+    return any(_on(f) in target for f in OPT_IN_FLOORS)
 
 
 def _summary(targets) -> str:
