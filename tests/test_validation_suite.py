@@ -242,6 +242,14 @@ def test_the_tresca_ground_is_judged_against_the_1d_height_beside_the_tresca_con
     assert height(high, None)[0][2] == "within 10 %: no (S = 0.1); converging: yes"
     # The suite's floors read their own rows: none here.
     assert _slump_targets(rows, "particles", mpm=continuum) == []
+    # The particle floor grips while its continuum (slip) does not: a slip continuum missing
+    # the height on the same side is shown beside its piles but not named as a shared miss.
+    slip = {"slumps": [_continuum_pile(0.1, 16, 1.2, "slip")]}
+    particles = [dict(r, floor="particles") for r in high]
+    (_, got, verdict, _) = next(t for t in _slump_targets(particles, "particles", mpm=slip)
+                                if t[0].startswith("slump height"))
+    assert "the continuum (MPM, slip base, its finest grid at rest): S = 0.1 +20.0 % at H0 / 16" in got, got
+    assert verdict == "within 10 %: no (S = 0.1); converging: yes", verdict
 
 
 def test_the_tresca_grounds_plug_names_the_tresca_continuum():
