@@ -1236,6 +1236,8 @@ class ToolSet:
         self.mesh_vofs = wp.array(np.array(vofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
         self.mesh_fofs = wp.array(np.array(fofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
         self.pin = wp.array(pin_of, dtype=wp.int32, device=dev)
+        self._pin_of, self._centers = pin_of, centers
+        self._still = None  # still_particles(), set by check_arrays from the arrays it checked
         self.rest_x = wp.array(x0, dtype=T.vec3, device=dev)
         self.pin_center = wp.array(centers, dtype=T.vec3, device=dev)
         self.kernels = k_
@@ -1373,7 +1375,37 @@ class ToolSet:
                 refuse("keyframe_positions", k, p, "must be finite")
             if not np.isfinite(q).all() or not (np.abs(q).max(axis=1) > 0.0).all():
                 refuse("keyframe_orientations", k, q, "must be finite quaternions (x, y, z, w), none zero")
+        self._still = self._still_flags(values)
         self._checked_arrays = key
+
+    def _still_flags(self, values: dict):
+        """``still_particles`` of the arrays' checked ``values``: a pinned set stays at its
+        rest pose, bit for bit, under a ``Velocity`` motion with both velocities 0 from the
+        set's own rest pose (its position the rest centroid as stored, its orientation the
+        identity): every pinned place is then ``X + 0 + 0`` (``integrate``)."""
+        still = []
+        for k in range(len(self.colliders), self.count):
+            start = self.keyframe_start[k]
+            if (isinstance(self.motions[k], Velocity) and not values["velocity"][k].any()
+                    and not values["angular_velocity"][k].any()
+                    and (values["keyframe_positions"][start] == self._centers[k]).all()
+                    and (values["keyframe_orientations"][start] == IDENTITY).all()):
+                still.append(k)
+        if not still:
+            return None
+        flags = np.isin(self._pin_of, still).astype(np.int32)
+        held = self._still
+        if held is not None and np.array_equal(held.numpy(), flags):
+            return held
+        return wp.array(flags, dtype=wp.int32, device=self.model.device)
+
+    def still_particles(self):
+        """Per particle 1 where it is pinned to a set that stays at its rest pose (``_still_flags``)
+        as the tools' arrays were at the last ``check_arrays`` (which ``Solver.step`` calls
+        before its first launch: an optimiser that moves such a set is seen at the next step),
+        else 0; None where no set stays at rest. The fused step leaves out the neighbour passes
+        of those with only such particles in their rows (``fused.out_of_reach``)."""
+        return self._still
 
     def motion_gradient(self, name: str) -> dict[str, np.ndarray]:
         """The gradient a backward pass left on tool ``name``'s motion parameters:

@@ -63,6 +63,33 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     Materials = materials.struct(scalar)
     COROTATED = forces.COROTATED
 
+    @wp.func
+    def held_still(j: int, still: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                   rest: wp.array(dtype=vec3)) -> int:
+        """1 where particle ``j`` is pinned to a set at rest (``ToolSet.still_particles``) and
+        starts the step at its pinned place ``rest`` with no round-off carried, where the pin
+        puts it again: its displacement over the step is then 0."""
+        out = int(0)
+        if still[j] != 0:
+            if x[j] == rest[j] and x_lo[j] == vec3():
+                out = 1
+        return out
+
+    @wp.func
+    def out_of_reach(i: int, still: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                     rest: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int) -> int:
+        """1 where particle ``i`` and every particle in its row are ``held_still``, else 0.
+        Its pair forces then act on such particles alone, whose places the pins set, and
+        every displacement its fit sums is 0, so ``dF = I``: nothing another particle reads
+        comes of its neighbour passes, and the step leaves them out (the pins' reaction rows
+        then sum the same forces less pairs that cancel, equal and opposite, to round-off)."""
+        out = held_still(i, still, x, x_lo, rest)
+        k = int(0)
+        while out != 0 and k < n:
+            out = held_still(nbr[i, k], still, x, x_lo, rest)
+            k += 1
+        return out
+
     @wp.kernel(enable_backward=False, module="unique")
     def constitutive_forces(
         x: wp.array(dtype=vec3),
@@ -94,6 +121,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         images: int,
         image_stress: wp.array(dtype=mat33),
         F_image: wp.array(dtype=mat33),
+        reach: int,
+        still: wp.array(dtype=wp.int32),
+        x_lo: wp.array(dtype=vec3),
+        rest: wp.array(dtype=vec3),
         F_out: wp.array(dtype=mat33),
         F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
@@ -101,6 +132,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_inv_out: wp.array(dtype=mat33),
         f: wp.array(dtype=vec3),
         counters: wp.array(dtype=wp.int32),
+        far: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
         m = material[i]
@@ -147,6 +179,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         alpha_out[i] = a_new
         stress_out[i] = P
         F_inv_out[i] = Finv
+        # (reach 0: no pinned set at rest, or images, whose own F the update writes.)
+        out = int(0)
+        if reach != 0:
+            out = out_of_reach(i, still, x, x_lo, rest, nbr, count[i])
+        far[i] = out
+        if out != 0:
+            return
 
         # 3. Pair forces: elastic (forces.elastic_forces), then pressure and viscosity
         # (pressure.pressure_forces) with the pressure p, volume m / rho and pressure
@@ -251,6 +290,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         gmin: scalar,
         images: int,
         Fg_prev: wp.array(dtype=mat33),
+        far: wp.array(dtype=wp.int32),
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
@@ -259,12 +299,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         share_out: wp.array(dtype=scalar),
     ):
         """deformation.update_deformation with the neighbourhood guard of
-        neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
+        neighbors.select_neighbors evaluated here, on the moment matrix A of the fit; of a
+        particle out of reach (``far``, ``out_of_reach``) on A alone, its B - A being 0."""
         i = wp.tid()
         A = mat33()
         B = mat33()
         same = scalar(0.0)
-        if images != 0:
+        if far[i] != 0:
+            # The same A and count (position_moments: the same terms in the same order), so the
+            # same guard and counts; B - A stays 0, so F + F_lo is carried as the fit would.
+            A, same = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, 0)
+        elif images != 0:
             A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         else:
             # Each particle's displacement from the launch before (u): one load per
@@ -294,6 +339,18 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  displacements=displacements)
 
 
+def reach_args(model, state_in, scratch) -> tuple:
+    """``constitutive_forces``' ``reach, still, x_lo, rest``: whether it marks the particles out
+    of reach (``out_of_reach``, into ``scratch.far``, which ``update_deformation`` reads), the
+    tools' ``still_particles``, ``state_in.x_lo`` and the pinned places; 0 where no pinned set
+    is at rest, or where the model has images (a particle's update then also writes its
+    image's F)."""
+    still = model.tools.still_particles() if model.tools is not None else None
+    if still is None or model.image_plane is not None:
+        return 0, scratch.far, state_in.x_lo, state_in.x_lo
+    return 1, still, state_in.x_lo, model.tools.rest_x
+
+
 def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool, tape=None):
     """Plastic flow, stress, ``F^-1`` and every pair force in one launch; with ``sph`` the
     SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass
@@ -320,10 +377,10 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
                 pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
                 state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
                 scratch.min_neighbors, S(scratch.max_condition), model.particle_mass, model.particle_rest_density,
-                *model.image_args(), *forces.image_constitutive(model, state_out),
+                *model.image_args(), *forces.image_constitutive(model, state_out), *reach_args(model, state_in, scratch),
             ],
             [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
-             scratch.counters],
+             scratch.counters, scratch.far],
             device=model.device,
             record_tape=tape is None,
         )
@@ -379,7 +436,7 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         [
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, u, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
-            S(scratch.max_condition), *model.image_args(), deformation.image_F_flowed(model, state_out),
+            S(scratch.max_condition), *model.image_args(), deformation.image_F_flowed(model, state_out), scratch.far,
         ],
         [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image, state_out.image_share],
         device=model.device,

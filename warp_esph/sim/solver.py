@@ -143,6 +143,9 @@ class StepScratch:
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
         # Each particle's displacement over the step (fused.displacements), read by the fit.
         self.displacement = wp.zeros(n, dtype=model.types.vec3, device=dev)
+        # 1 where the fused step left a particle's neighbour passes out (fused.out_of_reach):
+        # written by its constitutive_forces, read by its update_deformation.
+        self.far = wp.zeros(n, dtype=wp.int32, device=dev)
         self._pressure_volume = None
         # Solver(yield_with_pressure=True)'s pressure stress of untaped steps (_pressure_stress).
         self.pressure_stress = None
