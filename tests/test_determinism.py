@@ -140,10 +140,11 @@ def test_replayed_launches_see_a_struct_and_a_vector_changed_in_place():
     assert out.numpy()[0] == sum(10.0 * k * k for k in range(1, 5))
 
 
-def _taped_replay_run(replayed: bool, again: bool):
+def _taped_replay_run(replayed: bool, again: bool, still: bool = True):
     """The pressed block of ``_replay_run`` in float64 on a tape, then backward from a loss
     on the positions; ``again``: run first with a longer step into the same states (the
-    second tape then refills the tool samples the first left in them)."""
+    second tape then refills the tool samples the first left in them); ``still`` False: the
+    floor particles out of reach run their neighbour passes too (``_slump_run``)."""
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
     mat = we.Material(mu=2e4, lam=3e4, density=1000.0, yield_stress=400.0, flow_rate=50.0, viscosity=1.0)
     block = b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), mat, name="block")
@@ -151,6 +152,8 @@ def _taped_replay_run(replayed: bool, again: bool):
     b.add_tool("box", half_extents=(0.08, 0.01, 0.08), name="press",
                motion=tools.Keyframes([0.0, 0.005], [(0.0, 0.1, 0.0), (0.0, 0.088, 0.0)]))
     m = b.finalize(dtype=wp.float64, requires_grad=True)
+    if not still:
+        m.tools.still_particles = lambda: None
     s = we.Solver(m)
     m.launches.enabled = s.search.launches.enabled = replayed
     states = [m.state(requires_grad=True) for _ in range(31)]
@@ -165,6 +168,8 @@ def _taped_replay_run(replayed: bool, again: bool):
     tape.backward()
     t = m.tools
     grads = [m.mu.grad, m.yield_stress.grad, states[0].x.grad, t.keyframe_positions.grad]
+    if still:
+        assert s.fast_under_tape() and s.scratch.far.numpy().sum() > 50  # of the 207 floor particles
     return x, [st.reaction_force.numpy() for st in states[1:]], [g.numpy().copy() for g in grads]
 
 
@@ -178,6 +183,23 @@ def test_replayed_launches_on_a_tape_give_the_very_gradients_of_plain_launches()
     for name, a, b in zip(("mu", "yield_stress", "x0", "press keyframes"), g1, g0):
         assert np.array_equal(a, b), name
         assert np.abs(b).max() > 0.0, name  # the gradient reaches it
+
+
+def test_floor_particles_out_of_reach_leave_a_taped_window_the_same_bit_for_bit():
+    """The pressed block's taped window (``_taped_replay_run``: float64, the fused forward
+    under the tape with the hand-written adjoints) with its floor particles out of reach left
+    out of the neighbour passes: the positions, the press's reaction and every gradient are
+    the bits of the window that runs them all (the adjoints run every row: what the far
+    particles' passes would add to them is 0 where they act on pinned particles alone); the
+    floor's reaction to round-off."""
+    x1, f1, g1 = _taped_replay_run(False, again=False)
+    x0, f0, g0 = _taped_replay_run(False, again=False, still=False)
+    assert np.array_equal(x1, x0)
+    f1, f0 = np.array(f1), np.array(f0)
+    assert np.array_equal(f1[:, 0], f0[:, 0]) and np.abs(f0[:, 0, 1]).max() > 1.0  # the press
+    assert np.abs(f1[:, 1] - f0[:, 1]).max() < 1e-12 * np.abs(f0[:, 1]).max()  # the floor
+    for name, a, b in zip(("mu", "yield_stress", "x0", "press keyframes"), g1, g0):
+        assert np.array_equal(a, b), name
 
 
 def _set_moving(m, v):
@@ -345,3 +367,95 @@ def test_a_taped_rollouts_next_run_replays_its_launches_on_the_very_arrays(monke
     for name in g0:
         assert np.array_equal(g0[name], g1[name]), name
     assert np.abs(g1["mu"]).max() > 0.0 and np.abs(g1["v0"]).max() > 0.0  # the gradients reach them
+
+
+_STILL_STATE = ("x", "x_lo", "v", "F", "F_lo", "alpha", "stress", "F_inv", "guard", "density")
+
+
+def _slump_run(model, steps: int, still: bool, jitter: float = 0.0):
+    """``steps`` fused float32 steps of ``model`` (a slumping cylinder on its pinned floor); with
+    ``still`` False the floor particles out of reach run their neighbour passes as every other
+    (``ToolSet.still_particles`` hidden: no set reads as at rest). ``jitter``: the pinned
+    particles start that far off their pinned places, at random. Returns, every 50 steps and
+    at the first two, the state arrays, the force rows and the floor's reaction, and the
+    particles the step left out."""
+    from benchmarks import validation
+
+    if not still:
+        model.tools.still_particles = lambda: None
+    try:
+        s = validation._solver(model)
+        a, c = model.state(), model.state()
+        if jitter:
+            pinned = model.tools.pin.numpy() >= 0
+            x = a.x.numpy()
+            x[pinned] += jitter * np.random.default_rng(3).uniform(-1.0, 1.0, (int(pinned.sum()), 3))
+            a.x.assign(x)
+        dt = 0.9 * model.stable_dt()
+        out = []
+        for k in range(steps):
+            s.step(a, c, dt)
+            a, c = c, a
+            if k < 2 or (k + 1) % 50 == 0:
+                out.append(({name: getattr(a, name).numpy().copy() for name in _STILL_STATE}, a.force.numpy().copy(),
+                            s.reaction_forces(a)["floor"][0], s.scratch.far.numpy().copy()))
+        return out
+    finally:
+        model.tools.__dict__.pop("still_particles", None)
+
+
+def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
+    """The fused step leaves out the neighbour passes of a particle pinned to a floor at rest
+    whose row holds only such particles (``fused.out_of_reach``): its pair forces act on the
+    floor alone and its fit's increment is exactly 0. Over 300 steps of a flowing S = 0.2
+    slump (6 across, on 280 floor particles under 2.2 R0) every state array of every particle
+    is the bits of the step that runs them, the free particles' forces too; the floor's
+    reaction only to round-off (pairs that cancel left out). The particles left out are those
+    whose rows hold no free particle, half the floor and more."""
+    from benchmarks import validation
+
+    model, free, _, _ = validation.slump_model(0.2, 6, floor_radius=2.2)
+    ran = _slump_run(model, 300, still=False)
+    left = _slump_run(model, 300, still=True)
+    for (full, f_full, r_full, far_full), (skip, f_skip, r_skip, far_skip) in zip(ran, left):
+        for name in _STILL_STATE:
+            assert np.array_equal(full[name], skip[name]), name
+        assert np.array_equal(f_full[free], f_skip[free])
+        assert r_skip == pytest.approx(r_full, rel=1e-5, abs=1e-5 * abs(r_full[1]))
+        assert not far_full.any() and not far_skip[free].any()
+        assert far_skip.sum() > 0.5 * (~free).sum(), far_skip.sum()
+    # Exactly those whose rows (the search's, of the last state) hold only floor particles.
+    a = model.state()
+    s = validation._solver(model)
+    s.step(model.state(), a, 0.9 * model.stable_dt())
+    nbr, cnt = a.neighbors.numpy(), a.neighbor_count.numpy()
+    rows = [nbr[i, :cnt[i]] for i in range(len(free))]
+    expected = np.array([not free[i] and not free[r].any() for i, r in enumerate(rows)])
+    assert np.array_equal(s.scratch.far.numpy() != 0, expected)
+
+
+def test_floor_particles_off_their_places_or_moving_run_their_passes():
+    """Pinned particles that start off their pinned places (0.1 mm at random) move onto them
+    in the first step, so no fit over them is the identity: that step runs every neighbour
+    pass, and its states are the bits of the step that runs them all; from the next, with the
+    floor in place, the step leaves the far ones out again. A floor set moving through the
+    tools' velocity array (as an optimiser writes it) leaves none out from the next step."""
+    from benchmarks import validation
+
+    model, free, _, _ = validation.slump_model(0.2, 6, floor_radius=2.2)
+    ran = _slump_run(model, 2, still=False, jitter=1e-4)
+    left = _slump_run(model, 2, still=True, jitter=1e-4)
+    for (full, _, _, _), (skip, _, _, _) in zip(ran, left):
+        for name in _STILL_STATE:
+            assert np.array_equal(full[name], skip[name]), name
+    assert not left[0][3].any() and left[1][3].sum() > 0.5 * (~free).sum()
+    k = model.tools.names.index("floor")
+    for name, value in (("velocity", (0.0, 1e-6, 0.0)), ("angular_velocity", (0.0, 1e-6, 0.0))):
+        v = getattr(model.tools, name)
+        held = v.numpy().copy()
+        moved = held.copy()
+        moved[k] = value
+        v.assign(moved)
+        assert not _slump_run(model, 1, still=True)[0][3].any(), name
+        v.assign(held)
+    assert _slump_run(model, 1, still=True)[0][3].sum() > 0.5 * (~free).sum()
