@@ -9,7 +9,11 @@ Each floor's forward step is timed over ``--steps`` steps after ``--warmup`` (ke
 loading, the pile starting to fall), the best of ``--repeat``; the particle floor also
 with the non-fused kernels, which a ghost floor (``add_particle_floor(ghost=True)``) runs.
 ``--taped`` also times a float64 taped window of ``--taped-steps`` steps, forward and
-backward, for the particle and ghost floors. Not a test.
+backward, for the particle and ghost floors. ``--reach`` also times the particle floor's
+step with its floor particles out of every free particle's reach run as every other
+(``ToolSet.still_particles`` hidden; the fused step leaves out their neighbour passes,
+``fused.out_of_reach``), interleaved with the default, and counts those it leaves out at the
+end of the timed steps. Not a test.
 """
 
 import json
@@ -24,17 +28,22 @@ from benchmarks import _cli
 PROG = "python -m benchmarks.floors"
 
 
-def _forward(floor: str, fused: bool, resolution: int, steps: int, warmup: int) -> tuple[float, int]:
+def _forward(floor: str, fused: bool, resolution: int, steps: int, warmup: int, reach: bool = True):
+    """Seconds per forward step, the particle count and the particles the last step left out
+    of its neighbour passes (``reach`` False: none, every one run)."""
     import warp_esph as we
     from benchmarks import validation as V
     from benchmarks.step import time_block
 
     model, _, _, _ = V.slump_model(0.2, resolution, floor=floor)
+    if not reach:
+        model.tools.still_particles = lambda: None
     solver = we.Solver(model, fused=fused)
     states = [model.state(), model.state()]
     dt = 0.5 * model.stable_dt()
     time_block(solver, states, warmup, model.device, dt)
-    return time_block(solver, states, steps, model.device, dt)[0], model.particle_count
+    t = time_block(solver, states, steps, model.device, dt)[0]
+    return t, model.particle_count, int(solver.scratch.far.numpy().sum())
 
 
 def _taped(floor: str, resolution: int, steps: int) -> tuple[float, float]:
@@ -76,6 +85,8 @@ def main(argv=None) -> dict:
     p.add_argument("--repeat", type=_cli.positive_int, default=2)
     p.add_argument("--taped", action="store_true", help="also time a float64 taped window, forward and backward")
     p.add_argument("--taped-steps", type=_cli.positive_int, default=3)
+    p.add_argument("--reach", action="store_true",
+                   help="also time the particle floor with its floor particles out of reach run as every other")
     p.add_argument("--json", default=None, type=_cli.output_file, help="where the results go")
     args = p.parse_args(argv)
     import warp as wp
@@ -83,20 +94,25 @@ def main(argv=None) -> dict:
     wp.config.log_level = wp.LOG_WARNING
     from benchmarks import validation as V
 
-    runs = [(f, True) for f in V.FLOORS] + [("particles", False)]
+    runs = [(f, True, True) for f in V.FLOORS] + [("particles", False, True)]
+    if args.reach:
+        runs.append(("particles", True, False))
     best: dict[str, float] = {}
     counts: dict[str, int] = {}
+    left: dict[str, int] = {}
     for _ in range(args.repeat):  # interleaved, so a slow spell of the machine hits every floor
-        for floor, fused in runs:
-            key = floor + ("" if fused else " (non-fused)")
-            t, n = _forward(floor, fused, args.resolution, args.steps, args.warmup)
+        for floor, fused, reach in runs:
+            key = floor + ("" if fused else " (non-fused)") + ("" if reach else " (every pass)")
+            t, n, far = _forward(floor, fused, args.resolution, args.steps, args.warmup, reach)
             best[key] = min(best.get(key, np.inf), t)
-            counts[key] = n
+            counts[key], left[key] = n, far
     base = best["particles"]
     out = {"resolution": args.resolution, "steps": args.steps, "machine": platform.machine(),
-           "forward": {k: {"s_per_step": v, "ratio": v / base, "particles": counts[k]} for k, v in best.items()}}
+           "forward": {k: {"s_per_step": v, "ratio": v / base, "particles": counts[k], "left_out": left[k]}
+                       for k, v in best.items()}}
     for k, v in out["forward"].items():
-        print(f"{k:28s} {v['particles']:6d} particles  {1e3 * v['s_per_step']:8.2f} ms/step  {v['ratio']:.2f} x", flush=True)
+        print(f"{k:28s} {v['particles']:6d} particles  {1e3 * v['s_per_step']:8.2f} ms/step  {v['ratio']:.2f} x"
+              f"  ({v['left_out']} left out of the neighbour passes)", flush=True)
     if args.taped:
         floors = ("particles", "ghost_particles")
         for f in floors:  # kernel loading (float64, taped) before any timing

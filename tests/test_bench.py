@@ -75,15 +75,18 @@ def test_fit_weight_option_reaches_the_benchmarked_models(tmp_path):
 
 def test_floors_benchmark_times_every_floor_against_the_particle_floor(tmp_path):
     """``benchmarks.floors`` at a tiny size: every floor of the validation suite (and the
-    particle floor's non-fused step) as a ratio to the particle floor's fused step, and the
-    taped float64 window of the particle and ghost floors."""
+    particle floor's non-fused step, and with ``--reach`` its step that runs the floor
+    particles out of reach too) as a ratio to the particle floor's fused step, and the taped
+    float64 window of the particle and ghost floors."""
     from benchmarks import floors, validation
 
     out = tmp_path / "floors.json"
     report = floors.main(["--resolution", "4", "--steps", "2", "--warmup", "1", "--repeat", "1", "--taped",
-                          "--taped-steps", "1", "--json", str(out)])
+                          "--taped-steps", "1", "--reach", "--json", str(out)])
     assert json.loads(out.read_text()) == report
-    assert set(report["forward"]) == set(validation.FLOORS) | {"particles (non-fused)"}
+    assert set(report["forward"]) == set(validation.FLOORS) | {"particles (non-fused)", "particles (every pass)"}
+    # The floor under 3.2 R0 reaches far past the 4-across cylinder's support radius.
+    assert report["forward"]["particles"]["left_out"] > 0 == report["forward"]["particles (every pass)"]["left_out"]
     assert report["forward"]["particles"]["ratio"] == 1.0
     assert all(r["s_per_step"] > 0 for r in report["forward"].values())
     assert set(report["taped"]) == {"particles", "ghost_particles"}

@@ -424,7 +424,7 @@ def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
         assert r_skip == pytest.approx(r_full, rel=1e-5, abs=1e-5 * abs(r_full[1]))
         assert not far_full.any() and not far_skip[free].any()
         assert far_skip.sum() > 0.5 * (~free).sum(), far_skip.sum()
-    # Exactly those whose rows (the search's, of the last state) hold only floor particles.
+    # Exactly those whose rows (the search's, in a first step) hold only floor particles.
     a = model.state()
     s = validation._solver(model)
     s.step(model.state(), a, 0.9 * model.stable_dt())
