@@ -252,6 +252,31 @@ def test_the_tresca_ground_is_judged_against_the_1d_height_beside_the_tresca_con
     assert verdict == "within 10 %: no (S = 0.1); converging: yes", verdict
 
 
+def test_a_height_row_names_as_shared_only_the_piles_it_misses_and_says_where_its_continuum_is_near_rest():
+    """A height the piles meet is no shared miss, however far the continuum beside it misses on
+    the same side: the verdict names a continuum's miss only at an S the piles miss too. And a
+    continuum height read from a grid not at rest (no finer one at rest) says so beside it."""
+    from benchmarks.validation_report import _slump_targets
+
+    tresca = "Tresca 1 tau_y"
+    # S = 0.1 at +15 % (out of the band), S = 0.2 at +5 % (in it); the continuum +12 % at both.
+    rows = ([_tresca_pile(0.1, n, 1.13 + 0.32 / n) for n in (8, 12, 16)]
+            + [_tresca_pile(0.2, n, 1.03 + 0.32 / n) for n in (8, 12, 16)])
+    continuum = {"slumps": [_continuum_pile(0.1, 16, 1.12, tresca),
+                            # S = 0.2: its finest grid still moving, the coarser one at rest.
+                            dict(_continuum_pile(0.2, 16, 1.12, tresca), at_rest=False),
+                            _continuum_pile(0.2, 12, 1.15, tresca),
+                            # S = 0.3's only grid still moving: read there, said so.
+                            dict(_continuum_pile(0.3, 16, 1.12, tresca), at_rest=False)]}
+    rows += [_tresca_pile(0.3, n, 1.03 + 0.32 / n) for n in (8, 12, 16)]
+    _, got, verdict, _ = next(t for t in _slump_targets(rows, "tresca_images", mpm=continuum)
+                              if t[0].startswith("slump height"))
+    assert verdict.startswith(f"within 10 %: no (S = 0.1; the continuum on a {tresca} base misses it too: S = 0.1); "), \
+        verdict
+    assert (f"the continuum (MPM, {tresca} base, its finest grid at rest): S = 0.1 +12.0 % at H0 / 16, "
+            "S = 0.2 +15.0 % at H0 / 12, S = 0.3 +12.0 % at H0 / 16 (near rest)") in got, got
+
+
 def test_the_tresca_grounds_plug_names_the_tresca_continuum():
     """The plug target on the Tresca ground: where the MPM on the Tresca 1 tau_y floor keeps no
     plug either it is the one named; the slip continuum's rows, which would also miss, are not."""
