@@ -187,6 +187,53 @@ def test_the_hold_fades_with_where_each_base_particle_starts_the_step():
     np.testing.assert_allclose(x_held - x_free, dt * (v_held - v_free), rtol=0.0, atol=1e-15)
 
 
+@pytest.mark.parametrize("hardening", [2000.0, -1000.0])
+def test_the_hold_reads_each_particles_hardened_yield_stress_and_none_where_softening_took_it(hardening):
+    """One step (float64) of a 4 x 2 x 4 block sliding at 1 m/s on the Tresca ground, its base
+    particles at 16 plastic strains ``alpha`` from 0 to 0.1 (``State.alpha``, each its own):
+    each base particle's tangential speed loses ``(Y + K alpha) dt / (sqrt(2) rho dx)``, the
+    yield stress ``Y + K alpha`` the plastic flow reads, hardened (``K`` = 2000 Pa) or softened
+    (``K`` = -1000 Pa, down to 0 at ``alpha`` = 0.06): beyond it no hold at all, the step's
+    velocity the free ground's to the bit (a negative hold would push). The tools' integrator
+    (a sphere tool parked far away) gives the same step to the bit. Seen failing with the hold
+    read from the yield stress alone (every particle losing the same ``Y``)."""
+    dx, dt, ys, rho = 0.02, 1e-3, 60.0, 1000.0
+    mat = we.Material.from_young(5e3, 0.3, density=rho, yield_stress=ys, flow_rate=50.0, viscosity=1.0,
+                                 hardening=hardening)
+
+    def block(tool):
+        b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, dx, 0.0), (4 * dx, 2 * dx, 4 * dx), mat, velocity=(1.0, 0.0, 0.0))
+        b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+        if tool:
+            b.add_tool("sphere", radius=0.01, position=(0.0, 1.0, 0.0))
+        return b.finalize(dtype=wp.float64)
+
+    model = block(False)
+    base = np.flatnonzero(model.particle_x0[:, 1] < dx)
+    assert len(base) == 16
+    alpha = np.zeros(model.particle_count)
+    alpha[base] = np.linspace(0.0, 0.1, 16)
+
+    def step(model):
+        a, out = model.state(), model.state()
+        a.alpha.assign(alpha)
+        we.Solver(model).step(a, out, dt)
+        return out.v.numpy()
+
+    held = step(model)
+    np.testing.assert_array_equal(step(block(True)), held)
+    model.shear_cap = 0.0
+    free = step(model)
+    lost = np.hypot(free[:, 0], free[:, 2]) - np.hypot(held[:, 0], held[:, 2])
+    stress = np.maximum(ys + hardening * alpha[base], 0.0)
+    np.testing.assert_allclose(lost[base], stress / math.sqrt(2.0) * dt / (rho * dx), rtol=1e-9, atol=1e-15)
+    if hardening < 0.0:
+        gone = base[ys + hardening * alpha[base] <= 0.0]
+        assert len(gone) == 7
+        np.testing.assert_array_equal(held[gone], free[gone])
+
+
 @pytest.mark.parametrize("call, said", [
     (dict(shear_cap=1.0, images=False, friction=0.0), r"shear_cap = 1\.0 is not allowed with images = False: "),
     (dict(shear_cap=1.0, images=True, friction=0.5), r"shear_cap = 1\.0 is not allowed with friction = 0\.5: "),
@@ -241,19 +288,23 @@ def test_a_scene_files_ground_takes_shear_cap_and_the_cli_refuses_a_bad_one_in_o
 
 
 STEPS, DT = 8, 5e-4
+#: The blocks' hardening (Pa) and their plastic strain at the start, about 0.05 (each particle its
+#: own): the hold reads ``yield_stress + hardening alpha``, 20 Pa above the yield stress of 60.
+HARDENING, ALPHA0 = 400.0, 0.05
 
 
-def _grad_model(lift, speed, mu=None, yield_stress=None, v0=None):
+def _grad_model(lift, speed, mu=None, yield_stress=None, hardening=None, v0=None):
     """A 3 x 2 x 3 yield-stress block (2 cm, float64) on the Tresca ground, its base ``lift``
     spacings above the plane (0.5: in the full hold; 0.9, 1.1: in its fade), moving at
-    ``speed`` m/s along x (and a little along z) under gravity."""
-    mat = we.Material.from_young(5e3, 0.3, density=1000.0, yield_stress=60.0, flow_rate=50.0, viscosity=1.0)
+    ``speed`` m/s along x (and a little along z) under gravity, hardening ``HARDENING``."""
+    mat = we.Material.from_young(5e3, 0.3, density=1000.0, yield_stress=60.0, flow_rate=50.0, viscosity=1.0,
+                                 hardening=HARDENING)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, 0.02 * (lift + 0.5), 0.0), (0.06, 0.04, 0.06), mat, velocity=(speed, 0.0, 0.25 * speed))
     b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
-    set_first_material(m, mu=mu, yield_stress=yield_stress)
+    set_first_material(m, mu=mu, yield_stress=yield_stress, hardening=hardening)
     if v0 is not None:
         v = m.particle_v0.copy()
         v[:, 0] = v0
@@ -261,27 +312,36 @@ def _grad_model(lift, speed, mu=None, yield_stress=None, v0=None):
     return m
 
 
-def _grad_loss(model, grad=False):
+def _grad_loss(model, grad=False, alpha0=ALPHA0):
     s = we.Solver(model)
     states = [model.state(requires_grad=True) for _ in range(STEPS + 1)]
+    states[0].alpha.assign(alpha0 + ALPHA0 * np.random.default_rng(5).uniform(-0.5, 0.5, model.particle_count))
     loss, tape = taped_rollout_loss(s, states, DT, random_weights(model.particle_count, 7))
     if not grad:
         return loss.numpy()[0]
     tape.backward(loss)
-    return model.mu.grad.numpy()[0], model.yield_stress.grad.numpy()[0], states[0].v.grad.numpy()[:, 0].sum()
+    return (model.mu.grad.numpy()[0], model.yield_stress.grad.numpy()[0], model.hardening.grad.numpy()[0],
+            states[0].v.grad.numpy()[:, 0].sum(), states[0].alpha.grad.numpy().sum())
 
 
 @pytest.mark.parametrize("lift, speed", [(0.5, 0.3), (0.5, 0.002), (0.9, 0.3), (1.1, 0.002)])
 def test_gradients_through_the_tresca_ground_match_central_differences(lift, speed):
-    """mu, the yield stress (which sets the hold) and the initial speed through 8 steps of a
-    block sliding (0.3 m/s, past the hold) or sticking (2 mm/s, under it) on the Tresca ground,
-    its base in the full hold or in its fade: the float64 tape against central differences
-    at a relative step of 1e-5."""
-    g_mu, g_y, g_v = _grad_loss(_grad_model(lift, speed), grad=True)
-    assert g_y != 0.0  # the hold reaches the loss: the check is not vacuous
+    """mu, the yield stress and the hardening (which set the hold), the initial speed and the
+    initial plastic strain ``alpha`` (which hardens it) through 8 steps of a block sliding (0.3
+    m/s, past the hold) or sticking (2 mm/s, under it) on the Tresca ground, its base in the
+    full hold or in its fade: the float64 tape against central differences at a relative step
+    of 1e-5. The block does not flow in 8 steps: the hardening and ``alpha`` reach the loss
+    through the hold alone. Seen failing with the hold read from the yield stress alone (their
+    gradients 0 in the tape and the differences alike) and with it read from an untaped copy of
+    ``alpha`` (the tape's ``alpha`` gradient 0, the differences' 2.6e-5 to 6.7e-4)."""
+    g_mu, g_y, g_k, g_v, g_a = _grad_loss(_grad_model(lift, speed), grad=True)
+    assert g_y != 0.0 and g_k != 0.0 and g_a != 0.0  # the hold reaches the loss: the check is not vacuous
     m0 = _grad_model(lift, speed)
-    for value, key, p0 in ((g_mu, "mu", m0.materials[0].mu), (g_y, "yield_stress", 60.0), (g_v, "v0", speed)):
+    for value, key, p0 in ((g_mu, "mu", m0.materials[0].mu), (g_y, "yield_stress", 60.0), (g_k, "hardening", HARDENING),
+                           (g_v, "v0", speed), (g_a, "alpha0", ALPHA0)):
         h = 1e-5 * p0
-        fd = (_grad_loss(_grad_model(lift, speed, **{key: p0 + h})) - _grad_loss(_grad_model(lift, speed, **{key: p0 - h}))) / (2 * h)
+        at = [_grad_loss(_grad_model(lift, speed), alpha0=p0 + d) if key == "alpha0" else
+              _grad_loss(_grad_model(lift, speed, **{key: p0 + d})) for d in (h, -h)]
+        fd = (at[0] - at[1]) / (2 * h)
         print(key, value, fd)
         assert value == pytest.approx(fd, rel=1e-5, abs=1e-9 * abs(fd) + 1e-12), key

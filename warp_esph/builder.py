@@ -581,8 +581,10 @@ class SceneBuilder:
 
         ``shear_cap=K`` (``K >= 0``; None or 0: off), with ``images=True`` and ``friction=0``
         only: the Tresca ground. It holds each base particle tangentially up to ``K`` times its
-        material's shear yield stress ``tau_y = yield_stress / sqrt(2)``
-        (``Material.shear_yield_stress``) over the area ``V^(2/3)`` it stands for: a particle
+        shear yield stress ``tau_y = Y / sqrt(2)`` (``Material.shear_yield_stress``) over the
+        area ``V^(2/3)`` it stands for, ``Y = yield_stress + hardening * alpha`` the yield stress
+        the plastic flow reads for it, of its ``alpha`` at the step's start (a particle whose
+        softening has taken ``Y`` to 0 is not held at all): a particle
         whose centre starts a step within 0.75 spacings of the plane loses up to ``K tau_y
         V^(2/3) dt / m`` of its tangential speed (sticking below it), the hold fading with zero
         slope to none at 1.25 spacings (``sim/colliders.py``, ``tresca_traction``). ``K = 1`` is
@@ -590,8 +592,7 @@ class SceneBuilder:
         "The Tresca ground (built)"). Its traction is in the ground's reaction row. Refused
         beside a material without a ``shear_yield_stress`` (another model, a deformation other
         than the incremental one, or an infinite ``yield_stress``), whether or not that body
-        touches the ground. The hold reads the material's ``yield_stress`` as given: a
-        hardening material's grown yield stress does not raise it."""
+        touches the ground."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {checks.shorten(images)!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):

@@ -987,6 +987,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         pin_center: wp.array(dtype=vec3),
         world: wp.array(dtype=wp.int32),
         n_tools: int,
+        alpha: wp.array(dtype=scalar),
         x_out: wp.array(dtype=vec3),
         x_lo_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
@@ -1009,7 +1010,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             # was overridden below and yet counted in that collider's reaction (a particle
             # floor under the ground had its weight read twice, once on the ground's row).
             x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque,
-                                        x_in[i], i)
+                                        x_in[i], i, alpha)
             for c in range(wp.static(counts[0])):
                 k = wp.static(offsets[0]) + c
                 hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
@@ -1554,7 +1555,7 @@ class ToolSet:
                     state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, state_out.tool_pose_dr, self.param, self.static_friction, self.friction,
                     self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs,
                     self.mesh_fofs, S(self.margin),
-                    self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
+                    self.pin, self.rest_x, self.pin_center, m.particle_world, int(n), state_in.alpha,
                 ],
                 [state_out.x, state_out.x_lo, state_out.v, *reactions],
                 device=dev,

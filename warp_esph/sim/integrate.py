@@ -25,7 +25,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import colliders, fields
+from . import colliders, fields, plasticity
 from .replay import pointer_key, recording_tape, weak_tape
 from .roundoff import compensated_sum
 
@@ -50,8 +50,10 @@ def struct(scalar):
         box_half: wp.array(dtype=T.vec3)
         box_friction: wp.array(dtype=scalar)
         # The Tresca ground's hold (``colliders.tresca_traction``): the shear yield stress of each
-        # particle's material over its area, on the plane ``cap_plane`` (-1: none).
+        # particle's material, hardened by its ``alpha``, over its area, on the plane ``cap_plane``
+        # (-1: none).
         yield_stress: wp.array(dtype=scalar)
+        hardening: wp.array(dtype=scalar)
         particle_material: wp.array(dtype=wp.int32)
         particle_volume: wp.array(dtype=scalar)
         ramp: scalar
@@ -70,6 +72,7 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
     T = type_set(scalar)
     vec3 = T.vec3
     col = colliders.funcs(scalar)
+    yield_surface = plasticity.funcs(scalar).yield_surface
     StaticColliders = struct(scalar)
     # Divided in Python (float64) and cast once: Warp evaluates ``2.0 / 3.0`` inside a kernel in
     # float32, whatever the scalar it is cast to (a float64 hold 2.3e-7 off at V = (2 cm)^3).
@@ -106,24 +109,30 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
             wp.atomic_add(ctorque, row, wp.cross(x - ref, f))
 
     @wp.func
-    def tresca_hold(sc: StaticColliders, i: int) -> scalar:
-        """``K tau_y A`` of particle ``i`` on the Tresca ground: ``tau_y = yield_stress /
-        sqrt(2)`` of its material (``Material.shear_yield_stress``), ``A = V^(2/3)`` of its volume."""
-        tau_y = sc.yield_stress[sc.particle_material[i]] * scalar(0.7071067811865476)
+    def tresca_hold(sc: StaticColliders, i: int, alpha: wp.array(dtype=scalar)) -> scalar:
+        """``K tau_y A`` of particle ``i`` on the Tresca ground: ``tau_y = Y / sqrt(2)``
+        (``Material.shear_yield_stress``) of the yield stress ``Y = yield_stress + hardening
+        alpha`` the plastic flow reads for it this step (``plasticity.yield_surface``, of its
+        ``alpha`` at the step's start: 0 where softening has taken it to 0 or below, so that
+        ``tresca_traction`` holds nothing, never pushes), ``A = V^(2/3)`` of its volume."""
+        m = sc.particle_material[i]
+        tau_y = yield_surface(sc.yield_stress[m], sc.hardening[m], alpha[i]) * scalar(0.7071067811865476)
         return sc.shear_cap * tau_y * wp.pow(sc.particle_volume[i], two_thirds)
 
     @wp.func
     def static_colliders(x: vec3, v: vec3, dt: scalar, sc: StaticColliders, mass: scalar, row: int,
-                         cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3), x0: vec3, i: int):
+                         cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3), x0: vec3, i: int,
+                         alpha: wp.array(dtype=scalar)):
         """Every static plane, sphere and box in turn (``colliders.py``), each adding its
         reaction on this particle to its row ``row + c`` (module doc); the Tresca ground's
-        traction (``x0``: particle ``i``'s position at the step's start) is its plane's."""
+        traction (``x0``: particle ``i``'s position at the step's start, ``alpha`` the
+        hardening variables there) is its plane's."""
         for c in range(wp.static(n_planes)):
             v0 = v
             x, v = col.collide_plane(x, v, sc.plane_normal[c], sc.plane_offset[c], sc.plane_friction[c], dt, sc.ramp)
             if c == sc.cap_plane:
-                x, v = col.tresca_traction(x, v, x0, sc.plane_normal[c], sc.plane_offset[c], tresca_hold(sc, i), mass, dt,
-                                           sc.spacing)
+                x, v = col.tresca_traction(x, v, x0, sc.plane_normal[c], sc.plane_offset[c], tresca_hold(sc, i, alpha),
+                                           mass, dt, sc.spacing)
             react(x, v, v0, mass, dt, sc.plane_offset[c] * sc.plane_normal[c], row + c, cforce, ctorque)
         for c in range(wp.static(n_spheres)):
             v0 = v
@@ -157,6 +166,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         dt: scalar,
         sc: StaticColliders,
         world: wp.array(dtype=wp.int32),
+        alpha: wp.array(dtype=scalar),
         x_out: wp.array(dtype=vec3),
         x_lo_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
@@ -167,7 +177,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         m = mass[i]
         xe, x_lo, v = fn.symplectic_euler(x_in[i], x_lo_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = fn.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque,
-                                   x_in[i], i)
+                                   x_in[i], i, alpha)
         x_out[i] = x
         x_lo_out[i] = fn.placed_round_off(x, xe, x_lo)
         v_out[i] = v
@@ -316,7 +326,7 @@ def launch_integrate(model, state_in, state_out, dt):
     kernel = kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate
     colliders = static_collider_struct(m)
     inputs = [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-              colliders, m.particle_world]
+              colliders, m.particle_world, state_in.alpha]
     outputs = [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque]
     tape = recording_tape()
     model.launches(kernel, m.particle_count, inputs, outputs, device=m.device, record_tape=tape is None)
