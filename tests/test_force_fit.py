@@ -612,6 +612,58 @@ def test_force_log_frames_chosen_that_it_holds_no_row_of_are_refused_by_the_opti
         assert capsys.readouterr().err == f"warp-esph: error: {said}\n"
 
 
+def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, capsys, monkeypatch, dough_scene):
+    """A force log with a NaN force, two rows for a frame, a time off its frame, a unit the fit
+    does not read, or its header row lost (the command line's, or the second experiment's of an
+    ``--experiments`` file) was refused after the scene's resolution check had built a model
+    and launched its kernels (and, for the experiment's, after the first experiment's scene):
+    each is refused in one line, exit 2, before any scene is read; and one timed in
+    milliseconds, which needs the scene's rate, once its file is read and before any kernel."""
+    from warp_esph import scenes  # noqa: PLC0415
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    good = [f"{k},{k / 30.0!r},plane0,0,{k},0" for k in range(3)]
+    bad = {"nan": (good[:1] + ["1,0.03333333333333333,plane0,0,nan,0"] + good[2:], r"row 3 \(frame 1, tool 'plane0'\): fy = 'nan' is not allowed"),
+           "repeated": (good + good[2:], r"row 5: frame 2 of tool 'plane0' is not allowed: row 4 already gives it"),
+           "late": (good[:1] + ["1,0.05,plane0,0,1,0"] + good[2:], r"row 3 \(frame 1, tool 'plane0'\): time = 0\.05 is not allowed"),
+           "unit": (good, r"is not allowed as a force target: its column 'fy \[mN\]' is in mN"),
+           "headless": (good, r"cannot be read as a point cloud: .*its first row reads as a force log's")}
+    launched = []
+
+    def no_kernel(*args, **kwargs):
+        launched.append(args[0])
+        raise AssertionError("a kernel was launched before the refusal")
+
+    def read_scene(*args, **kwargs):
+        raise AssertionError("a scene was read before the refusal")
+
+    real_load = scenes.load_scaled_scene
+    monkeypatch.setattr(wp, "launch", no_kernel)
+    fit = ["fit", str(scene), "--iterations", "0", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]
+    for name, (rows, said) in bad.items():
+        log = tmp_path / f"{name}.csv"
+        header = {"unit": "frame,time,tool,fx,fy [mN],fz\n", "headless": ""}.get(name, "frame,time,tool,fx,fy,fz\n")
+        log.write_text(header + "".join(f"{r}\n" for r in rows))
+        ok = _tools_csv(tmp_path / "ok.csv", good)
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": "guess.toml", "target": log.name}]))
+        monkeypatch.setattr(scenes, "load_scaled_scene", read_scene)
+        for argv in (["--target", str(log)], ["--target", str(ok), "--experiments", str(tmp_path / "exp.json")]):
+            capsys.readouterr()
+            assert main(fit + argv) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and re.search(said, err), (name, argv, err)
+    # Its rate is the scene's to judge: read from the scene file, before the model is built.
+    monkeypatch.setattr(scenes, "load_scaled_scene", real_load)
+    ms = _tools_csv(tmp_path / "ms.csv", [f"{k},{k * 1000 / 30.0!r},plane0,0,{k},0" for k in range(3)])
+    capsys.readouterr()
+    assert main(fit + ["--target", str(ms)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its column 'time' implies 0.03 fps (frame 2 at time = 66.6667), not the scene's 30 fps" in err, err
+    assert not launched and not (tmp_path / "fit").exists()
+
+
 def test_a_force_log_row_cut_short_or_too_long_is_refused_not_read_as_its_numbers(tmp_path):
     """A log cut inside the last row's fz (a copy stopped short, another program's file) read
     '-2.5' of '-2.5031' as the force, the missing torque columns unchecked; a row with more

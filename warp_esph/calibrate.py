@@ -938,33 +938,24 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     # A target whose frames are chosen is read first: the choice is refused before the scene's
     # checks launch their kernels (a range past the frames an .npz stores was found after them).
-    # A file given more than once is read too, its frames compared before the scene's.
+    # A file given more than once is read too, its frames compared before the scene's; and a
+    # CSV (a force log, or one read as a force log without its header): its refusals came after
+    # the scenes of the experiments before it had launched their kernels.
     early = read_targets if read_targets is not None else {
         k: read(path, fspecs[k]) for k, path in enumerate(targets)
-        if not cameras and (fspecs[k] is not None or k in repeated or real[k] in shared) and os.path.isfile(path)}
+        if not cameras and (fspecs[k] is not None or k in repeated or real[k] in shared
+                            or os.path.splitext(str(path))[1].lower() == ".csv") and os.path.isfile(path)}
     if targets_only:
         known = {k: _chosen_frames(t, fspecs[k], f"{where}{key('target_frames')}") for k, t in early.items()}
         _refuse_repeated_frames([(k, path, fspecs[k], known[k]) for k, path in enumerate(targets) if k in early and k in repeated],
                                 where, key)
         return early, [(targets[k], (real[k], _bodies_observed(t), t.tool), known[k]) for k, t in early.items()]
-    from .scenes import load_scaled_scene  # noqa: PLC0415
+    from .scenes import load_scaled_scene, refuse_unresolved  # noqa: PLC0415
 
-    # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
-    scene = load_scaled_scene(spec["scene"], scale, scale_name)
-    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
-
-    _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]
-    if _arg(args, "support_radius") is not None:
-        from .builder import SUPPORT_RANGE  # noqa: PLC0415
-
-        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
-        thin = scene.builder.thin_floor(k * scene.builder.spacing)
-        if thin is not None:
-            raise ValueError(f"--support-radius = {k:g} is not allowed for {spec['scene']} {thin}; give the scene file's "
-                             f"floor_layers, or its support_radius in place of --support-radius")
-        scene.builder.support_radius = k * scene.builder.spacing
-    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
-    jitter_model(model, jitter, _arg(args, "seed", 5))
+    # Read without the check of its resolution, which launches kernels: the targets are read
+    # and held to the scene's rate first, so that a bad one (a force log's NaN row, its times
+    # in milliseconds) is refused before any kernel runs, as a bad option is.
+    scene = load_scaled_scene(spec["scene"], scale, scale_name, resolution=False)
 
     loaded = []
     any_usd = False
@@ -1043,6 +1034,23 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
                              f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
     fps = rate
+    # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
+    refuse_unresolved(scene, spec["scene"], scale, scale_name)
+    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
+
+    _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]
+    if _arg(args, "support_radius") is not None:
+        from .builder import SUPPORT_RANGE  # noqa: PLC0415
+
+        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
+        thin = scene.builder.thin_floor(k * scene.builder.spacing)
+        if thin is not None:
+            raise ValueError(f"--support-radius = {k:g} is not allowed for {spec['scene']} {thin}; give the scene file's "
+                             f"floor_layers, or its support_radius in place of --support-radius")
+        scene.builder.support_radius = k * scene.builder.spacing
+    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
+    jitter_model(model, jitter, _arg(args, "seed", 5))
+
     dt = spec.get("dt")
     given = {"fps": spec.get("fps") is not None, "dt": dt is not None}
     # An experiment's keys are named as written in its file, the command's as its options.

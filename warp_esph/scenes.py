@@ -696,7 +696,8 @@ def _load(name_or_path, scale) -> Scene:
     raise _unknown(text, text + ".toml" if os.path.isfile(text + ".toml") else None)
 
 
-def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what: str = "--scale") -> Scene:
+def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what: str = "--scale",
+                      resolution: bool = True) -> Scene:
     """``load_scene(name_or_path, scale)``, with a refusal that only the scale causes named as
     ``what``'s (the option or setting that gave it).
 
@@ -711,7 +712,9 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
     2 busy cores: 0.34-0.46 s for Fig. 1's 52,309 particles at scale 1, 0.64-0.71 s for Fig. 7's
     73,002, where the whole model took 0.62-0.80 s and 1.13-1.44 s). Where Warp has not started, it starts here as ``init_warp()`` starts it, printing
     nothing; the check's kernel loads print nothing either, and ``wp.config.log_level`` is left
-    as the caller had it.
+    as the caller had it. ``resolution=False`` leaves that check, the first to launch a kernel,
+    to the caller (``refuse_unresolved``), which reads its own inputs against the scene first
+    (``warp-esph fit``'s targets).
     """
     try:
         scene = _load(name_or_path, scale)
@@ -731,7 +734,8 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
         scene = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
         raise ValueError(f"{what} = {scale:g} is not allowed for {scene}: it builds at {what} 1, but with its spacing "
                          f"divided by {scale:g}: {e}; give a {what} nearer 1") from None
-    _refuse_unresolved(scene, name_or_path, scale, what)
+    if resolution:
+        refuse_unresolved(scene, name_or_path, scale, what)
     return scene
 
 
@@ -792,7 +796,7 @@ def unresolved_bodies(builder: SceneBuilder) -> list[tuple[str, int, int, int]]:
     return out
 
 
-def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
+def refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
     """Refuses ``scene`` (built at ``scale``) where a body is under-resolved (``unresolved_bodies``),
     naming the body, ``what`` and the smallest scale above ``scale`` (in ``SCALE_STEP``) that
     resolves every body: run, it would have skipped their deformation silently."""
