@@ -37,8 +37,12 @@ FORMAT = "warp_esph.checkpoint/1"
 
 #: The fingerprint's version a checkpoint records (``fingerprint_version``): 2 covers the
 #: moving tools, pinned sets and ghost floors; a checkpoint without it (written before) is
-#: compared with the fingerprint of version 1, which left them out.
-FINGERPRINT_VERSION = 2
+#: compared with the fingerprint of version 1, which left them out. 3 records the static
+#: colliders as the model's precision holds them, built or moved (``Model.static_colliders(held=True)``):
+#: a float32 plane built at -1/3 and one moved there in place record alike; a scene whose every
+#: collider value the precision holds as given (every float64 one) has the fingerprint of 2, and a
+#: checkpoint of version 2 is compared with the fingerprint of 2, so none written before is refused.
+FINGERPRINT_VERSION = 3
 
 
 def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_positions=None,
@@ -76,7 +80,7 @@ def scene_record(model: Model, version: int = FINGERPRINT_VERSION, fit_weight: s
         "materials": [(m.density, m.model, m.deformation, m.elastic_force, bool(m.clamp_pressure), m.pressure_force)
                       for m in model.materials],
         # As the kernels run them (their arrays): a ground moved in place is another scene.
-        "colliders": [repr(c) for kind in model.static_colliders() for c in kind],
+        "colliders": [repr(c) for kind in model.static_colliders(held=version >= 3) for c in kind],
         "fields": [repr(f) for f in model.force_fields],
     }
     fit_weight = model.fit_weight if fit_weight is None else fit_weight

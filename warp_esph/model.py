@@ -901,7 +901,7 @@ class Model(Unpicklable):
             at += rows * width
         return out
 
-    def static_colliders(self) -> tuple[list[Plane], list[Sphere], list[Box]]:
+    def static_colliders(self, held: bool = False) -> tuple[list[Plane], list[Sphere], list[Box]]:
         """The static colliders ``(planes, spheres, boxes)`` as the step's kernels run them, read
         from their arrays (``COLLIDER_FIELDS``): a collider whose arrays hold the build's values is
         the entry of ``model.planes``, ``spheres`` or ``boxes`` itself (so its ``repr``, which a
@@ -915,7 +915,14 @@ class Model(Unpicklable):
         checkpoint's fingerprint, the reaction rows' reference points, the divergence check's
         floor, the USD export, a model made from this one) read a ground moved to 0.1 m at 0,
         and a checkpoint of the moved scene resumed into one on the ground at 0. Each call reads
-        the arrays (on a GPU, one transfer): for records, not for each step."""
+        the arrays (on a GPU, one transfer): for records, not for each step.
+
+        ``held``: every value as the precision holds it, moved or not: an entry whose build value
+        is not the shortest number of what its array holds (a float32 plane built at -1/3) is a
+        copy with that number (-0.33333334), so that one built there and one moved there in place
+        record alike, as the kernels run them (a checkpoint's fingerprint from its version 3). A
+        value the precision holds as given (0.1 in float32; every float64 value) is the build's,
+        and its entry the build's own."""
         lists = tuple(list(c) for c in (self.planes, self.spheres, self.boxes))
         k = self._image_row
         if k is not None and lists[0][k].shear_cap != self._shear_cap:
@@ -923,16 +930,20 @@ class Model(Unpicklable):
             # a scene held at 0 resumed into one held at the build's K).
             lists[0][k] = dataclasses.replace(lists[0][k], shear_cap=self._shear_cap)
         now, built = self._collider_values(), self._collider_built
-        if now.tobytes() == built.tobytes():
+        if now.tobytes() == built.tobytes() and not held:
             return lists
         values, built = self._collider_rows(now), self._collider_rows(built)
         kinds, shown = ("planes", "spheres", "boxes"), self._shown_plane_value
         for name, kind, width in self._collider_fields:
             colliders = lists[kinds.index(kind)]
+            attribute = COLLIDER_ATTRIBUTES[name]
             for k, (v, b) in enumerate(zip(values[name], built[name])):
-                if v.tobytes() != b.tobytes():
+                moved = v.tobytes() != b.tobytes()
+                if moved or held:
                     value = float(shown(v[0])) if width == 1 else tuple(float(shown(c)) for c in v)
-                    colliders[k] = dataclasses.replace(colliders[k], **{COLLIDER_ATTRIBUTES[name]: value})
+                    if moved or not np.array_equal(np.asarray(value, dtype=np.float64),
+                                                   np.asarray(getattr(colliders[k], attribute), dtype=np.float64)):
+                        colliders[k] = dataclasses.replace(colliders[k], **{attribute: value})
         return lists
 
     def check_colliders(self) -> None:
