@@ -618,7 +618,8 @@ def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, caps
     ``--experiments`` file) was refused after the scene's resolution check had built a model
     and launched its kernels (and, for the experiment's, after the first experiment's scene):
     each is refused in one line, exit 2, before any scene is read; and one timed in
-    milliseconds, which needs the scene's rate, once its file is read and before any kernel."""
+    milliseconds, or of a tool the scene has not, which need the scene, once its file is read
+    and before any kernel (the tool's was refused by the loss, after the model was built)."""
     from warp_esph import scenes  # noqa: PLC0415
     from warp_esph.cli import main  # noqa: PLC0415
 
@@ -654,13 +655,18 @@ def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, caps
             assert main(fit + argv) == 2
             err = capsys.readouterr().err
             assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and re.search(said, err), (name, argv, err)
-    # Its rate is the scene's to judge: read from the scene file, before the model is built.
+    # Its rate and its tool are the scene's to judge: read from the scene file, before the model
+    # is built.
     monkeypatch.setattr(scenes, "load_scaled_scene", real_load)
     ms = _tools_csv(tmp_path / "ms.csv", [f"{k},{k * 1000 / 30.0!r},plane0,0,{k},0" for k in range(3)])
-    capsys.readouterr()
-    assert main(fit + ["--target", str(ms)]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "its column 'time' implies 0.03 fps (frame 2 at time = 66.6667), not the scene's 30 fps" in err, err
+    plate = _tools_csv(tmp_path / "plate.csv", [r.replace("plane0", "plate") for r in good])
+    for log, said in ((ms, "its column 'time' implies 0.03 fps (frame 2 at time = 66.6667), not the scene's 30 fps"),
+                      (plate, f"target {plate} holds the force of tool 'plate', which is not allowed: the scene's tools are "
+                              "none, its static colliders plane0")):
+        capsys.readouterr()
+        assert main(fit + ["--target", str(log)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and said in err, err
     assert not launched and not (tmp_path / "fit").exists()
 
 

@@ -1034,6 +1034,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
                              f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
     fps = rate
+    from .sim.integrate import static_collider_names  # noqa: PLC0415
+    from .tools import tool_names  # noqa: PLC0415
+
+    for t in file_targets:
+        if t.kind == "forces":  # a log of a tool the scene has not: the loss's refusal, before the model
+            t.check_tool(tool_names(scene.builder.tools, scene.builder.pins), static_collider_names(scene.builder))
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
     refuse_unresolved(scene, spec["scene"], scale, scale_name)
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415

@@ -3782,6 +3782,15 @@ class Target:
                              f"marker {i} on particle {j}'s{of}); particles are compared by index, marker i with particle i: "
                              "reorder the markers to the particles' order")
 
+    def check_tool(self, names: list[str], static: list[str]) -> None:
+        """Refuse a force log of a tool that is none of the scene's: ``names`` its tools' and
+        pinned sets' names, ``static`` its static colliders' rows (``static_collider_names``);
+        the model's, or its builder's before it is built (``warp-esph fit``: before any kernel)."""
+        if self.tool not in names + static:
+            raise ValueError(f"target {checks.shown_path(self.path, False)} holds the force of tool {self.tool!r}, which is not allowed: the "
+                             f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
+                             f"{', '.join(static) or 'none'}")
+
     def _fitted_frames(self) -> list[int]:
         """Indices into ``data`` of the position frames fitted: not frame 0 (the initial state),
         nor a frame whose every marker is missing (NaN: nothing observed), which is left out
@@ -3823,12 +3832,7 @@ class Target:
 
             from .sim.integrate import static_collider_names  # noqa: PLC0415
 
-            names = [] if model.tools is None else list(model.tools.names)
-            static = static_collider_names(model)
-            if self.tool not in names + static:
-                raise ValueError(f"target {checks.shown_path(self.path, False)} holds the force of tool {self.tool!r}, which is not allowed: the "
-                                 f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
-                                 f"{', '.join(static) or 'none'}")
+            self.check_tool([] if model.tools is None else list(model.tools.names), static_collider_names(model))
             chosen = [f for f in sorted(frame_steps) if f > 0]
             return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, components=force_components, frames=chosen,
                                               noise=force_noise)

@@ -1107,6 +1107,19 @@ class _Samples(tuple):
     views = None
 
 
+def by_kind(tool_colliders: list[Collider]) -> list[Collider]:
+    """The tools in the order ``ToolSet`` holds them: by kind (``KINDS``: the order of the
+    integrate kernel's loops), each kind's in the order given."""
+    return sorted(tool_colliders, key=lambda c: KINDS.index(c.kind))
+
+
+def tool_names(tool_colliders: list[Collider], pins: list[PinSet]) -> list[str]:
+    """The names of the reaction rows of a scene's tools and pinned sets (``ToolSet.names``, one
+    world's): the tools ``by_kind``, then the pinned sets. Of a builder's lists too, before the
+    model is built."""
+    return [c.name for c in by_kind(tool_colliders)] + [p.name for p in pins]
+
+
 class ToolSet:
     """The model's moving colliders and pinned sets (``model.tools``), and their arrays.
 
@@ -1127,10 +1140,9 @@ class ToolSet:
         S, dev = model.scalar, model.device
         T = model.types
         npf = T.np_dtype
-        order = sorted(range(len(tool_colliders)), key=lambda k: KINDS.index(tool_colliders[k].kind))
-        self.colliders = [tool_colliders[k] for k in order]
+        self.colliders = by_kind(tool_colliders)
         self.pins = list(pins)
-        self.names = [c.name for c in self.colliders] + [p.name for p in self.pins]
+        self.names = tool_names(self.colliders, self.pins)
         self.counts = tuple(sum(1 for c in self.colliders if c.kind == kind) for kind in KINDS)
         n = len(self.names)
         self.count = n

@@ -376,10 +376,11 @@ def plane_reference(plane) -> tuple:
 
 def static_collider_names(model) -> list[str]:
     """Row names of ``state.collider_force``: ``plane<k>``, ``sphere<k>``, ``box<k>`` in the
-    order the builder added each kind, prefixed ``w<w>/`` with several worlds."""
+    order the builder added each kind, prefixed ``w<w>/`` with several worlds. Of a
+    ``SceneBuilder`` too (one world), before the model is built."""
     names = ([f"plane{k}" for k in range(len(model.planes))] + [f"sphere{k}" for k in range(len(model.spheres))]
              + [f"box{k}" for k in range(len(model.boxes))])
-    if model.world_count == 1:
+    if getattr(model, "world_count", 1) == 1:
         return names
     return [f"w{w}/{n}" for w in range(model.world_count) for n in names]
 
