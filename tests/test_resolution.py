@@ -116,17 +116,21 @@ def test_the_command_line_warns_and_sums_up_the_share_of_skipped_fits(tmp_path, 
     assert np.isfinite(shown)
 
 
-@pytest.mark.parametrize("command", [["run"], ["fit", "--target", "absent.npz", "--params", "yield_stress"],
+@pytest.mark.parametrize("command", [["run"], ["fit", "--target", "TARGET", "--params", "yield_stress"],
                                      ["sweep", "--param", "yield_stress=100,200"]])
 def test_each_command_refuses_a_scene_file_too_coarse_for_its_body_naming_spacing_and_scale(tmp_path, capsys, command):
     """A scene file whose box is one layer at its spacing: run, fit and sweep refuse it (exit
-    2, before the fit reads its target and before any output), naming the file's spacing and
-    the option that resolves it (fit said 'scale', its Python parameter, where --scale is 1)."""
+    2, before any output), naming the file's spacing and the option that resolves it (fit said
+    'scale', its Python parameter, where --scale is 1). The fit reads its target first: the
+    check launches kernels, and a bad target (a missing file, a force log's NaN row) is
+    refused before any kernel runs."""
     path = tmp_path / "sheet.toml"
     path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
                     'center = [0, 0.5, 0]\nsize = [0.2, 0.02, 0.2]\n')
+    np.savez(tmp_path / "t.npz", positions=np.zeros((2, 4, 3)))
     out = tmp_path / "out"
-    args = [command[0], str(path), *command[1:], "-o", str(out / "x.usdc" if command[0] == "run" else out), "--no-progress"]
+    args = [command[0], str(path), *[str(tmp_path / "t.npz") if a == "TARGET" else a for a in command[1:]], "-o",
+            str(out / "x.usdc" if command[0] == "run" else out), "--no-progress"]
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {path}: [scene] spacing = 0.02 is not allowed: body "
