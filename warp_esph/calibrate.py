@@ -956,6 +956,21 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     # and held to the scene's rate first, so that a bad one (a force log's NaN row, its times
     # in milliseconds) is refused before any kernel runs, as a bad option is.
     scene = load_scaled_scene(spec["scene"], scale, scale_name, resolution=False)
+    # The solver's options checked as options, before the targets are read; set on the builder
+    # after the resolution check, which reads the scene as its file sets it.
+    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
+
+    solver_options = _solver_options(args)  # --solver-fit / --contact over the scene's [solver]
+    support = None  # --support-radius, checked against the scene's floors
+    if _arg(args, "support_radius") is not None:
+        from .builder import SUPPORT_RANGE  # noqa: PLC0415
+
+        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
+        thin = scene.builder.thin_floor(k * scene.builder.spacing)
+        if thin is not None:
+            raise ValueError(f"--support-radius = {k:g} is not allowed for {spec['scene']} {thin}; give the scene file's "
+                             f"floor_layers, or its support_radius in place of --support-radius")
+        support = k * scene.builder.spacing
 
     loaded = []
     any_usd = False
@@ -1042,18 +1057,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             t.check_tool(tool_names(scene.builder.tools, scene.builder.pins), static_collider_names(scene.builder))
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
     refuse_unresolved(scene, spec["scene"], scale, scale_name)
-    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
-
-    _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]
-    if _arg(args, "support_radius") is not None:
-        from .builder import SUPPORT_RANGE  # noqa: PLC0415
-
-        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
-        thin = scene.builder.thin_floor(k * scene.builder.spacing)
-        if thin is not None:
-            raise ValueError(f"--support-radius = {k:g} is not allowed for {spec['scene']} {thin}; give the scene file's "
-                             f"floor_layers, or its support_radius in place of --support-radius")
-        scene.builder.support_radius = k * scene.builder.spacing
+    _apply_solver_options(scene.builder, solver_options)
+    if support is not None:
+        scene.builder.support_radius = support
     model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
     jitter_model(model, jitter, _arg(args, "seed", 5))
 
