@@ -255,10 +255,11 @@ MIRROR = "mirror"
 SLUMP_FLOORS = FLOORS + (MIRROR,)
 
 
-def _add_ground(b, floor: str, friction: float) -> None:
-    """The ground collider of ``floor`` (``"ground"``, ``"ground_images"`` or ``TRESCA``)."""
+def _add_ground(b, floor: str, friction: float, shear_cap: float = 1.0) -> None:
+    """The ground collider of ``floor`` (``"ground"``, ``"ground_images"`` or ``TRESCA``, the
+    last holding up to ``shear_cap`` times the material's shear yield stress)."""
     if floor == TRESCA:
-        b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+        b.add_ground(0.0, friction=0.0, images=True, shear_cap=shear_cap)
     else:
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
 
@@ -1031,11 +1032,11 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 
 # ------------------------------------------------------------------- column
 #: The floors a free-standing column stands on (``_free_column``).
-COLUMN_FLOORS = ("ground", "slip_ghost_particles")
+COLUMN_FLOORS = ("ground", "slip_ghost_particles", TRESCA)
 
 
 def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32", floor: str = "ground",
-                 fit_weight: str = DEFAULT_FIT_WEIGHT):
+                 fit_weight: str = DEFAULT_FIT_WEIGHT, shear_cap: float = 1.0):
     """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
     on a frictionless floor (laterally free). Returns the model, its height, the initial
     positions, the masks of its top and bottom layers and of its particles (not the floor's)
@@ -1047,7 +1048,9 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     (with gravity ramped over 4 axial periods, at 4 across it landed as the ramp ended).
     ``"slip_ghost_particles"``: the slip ghost floor (``add_particle_floor(ghost=True,
     slip=True)``, two spacings wider than the column), whose wall plane is the box's face:
-    the bottom layer is fitted two-sided and slides freely."""
+    the bottom layer is fitted two-sided and slides freely. ``TRESCA``: the Tresca ground at
+    the box's face (its images mirror the lattice there, so the bottom layer is fitted
+    two-sided), holding the base up to ``shear_cap`` times ``mat``'s shear yield stress."""
     if floor not in COLUMN_FLOORS:
         raise ValueError(f"floor = {floor!r} is not allowed: must be one of {', '.join(map(repr, COLUMN_FLOORS))}")
     H = n * aspect * dx
@@ -1056,6 +1059,8 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     count = b.particle_count
     if floor == "ground":
         b.add_ground(0.5 * dx, friction=0.0)
+    elif floor == TRESCA:
+        _add_ground(b, floor, 0.0, shear_cap)
     else:
         b.add_particle_floor("column", margin=2.0 * dx, layers=FLOOR_LAYERS, ghost=True, slip=True)
     wp = _we()[0]
@@ -1117,10 +1122,17 @@ def _lean(x: np.ndarray, top, bottom) -> float:
     return float(np.hypot(d[0], d[1]))
 
 
+#: The Tresca ground's ``shear_cap`` under ``column_settlement``'s elastic column: its material's
+#: yield stress is the ground's hold over this (times sqrt 2), some 1e6 x any stress the column
+#: carries, so it never flows and the ground holds what it held the plastic column's base to.
+ELASTIC_TWIN_CAP = 1.0e-6
+
+
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
                   deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground",
-                  fit_weight: str = DEFAULT_FIT_WEIGHT, tilt: float = 0.0, width: float | None = None) -> dict:
+                  fit_weight: str = DEFAULT_FIT_WEIGHT, tilt: float = 0.0, width: float | None = None,
+                  shear_cap_pa: float | None = None) -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall (``width``: its width in m, the spacing ``width / resolution``; None: spacing 0.01 m,
     ``column_spacing``), on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
@@ -1130,16 +1142,30 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     those centres). ``tilt``: an initial lean of the top, in spacings (``_tilt``); ``lean``
     is the top's at the end, in spacings, and ``length_over_buckling`` the column's height
     over ``column_buckling_length``: past 1 the lean grows (docs/physics.md, "The near-yield
-    column's late collapse")."""
+    column's late collapse"). ``shear_cap_pa``: on the Tresca ground (``floor=TRESCA``; required
+    there, refused elsewhere) its hold in Pa: the elastic column has no shear yield stress to
+    scale it, so it is the plastic column's (``near_yield_column``'s elastic reference), as the
+    continuum's elastic twin keeps its cap in Pa (``benchmarks.mpm_slump.near_yield_column``);
+    the column's material gets a yield stress it never reaches (``ELASTIC_TWIN_CAP``)."""
     wp, we = _we()
     n = resolution
     dx = column_spacing(n, width)
     from warp_esph import checks
 
     tilt = checks.number("tilt", tilt)
+    yielding = {}
+    if floor == TRESCA:
+        if shear_cap_pa is None:
+            raise ValueError(f"shear_cap_pa = None is not allowed with floor = {TRESCA!r}: the elastic column has no "
+                             "shear yield stress to scale the Tresca ground's hold; give the hold in Pa")
+        yielding = {"yield_stress": math.sqrt(2.0) * checks.positive("shear_cap_pa", shear_cap_pa) / ELASTIC_TWIN_CAP}
+    elif shear_cap_pa is not None:
+        raise ValueError(f"shear_cap_pa = {checks.shorten(shear_cap_pa)!r} is not allowed with floor = {floor!r}: it is "
+                         f"the Tresca ground's hold; give floor = {TRESCA!r} or leave shear_cap_pa at None")
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, elastic_force=elastic_force,
-                                 deformation=deformation)
-    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight)
+                                 deformation=deformation, **yielding)
+    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight,
+                                                       shear_cap=ELASTIC_TWIN_CAP)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = _solver(model, fit=fit, hourglass=hourglass)
@@ -1187,8 +1213,11 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     yield-stress material whose uniaxial yield stress is the weight above the depth
     ``yield_depth`` L: by the 1-D analysis only the bottom ``1 - yield_depth`` of it yields.
     ``floor``: ``"ground"`` (the collider; its one-sided bottom layer holds the base in,
-    docs/physics.md, "The near-yield column") or ``"slip_ghost_particles"`` (a frictionless
-    floor the bottom layer is fitted against two-sided; ``_free_column``).
+    docs/physics.md, "The near-yield column"), ``"slip_ghost_particles"`` (a frictionless
+    floor the bottom layer is fitted against two-sided; ``_free_column``) or ``TRESCA`` (the
+    Tresca ground, fitted two-sided and holding the base up to the shear yield stress, as the
+    continuum's Tresca floor, ``benchmarks.mpm_slump.near_yield_column(floor_shear_cap=1)``;
+    its elastic reference is held up to the same stress in Pa).
     ``pressure_stiffness``: None, the material's default SPH pressure (the pressure does not
     change the yield condition in uniaxial stress: the sides are free, so the difference of
     the vertical and lateral stresses of ``F`` is the weight's stress either way); 0 switches
@@ -1274,7 +1303,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     # The same column with the yield off: the elastic part the scene's pressure and fit give.
     ref = column_settlement(n, elastic_force, aspect=aspect, E=E, nu=nu, fit=solver.fit, hourglass=solver.hourglass,
                             pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor, width=width,
-                            fit_weight=model.fit_weight)
+                            fit_weight=model.fit_weight, shear_cap_pa=mat.shear_yield_stress if floor == TRESCA else None)
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,

@@ -1325,6 +1325,62 @@ def test_near_yield_column_passes_its_fit_weight_to_the_column_and_its_elastic_r
     assert built == [OTHER_WEIGHT, OTHER_WEIGHT] and r["fit_weight"] == OTHER_WEIGHT, (built, r.get("fit_weight"))
 
 
+def test_near_yield_column_on_the_tresca_ground_holds_its_elastic_reference_to_the_same_stress(monkeypatch):
+    """On the Tresca ground (``floor=TRESCA``) the plastic column's base is held up to its shear
+    yield stress, ``Y / sqrt(2)``; its elastic reference, whose material never yields, is held up
+    to the same stress in Pa (the continuum's elastic twin keeps its cap in Pa), not refused for
+    having no yield stress and not held by a yield stress of its own. Both columns stand on the
+    ground at the box's face (the bottom layer's centres half a spacing over it, their images
+    half a spacing under it: the lattice continued)."""
+    built = []
+    free_column = validation._free_column
+
+    def recording(*args, **kwargs):
+        out = free_column(*args, **kwargs)
+        built.append(out)
+        return out
+
+    monkeypatch.setattr(validation, "_free_column", recording)
+    r = validation.near_yield_column(resolution=4, width=0.04, ramp=0.5, periods=1.0, elastic_periods=0.5,
+                                     floor=validation.TRESCA)
+    assert r["floor"] == validation.TRESCA and len(built) == 2, r
+    plastic, elastic = (out[0] for out in built)
+    Y = plastic.materials[0].yield_stress
+    assert Y == pytest.approx(math.sqrt(2.0 / 3.0) * validation.RHO * validation.G * 0.8 * 0.2, rel=1e-12)
+    assert plastic.shear_cap == 1.0
+    hold = elastic.shear_cap * elastic.materials[0].shear_yield_stress
+    assert hold == pytest.approx(Y / math.sqrt(2.0), rel=1e-9), hold
+    # The reference's yield stress is far above the weight's stress at its base: it never flows.
+    assert elastic.materials[0].yield_stress > 1e5 * validation.RHO * validation.G * 0.2
+    for model, *_ in built:
+        (plane,) = [p for p in model.planes if p.images]
+        assert plane.offset == 0.0 and model.particle_x0[:, 1].min() == pytest.approx(0.005, rel=1e-6)
+
+
+def test_column_settlement_on_the_tresca_ground_shortens_as_the_closed_form():
+    """The elastic column (4 across, pressure off) on the Tresca ground, held up to a stress of
+    the near-yield column's order (900 Pa) by its never-reached yield stress: at rest and
+    shortened as ``rho g L (L - dx) / (2 E)`` within 5 %, as on the frictionless ground; its
+    base, fitted two-sided against the images, neither sinks nor is pulled in."""
+    r = validation.column_settlement(resolution=4, floor=validation.TRESCA, shear_cap_pa=900.0)
+    assert abs(r["residual_rate_pct_per_s"]) < 0.2, r
+    assert r["ratio"] == pytest.approx(1.0, abs=0.05), r
+
+
+@pytest.mark.parametrize("floor, cap, said", [
+    ("tresca_images", None, r"^shear_cap_pa = None is not allowed with floor = 'tresca_images': the elastic column"),
+    ("tresca_images", -1.0, r"^shear_cap_pa = -1\.0 is not allowed: must be > 0"),
+    ("tresca_images", float("nan"), r"^shear_cap_pa = nan is not allowed"),
+    ("ground", 900.0, r"^shear_cap_pa = 900\.0 is not allowed with floor = 'ground': it is the Tresca ground's hold"),
+])
+def test_column_settlement_refuses_a_tresca_hold_that_is_missing_or_misplaced(floor, cap, said, monkeypatch):
+    """The Tresca ground's hold in Pa is required there (an elastic material has no shear yield
+    stress to scale it) and refused on another floor, by name, before a column is built."""
+    monkeypatch.setattr(validation, "_free_column", lambda *a, **k: pytest.fail("the column was built"))
+    with pytest.raises(ValueError, match=said):
+        validation.column_settlement(resolution=4, floor=floor, shear_cap_pa=cap)
+
+
 @pytest.mark.parametrize("fit_weight", ["gauss", "Biweight", None])
 def test_near_yield_column_refuses_an_unknown_fit_weight_by_name(fit_weight):
     """A weight that is not one of the fit's is refused by name, with the allowed ones, before
