@@ -641,7 +641,7 @@ def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=
     last = hist[hist[:, 0] > 0.9 * hist[-1, 0]]
     plastic_theory = ((1.0 - yield_depth) + yield_depth * math.log(yield_depth)) * L
     yielded = (L - y0[sim.plastic.numpy() > 1e-6]) / L
-    return {"case": "near_yield_column", "res_cells_across": res, "particles": len(pts), "E": E, "nu": nu,
+    return {"case": "near_yield_column", "res_cells_across": res, "width": width, "particles": len(pts), "E": E, "nu": nu,
             "yield_depth": yield_depth, "flow_rate": flow_rate, "periods": periods, "duration": sim.t,
             "floor": "slip" if cap_pa is None else "Tresca %g tau_y" % floor_shear_cap,
             "elastic_drop": drop_elastic, "elastic_over_theory": drop_elastic / (RHO * G * L * L / (2.0 * E)),

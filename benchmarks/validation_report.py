@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from benchmarks.validation import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS, IDENTITY_DEFAULTS
+from benchmarks.validation import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS, IDENTITY_DEFAULTS, TRESCA
 
 NOTES = ("<!-- notes -->", "<!-- /notes -->")
 MARK = {"paper": "o", "variational": "s"}
@@ -879,7 +879,34 @@ def near_yield_at_rest(r: dict) -> bool:
     return r["kinetic_over_weight"] < NEAR_YIELD_REST_KINETIC and near_yield_creep(r) < NEAR_YIELD_REST_CREEP
 
 
-def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[str, str, str, str]]:
+#: The floors of the near-yield column's fixed-width study, in the order the report reads them.
+NEAR_YIELD_FLOORS = (("slip_ghost_particles", "the slip ghost floor"), ("ground", "the ground collider"),
+                     (TRESCA, "the Tresca ground"))
+#: The MPM floor (``docs/mpm_slump.json``) of the continuum's column beside the Tresca ground's:
+#: gripping up to the shear yield stress (``mpm_slump.near_yield_column(floor_shear_cap=1)``).
+NEAR_YIELD_TRESCA_CONTINUUM = "Tresca 1 tau_y"
+
+
+def tresca_continuum_columns(mpm: dict | None, width: float) -> list[dict]:
+    """The continuum's near-yield columns (MPM, ``docs/mpm_slump.json``'s checks) on the Tresca
+    floor at ``width`` (m), by cells across."""
+    rows = [r for r in (mpm or {}).get("checks", []) if r.get("case") == "near_yield_column"
+            and r.get("floor") == NEAR_YIELD_TRESCA_CONTINUUM and math.isclose(r.get("width", math.nan), width)]
+    return sorted(rows, key=lambda r: r["res_cells_across"])
+
+
+def _tresca_continuum_said(mpm: dict | None, width: float) -> str:
+    """The Tresca continuum's column named beside the Tresca ground's ("" where not measured)."""
+    rows = tresca_continuum_columns(mpm, width)
+    if not rows:
+        return ""
+    periods = " / ".join(sorted({f"{r['periods']:g}" for r in rows}))
+    return (f" (the Tresca continuum's column, MPM on a base gripping up to the shear yield stress, as wide, after "
+            f"{periods} periods: {' / '.join(format(r['plastic_over_theory'], '.2f') for r in rows)} x at "
+            f"{' / '.join(str(r['res_cells_across']) for r in rows)} cells across)")
+
+
+def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | None = None) -> list[tuple[str, str, str, str]]:
     """The near-yield column's row: its fixed-width study (``near_yield_column`` with a
     ``width``; docs/physics.md, "The near-yield column at a fixed width") per floor, judged on
     the finest resolution: holds (at every resolution no lean past a spacing and shortened
@@ -887,6 +914,11 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[
     its plastic shortening within 10 % of the 1-D analysis's and converging. Rest is not part
     of "holds": a resolution not at rest (``near_yield_at_rest``) is named after the verdict.
     Then the dx = 0.01 m rows (``_near_yield_growing``), whose columns grow with the resolution.
+    On the Tresca ground the reference is the same 1-D free spreading, and the continuum's
+    column on a Tresca base (``mpm``, the MPM runs; ``tresca_continuum_columns``) is named
+    beside it where measured at the rows' width: a base that grips holds part of the free
+    spreading back in the continuum too (docs/physics.md, "The near-yield column on the Tresca
+    ground").
     The rows of the fit ``weight`` alone, named for it unless it is the default; the dx = 0.01 m
     part goes with ``NEAR_YIELD_GROWING_WEIGHT``'s row, and another weight without a
     fixed-width run has no row."""
@@ -897,7 +929,7 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[
     if not growing and not rows:
         return []
     measured, met, used = [], [], []
-    for floor, name in (("slip_ghost_particles", "the slip ghost floor"), ("ground", "the ground collider")):
+    for floor, name in NEAR_YIELD_FLOORS:
         rs = sorted((r for r in rows if r.get("floor", "ground") == floor), key=lambda r: r["resolution"])
         if not rs:
             continue
@@ -915,7 +947,8 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT) -> list[tuple[
             f"{each('highest_yielded_depth', '.3g')} L deep (1-D: {rs[0]['yield_depth']:g} L), the part 0.1-0.5 L deep "
             f"at {each('upper_peak_over_weight', '.2f')} x its weight's stress, top "
             f"{' / '.join(format(abs(r['residual_rate_pct_per_s']), '.2g') for r in rs)} % of the theory's shortening per s, "
-            f"kinetic energy {each('kinetic_over_weight', '.1e')} M g x it, lean {each('lean', '.1g')} dx")
+            f"kinetic energy {each('kinetic_over_weight', '.1e')} M g x it, lean {each('lean', '.1g')} dx"
+            + (_tresca_continuum_said(mpm, w) if floor == TRESCA else ""))
         holds = all(r["lean"] < 1.0 and r["shortening"] < 2.0 * r["theory"] for r in rs)
         base = all(r["highest_yielded_depth"] >= r["yield_depth"] - w / H for r in rs)
         fine = rs[-1]
@@ -955,7 +988,7 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     out += _fitted_yield_target(results, mpm)
     out += _fitted_yield_target(results, mpm, "tresca_images")
     for weight in FIT_WEIGHT_ORDER:
-        out += _near_yield_target(results, weight)
+        out += _near_yield_target(results, weight, mpm)
     for weight in FIT_WEIGHT_ORDER:
         out += _spread_target(results, weight)
     for weight in FIT_WEIGHT_ORDER:

@@ -1470,6 +1470,43 @@ def test_the_near_yield_target_reads_each_fit_weight_on_its_own():
         [other] if OTHER_WEIGHT == NEAR_YIELD_GROWING_WEIGHT else [])
 
 
+def _continuum_column(res, plastic, width=0.04, floor="Tresca 1 tau_y"):
+    return {"case": "near_yield_column", "res_cells_across": res, "width": width, "floor": floor, "periods": 36.0,
+            "plastic_over_theory": plastic}
+
+
+def test_the_near_yield_target_reads_the_tresca_ground_as_its_own_part():
+    """The fixed-width columns on the Tresca ground (``floor=TRESCA``) are a part of the
+    near-yield row of their own, after the slip ghost floor's, judged as every floor's against
+    the 1-D free spreading; the continuum's column on a Tresca base (``docs/mpm_slump.json``'s
+    checks, floor "Tresca 1 tau_y") is named beside it at the rows' width alone (not the 6 cm
+    column, not the slip floor's), and nothing is named where the continuum was not run."""
+    from benchmarks.validation_report import NEAR_YIELD_TARGET, _targets
+
+    slip = [dict(_near_yield_row(n, q), fit_weight=DEFAULT_WEIGHT) for n, q in ((4, 0.42), (6, 0.49), (8, 0.54))]
+    tresca = [dict(_near_yield_row(n, q, validation.TRESCA, front=0.725), fit_weight=DEFAULT_WEIGHT, run=1)
+              for n, q in ((4, 0.22), (6, 0.31), (8, 0.93))]
+    mpm = {"checks": [_continuum_column(6, 0.61), _continuum_column(4, 0.66), _continuum_column(4, 0.653, width=0.06),
+                      _continuum_column(4, 0.96, floor="slip")]}
+    (target, measured, met, runs), = [t for t in _targets(slip + tresca, mpm) if t[0] == NEAR_YIELD_TARGET]
+    assert runs == "R1, R2", runs
+    parts = measured.split("; fixed width ")
+    assert "on the slip ghost floor" in parts[0] and "Tresca" not in parts[0], measured
+    on_tresca = [p for p in parts if "on the Tresca ground" in p]
+    assert len(on_tresca) == 1 and "at 4 / 6 / 8 across: plastic shortening 0.22 / 0.31 / 0.93 x the 1-D analysis's free " \
+        "spreading, yield front 0.725 / 0.725 / 0.725 L deep" in on_tresca[0], measured
+    assert on_tresca[0].endswith(" (the Tresca continuum's column, MPM on a base gripping up to the shear yield stress, "
+                                 "as wide, after 36 periods: 0.66 / 0.61 x at 4 / 6 cells across)"), on_tresca[0]
+    verdict = met.split("; on the Tresca ground (fixed width): ")
+    assert len(verdict) == 2 and "0.54 x" in verdict[0], met
+    assert verdict[1].startswith("holds, base only yielding (within a width): yes; the 1-D spreading within 10 % at 8 "
+                                 "across: yes (0.93 x); converging:"), met
+    # Without the continuum's Tresca column at this width, nothing is named beside it.
+    (_, measured, met2, _), = [t for t in _targets(slip + tresca, {"checks": mpm["checks"][2:]}) if t[0] == NEAR_YIELD_TARGET]
+    assert "Tresca continuum" not in measured and met2 == met, measured
+    assert "Tresca continuum" not in [t for t in _targets(slip + tresca) if t[0] == NEAR_YIELD_TARGET][0][1]
+
+
 @pytest.mark.parametrize("width", [0.0, -0.04, float("nan"), "4 cm"])
 def test_near_yield_column_refuses_a_width_that_is_not_a_positive_length(width):
     with pytest.raises(ValueError, match=r"^width = .* is not allowed: must be"):
