@@ -887,22 +887,23 @@ NEAR_YIELD_FLOORS = (("slip_ghost_particles", "the slip ghost floor"), ("ground"
 NEAR_YIELD_TRESCA_CONTINUUM = "Tresca 1 tau_y"
 
 
-def tresca_continuum_columns(mpm: dict | None, width: float) -> list[dict]:
+def tresca_continuum_columns(mpm: dict | None, width: float, duration: float) -> list[dict]:
     """The continuum's near-yield columns (MPM, ``docs/mpm_slump.json``'s checks) on the Tresca
-    floor at ``width`` (m), by cells across."""
+    floor at ``width`` (m) run as long as ``duration`` (s, within 1 %: a column run on to rest
+    reads more), by cells across."""
     rows = [r for r in (mpm or {}).get("checks", []) if r.get("case") == "near_yield_column"
-            and r.get("floor") == NEAR_YIELD_TRESCA_CONTINUUM and math.isclose(r.get("width", math.nan), width)]
+            and r.get("floor") == NEAR_YIELD_TRESCA_CONTINUUM and math.isclose(r.get("width", math.nan), width)
+            and math.isclose(r["duration"], duration, rel_tol=0.01)]
     return sorted(rows, key=lambda r: r["res_cells_across"])
 
 
-def _tresca_continuum_said(mpm: dict | None, width: float) -> str:
+def _tresca_continuum_said(mpm: dict | None, width: float, duration: float) -> str:
     """The Tresca continuum's column named beside the Tresca ground's ("" where not measured)."""
-    rows = tresca_continuum_columns(mpm, width)
+    rows = tresca_continuum_columns(mpm, width, duration)
     if not rows:
         return ""
-    periods = " / ".join(sorted({f"{r['periods']:g}" for r in rows}))
-    return (f" (the Tresca continuum's column, MPM on a base gripping up to the shear yield stress, as wide, after "
-            f"{periods} periods: {' / '.join(format(r['plastic_over_theory'], '.2f') for r in rows)} x at "
+    return (f" (the Tresca continuum's column, MPM on a base gripping up to the shear yield stress, as wide and as "
+            f"long: {' / '.join(format(r['plastic_over_theory'], '.2f') for r in rows)} x at "
             f"{' / '.join(str(r['res_cells_across']) for r in rows)} cells across)")
 
 
@@ -916,7 +917,7 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | No
     Then the dx = 0.01 m rows (``_near_yield_growing``), whose columns grow with the resolution.
     On the Tresca ground the reference is the same 1-D free spreading, and the continuum's
     column on a Tresca base (``mpm``, the MPM runs; ``tresca_continuum_columns``) is named
-    beside it where measured at the rows' width: a base that grips holds part of the free
+    beside it where measured at the rows' width and duration: a base that grips holds part of the free
     spreading back in the continuum too (docs/physics.md, "The near-yield column on the Tresca
     ground").
     The rows of the fit ``weight`` alone, named for it unless it is the default; the dx = 0.01 m
@@ -948,7 +949,7 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | No
             f"at {each('upper_peak_over_weight', '.2f')} x its weight's stress, top "
             f"{' / '.join(format(abs(r['residual_rate_pct_per_s']), '.2g') for r in rs)} % of the theory's shortening per s, "
             f"kinetic energy {each('kinetic_over_weight', '.1e')} M g x it, lean {each('lean', '.1g')} dx"
-            + (_tresca_continuum_said(mpm, w) if floor == TRESCA else ""))
+            + (_tresca_continuum_said(mpm, w, rs[-1]["duration"]) if floor == TRESCA else ""))
         holds = all(r["lean"] < 1.0 and r["shortening"] < 2.0 * r["theory"] for r in rs)
         base = all(r["highest_yielded_depth"] >= r["yield_depth"] - w / H for r in rs)
         fine = rs[-1]

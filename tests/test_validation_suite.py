@@ -426,9 +426,10 @@ def test_the_large_breathing_cube_on_the_corrected_incremental_fit_runs_away_at_
 
 
 #: The rows of docs/validation.md outside the full plan, as their case functions take them, with
-#: either weight: the quick plan's, the slumps on the slip ghost floor, and the slumps and spread
+#: either weight: the quick plan's, the slumps on the slip ghost floor, the slumps and spread
 #: piles on the imaged ground, whose floor images keep an elastic scene on the incremental
-#: composition (``Model.scene_allows_rest``).
+#: composition (``Model.scene_allows_rest``), and the fixed-width near-yield columns on the
+#: Tresca ground.
 ROWS_OUTSIDE_THE_PLAN = [
     (case, kw | {"fit_weight": w}) for w in validation.FIT_WEIGHTS for case, kw in
     validation.plan(True)
@@ -436,7 +437,9 @@ ROWS_OUTSIDE_THE_PLAN = [
      for res, Ss in ((8, (0.1, 0.2, 0.3)), (12, (0.2,))) for S in Ss]
     + [("slump", {"S": S, "resolution": res, "floor": "ground_images", "duration": 8.0})
        for res in (12, 16) for S in (0.1, 0.2, 0.3, 0.5)]
-    + [("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "floor": "ground_images"}) for res in (3, 4)]]
+    + [("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "floor": "ground_images"}) for res in (3, 4)]
+    + [("near_yield_column", {"resolution": res, "width": validation.NEAR_YIELD_WIDTH, "floor": validation.TRESCA})
+       for res in (4, 6, 8)]]
 
 
 def test_no_validation_row_runs_the_corrected_incremental_fit_so_none_was_measured_at_another_step():
@@ -1470,8 +1473,8 @@ def test_the_near_yield_target_reads_each_fit_weight_on_its_own():
         [other] if OTHER_WEIGHT == NEAR_YIELD_GROWING_WEIGHT else [])
 
 
-def _continuum_column(res, plastic, width=0.04, floor="Tresca 1 tau_y"):
-    return {"case": "near_yield_column", "res_cells_across": res, "width": width, "floor": floor, "periods": 36.0,
+def _continuum_column(res, plastic, width=0.04, floor="Tresca 1 tau_y", duration=2.3517):
+    return {"case": "near_yield_column", "res_cells_across": res, "width": width, "floor": floor, "duration": duration,
             "plastic_over_theory": plastic}
 
 
@@ -1479,15 +1482,16 @@ def test_the_near_yield_target_reads_the_tresca_ground_as_its_own_part():
     """The fixed-width columns on the Tresca ground (``floor=TRESCA``) are a part of the
     near-yield row of their own, after the slip ghost floor's, judged as every floor's against
     the 1-D free spreading; the continuum's column on a Tresca base (``docs/mpm_slump.json``'s
-    checks, floor "Tresca 1 tau_y") is named beside it at the rows' width alone (not the 6 cm
-    column, not the slip floor's), and nothing is named where the continuum was not run."""
+    checks, floor "Tresca 1 tau_y") is named beside it at the rows' width and duration alone (not
+    the 6 cm column, not one run on to rest, not the slip floor's), and nothing is named where the
+    continuum was not run."""
     from benchmarks.validation_report import NEAR_YIELD_TARGET, _targets
 
     slip = [dict(_near_yield_row(n, q), fit_weight=DEFAULT_WEIGHT) for n, q in ((4, 0.42), (6, 0.49), (8, 0.54))]
     tresca = [dict(_near_yield_row(n, q, validation.TRESCA, front=0.725), fit_weight=DEFAULT_WEIGHT, run=1)
               for n, q in ((4, 0.22), (6, 0.31), (8, 0.93))]
     mpm = {"checks": [_continuum_column(6, 0.61), _continuum_column(4, 0.66), _continuum_column(4, 0.653, width=0.06),
-                      _continuum_column(4, 0.96, floor="slip")]}
+                      _continuum_column(4, 0.70, duration=7.05), _continuum_column(4, 0.96, floor="slip")]}
     (target, measured, met, runs), = [t for t in _targets(slip + tresca, mpm) if t[0] == NEAR_YIELD_TARGET]
     assert runs == "R1, R2", runs
     parts = measured.split("; fixed width ")
@@ -1496,7 +1500,7 @@ def test_the_near_yield_target_reads_the_tresca_ground_as_its_own_part():
     assert len(on_tresca) == 1 and "at 4 / 6 / 8 across: plastic shortening 0.22 / 0.31 / 0.93 x the 1-D analysis's free " \
         "spreading, yield front 0.725 / 0.725 / 0.725 L deep" in on_tresca[0], measured
     assert on_tresca[0].endswith(" (the Tresca continuum's column, MPM on a base gripping up to the shear yield stress, "
-                                 "as wide, after 36 periods: 0.66 / 0.61 x at 4 / 6 cells across)"), on_tresca[0]
+                                 "as wide and as long: 0.66 / 0.61 x at 4 / 6 cells across)"), on_tresca[0]
     verdict = met.split("; on the Tresca ground (fixed width): ")
     assert len(verdict) == 2 and "0.54 x" in verdict[0], met
     assert verdict[1].startswith("holds, base only yielding (within a width): yes; the 1-D spreading within 10 % at 8 "
