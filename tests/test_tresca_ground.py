@@ -187,6 +187,12 @@ def test_the_hold_fades_with_where_each_base_particle_starts_the_step():
     np.testing.assert_allclose(x_held - x_free, dt * (v_held - v_free), rtol=0.0, atol=1e-15)
 
 
+#: Each particle's elastic ``F`` at the start of the flowing window (and of the one step below): an isochoric stretch whose
+#: deviatoric stress (about 440 Pa) is far above the hardened yield stress (about 80 Pa), so that
+#: every particle flows in every step and its ``alpha`` grows inside the window (and of the one step below).
+FLOWING_F = np.diag([1.12, 1.0 / 1.12, 1.0])
+
+
 @pytest.mark.parametrize("hardening", [2000.0, -1000.0])
 def test_the_hold_reads_each_particles_hardened_yield_stress_and_none_where_softening_took_it(hardening):
     """One step (float64) of a 4 x 2 x 4 block sliding at 1 m/s on the Tresca ground, its base
@@ -195,8 +201,11 @@ def test_the_hold_reads_each_particles_hardened_yield_stress_and_none_where_soft
     yield stress ``Y + K alpha`` the plastic flow reads, hardened (``K`` = 2000 Pa) or softened
     (``K`` = -1000 Pa, down to 0 at ``alpha`` = 0.06): beyond it no hold at all, the step's
     velocity the free ground's to the bit (a negative hold would push). The tools' integrator
-    (a sphere tool parked far away) gives the same step to the bit. Seen failing with the hold
-    read from the yield stress alone (every particle losing the same ``Y``)."""
+    (a sphere tool parked far away) gives the same step to the bit. Every particle starts at
+    ``FLOWING_F`` and flows in the step, so that the ``alpha`` the hold reads is the step's
+    start's, as the flow's yield test reads it, not the one the flow writes. Seen failing with the
+    hold read from the yield stress alone (every particle losing the same ``Y``) and from
+    ``state_out.alpha`` (the flowed one)."""
     dx, dt, ys, rho = 0.02, 1e-3, 60.0, 1000.0
     mat = we.Material.from_young(5e3, 0.3, density=rho, yield_stress=ys, flow_rate=50.0, viscosity=1.0,
                                  hardening=hardening)
@@ -218,7 +227,10 @@ def test_the_hold_reads_each_particles_hardened_yield_stress_and_none_where_soft
     def step(model):
         a, out = model.state(), model.state()
         a.alpha.assign(alpha)
+        # Every particle flows in the step: the hold must read alpha before the flow raises it.
+        a.F.assign(np.broadcast_to(FLOWING_F, (model.particle_count, 3, 3)))
         we.Solver(model).step(a, out, dt)
+        assert (out.alpha.numpy()[base] - alpha[base]).min() > 1e-4
         return out.v.numpy()
 
     held = step(model)
@@ -344,4 +356,59 @@ def test_gradients_through_the_tresca_ground_match_central_differences(lift, spe
               _grad_loss(_grad_model(lift, speed, **{key: p0 + d})) for d in (h, -h)]
         fd = (at[0] - at[1]) / (2 * h)
         print(key, value, fd)
+        assert value == pytest.approx(fd, rel=1e-5, abs=1e-9 * abs(fd) + 1e-12), key
+
+
+
+def _flowing_model(schedule, yield_stress=None, hardening=None):
+    """``_grad_model``'s sliding block in the full hold (0.5 spacings up, 0.3 m/s), run by
+    ``schedule``: the fused or unfused step, the tools' integrator (a sphere tool parked far
+    away) or two worlds (the second block in the hold's fade, its own material)."""
+    def builder(lift):
+        mat = we.Material.from_young(5e3, 0.3, density=1000.0, yield_stress=60.0, flow_rate=50.0, viscosity=1.0,
+                                     hardening=HARDENING)
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+        b.add_box((0.0, 0.02 * (lift + 0.5), 0.0), (0.06, 0.04, 0.06), mat, velocity=(0.3, 0.0, 0.075))
+        b.add_ground(0.0, friction=0.0, images=True, shear_cap=1.0)
+        if schedule == "tools":
+            b.add_tool("sphere", radius=0.01, position=(0.0, 1.0, 0.0))
+        return b
+    if schedule == "worlds":
+        m = finalize_worlds([builder(0.5), builder(0.9)], dtype=wp.float64, requires_grad=True)
+    else:
+        m = builder(0.5).finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
+    set_first_material(m, yield_stress=yield_stress, hardening=hardening)
+    return m
+
+
+def _flowing_loss(model, schedule, grad=False, alpha0=ALPHA0):
+    s = we.Solver(model, fused=schedule != "unfused")
+    states = [model.state(requires_grad=True) for _ in range(STEPS + 1)]
+    states[0].alpha.assign(alpha0 + ALPHA0 * np.random.default_rng(5).uniform(-0.5, 0.5, model.particle_count))
+    states[0].F.assign(np.broadcast_to(FLOWING_F, (model.particle_count, 3, 3)))
+    loss, tape = taped_rollout_loss(s, states, DT, random_weights(model.particle_count, 7))
+    if not grad:
+        return loss.numpy()[0]
+    grown = states[-1].alpha.numpy() - states[0].alpha.numpy()
+    assert grown.min() > 1e-3, grown.min()  # the base hardens inside the window, not only at its start
+    tape.backward(loss)
+    return model.yield_stress.grad.numpy()[0], model.hardening.grad.numpy()[0], states[0].alpha.grad.numpy().sum()
+
+
+@pytest.mark.parametrize("schedule", ["fused", "unfused", "tools", "worlds"])
+def test_gradients_through_a_flowing_hardening_base_match_central_differences(schedule):
+    """The yield stress, the hardening and the initial ``alpha`` through 8 steps of a block
+    sliding on the Tresca ground while it flows (``FLOWING_F``: its ``alpha`` grows by more
+    than 1e-3 in the window, so the hold of each later step reads an ``alpha`` the flow wrote
+    on the tape), in the fused and unfused steps, the tools' integrator and two worlds: the
+    float64 tape against central differences at a relative step of 1e-5."""
+    g_y, g_k, g_a = _flowing_loss(_flowing_model(schedule), schedule, grad=True)
+    assert g_y != 0.0 and g_k != 0.0 and g_a != 0.0
+    for value, key, p0 in ((g_y, "yield_stress", 60.0), (g_k, "hardening", HARDENING), (g_a, "alpha0", ALPHA0)):
+        h = 1e-5 * p0
+        at = [_flowing_loss(_flowing_model(schedule), schedule, alpha0=p0 + d) if key == "alpha0" else
+              _flowing_loss(_flowing_model(schedule, **{key: p0 + d}), schedule) for d in (h, -h)]
+        fd = (at[0] - at[1]) / (2 * h)
+        print(schedule, key, value, fd)
         assert value == pytest.approx(fd, rel=1e-5, abs=1e-9 * abs(fd) + 1e-12), key
