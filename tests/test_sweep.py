@@ -2467,3 +2467,39 @@ def test_a_blow_up_quotes_the_stable_step_of_the_solver_that_ran():
     assert solver.stable_dt() < 0.6 * model.stable_dt(hourglass=0.05)
     plain = energy_growth(model, x0, model.particle_v0, x0, fast)
     assert f"stable limit {model.stable_dt():.3g} s" in plain[0]
+
+
+def _thirds_box(ground: float) -> Scene:
+    """``_box`` on a ground at ``ground``: at -1/3 (not a float32) the model's float32 plane is
+    -0.33333334, which fingerprint version 3 records and version 2 did not (it recorded -1/3)."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, ground + 0.06, 0.0), (0.1, 0.1, 0.1), Material.preset("toothpaste"), name="paste")
+    b.add_ground(ground, friction=0.5)
+    return Scene("paste_box", "a small box of toothpaste", b, frames=FRAMES, fps=30.0)
+
+
+def test_a_table_of_fingerprint_version_2_resumes_where_the_scene_is_the_one_it_recorded(monkeypatch, tmp_path):
+    """A half-done sweep's table written before the fingerprint's version 3 (its record's
+    ``fingerprint_version`` 2, its model digest of version 2's scene record) was refused as
+    another format's. It is compared with this scene's record of version 2, as a checkpoint of
+    version 2 is: the same scene resumes it, running no sample again; the scene edited (its
+    ground 1 cm lower) is refused, naming the model; a record of version 2 holding version 3's
+    digest (which differs for this scene) is refused too."""
+    from warp_esph.sweep import _model_digest, write_outputs
+
+    specs = ["yield_stress=10,1000"]
+    first = sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1)
+    assert first.identity["fingerprint_version"] == 3
+    model = _thirds_box(-1.0 / 3.0).builder.finalize()
+    v2, v3 = _model_digest(model, 2), _model_digest(model)
+    assert v2 != v3 and first.identity["model"].endswith(v3)  # version 2 and 3 record this scene apart
+    old = {**first.identity, "fingerprint_version": 2, "model": f"{model.particle_count} particles, {v2}"}
+    write_outputs(SweepTable(first.columns, first.rows, first.params, old), tmp_path / "old", plot_figure=False)
+    _no_sample_runs(monkeypatch)
+    resumed = sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1, resume=tmp_path / "old")
+    assert _rows(resumed) == _rows(first) and resumed.identity == first.identity  # rewritten as version 3's
+    with pytest.raises(ValueError, match=r"its table is of another sweep: model = .* there, .* here"):
+        sweep(_thirds_box(-1.0 / 3.0 - 0.01), specs, frames=1, workers=1, resume=tmp_path / "old")
+    mislabelled = SweepTable(first.columns, first.rows, first.params, {**first.identity, "fingerprint_version": 2})
+    with pytest.raises(ValueError, match=r"its table is of another sweep: model = "):
+        sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1, resume=mislabelled)

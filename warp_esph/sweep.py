@@ -1415,6 +1415,10 @@ class _Plan:
     params: list
     tasks: list
     identity: dict
+    #: The identity as each earlier fingerprint version of the same record format recorded it
+    #: (``_identity``'s ``version``), which a table of that version is compared with, as a
+    #: checkpoint of an earlier version is with that version's fingerprint.
+    earlier: dict
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
@@ -1492,7 +1496,9 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     init_warp(here)
     model = sc.builder.finalize(device=here, dtype=dtype)
     # Before the check of the steps below, which sets sample values in the model's materials.
-    identity = _identity(scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
+    record = (scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
+    identity = _identity(*record)
+    earlier = {v: _identity(*record, version=v) for v in range(FIRST_FINGERPRINT_OF_FORMAT, identity["fingerprint_version"])}
     _check_some_sample_material(model, assignments, points, flag)
     if dt is None:
         _check_some_sample_steps(model, assignments, points, frames, fps, rate, length, flag)
@@ -1500,7 +1506,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
-    return _Plan(sc, plist, tasks, identity)
+    return _Plan(sc, plist, tasks, identity, earlier)
 
 
 def _spec(p: Param) -> str:
@@ -1510,7 +1516,7 @@ def _spec(p: Param) -> str:
     return f"{p.name}={p.lo!r}:{p.hi!r}:{p.scale}" + (f":{p.n}" if p.n is not None else "")
 
 
-def _model_digest(model) -> str:
+def _model_digest(model, version: int | None = None) -> str:
     """A digest of what a scene puts in the model: the particles, their materials (every field,
     an elastic particle floor's too) and bodies, and all a checkpoint's fingerprint holds beside
     them (``checkpoint.scene_record``: the lattice, colliders, ghost floors, force fields, moving
@@ -1518,7 +1524,8 @@ def _model_digest(model) -> str:
     materials and colliders alone, so a ghost floor where the table's was plastic, or a force
     field added, resumed another scene's table without a word. Positions and velocities in
     float32 and no masses (computed in the model's precision), so that the precision is told
-    apart by ``dtype`` alone, not as another model too."""
+    apart by ``dtype`` alone, not as another model too. ``version``: the fingerprint version
+    whose ``scene_record`` it holds (None: this one's)."""
     import hashlib  # noqa: PLC0415
 
     from .checkpoint import scene_record  # noqa: PLC0415
@@ -1530,7 +1537,7 @@ def _model_digest(model) -> str:
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
     h.update(repr((model.spacing, tuple(model.gravity), model.materials, *model.static_colliders(),
-                   scene_record(model))).encode())
+                   scene_record(model) if version is None else scene_record(model, version))).encode())
     return h.hexdigest()[:16]
 
 
@@ -1539,14 +1546,19 @@ def _model_digest(model) -> str:
 #: and not as another scene: format 1 (no ``format`` key) digested the particles, materials and
 #: colliders alone, and a table of the same scene read "model = ... there, ... here".
 RECORD_FORMAT = 2
+#: The first fingerprint version a table of ``RECORD_FORMAT`` records (format 2 began at 2): a
+#: table of a later one but this package's is compared with this scene's record of its version.
+FIRST_FINGERPRINT_OF_FORMAT = 2
 
 
-def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dtype, device, extra, model) -> dict:
+def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dtype, device, extra, model,
+              version: int | None = None) -> dict:
     """What makes a sweep's rows: two sweeps of one identity have the same table (``wall_s``
     aside), so a resumed sweep's must be its table's. JSON values, as ``sweep.json`` and a
     Parquet table's metadata keep them. ``format`` and ``fingerprint_version`` say how the
     rest was recorded (the model digest holds ``checkpoint.scene_record`` of that version),
-    ``version`` the package that ran the rows (another may compute other results)."""
+    ``version`` the package that ran the rows (another may compute other results). The
+    argument ``version``: the fingerprint version to record (None: this one's)."""
     from . import __version__  # noqa: PLC0415 (the package is imported whole by now)
     from .checkpoint import FINGERPRINT_VERSION  # noqa: PLC0415
 
@@ -1560,8 +1572,9 @@ def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dty
         with open(scene, "rb") as f:
             digest = hashlib.sha256(f.read()).hexdigest()[:16]
     by_name = isinstance(scene, (str, os.PathLike)) or scene is None
-    out = {"format": RECORD_FORMAT, "fingerprint_version": FINGERPRINT_VERSION, "version": __version__, "scene": sc.name, "scene_file": digest, "scale": float(scale) if by_name else None,
-           "model": f"{model.particle_count} particles, {_model_digest(model)}",
+    out = {"format": RECORD_FORMAT, "fingerprint_version": FINGERPRINT_VERSION if version is None else version,
+           "version": __version__, "scene": sc.name, "scene_file": digest, "scale": float(scale) if by_name else None,
+           "model": f"{model.particle_count} particles, {_model_digest(model, version)}",
            "params": [_spec(p) for p in plist], "sample": sample, "samples": int(count), "seed": int(seed),
            "frames": int(frames), "fps": float(fps), "dt": None if dt is None else float(dt), "dtype": dtype,
            "device": device, "solver": {"fit": b.fit, "contact_ramp": b.contact_ramp, "hourglass": b.hourglass,
@@ -1746,8 +1759,14 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
         raise ValueError(f"{name} = {shown} is not allowed: it holds no record of the sweep that wrote it (sweep.json "
                          f"beside the CSV table, or a Parquet table's metadata, as this version writes), so it cannot "
                          f"be told to be this sweep's; run the sweep anew")
-    _check_record_format(table.identity, plan.identity, name, shown)
-    diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in plan.identity.items()
+    # A table of an earlier fingerprint version (written before that version's change) is of
+    # this sweep where this scene's record of that version is its record.
+    ours = plan.identity
+    theirs = table.identity.get("fingerprint_version")
+    if table.identity.get("format") == ours["format"] and isinstance(theirs, int) and not isinstance(theirs, bool):
+        ours = plan.earlier.get(theirs, ours)
+    _check_record_format(table.identity, ours, name, shown)
+    diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in ours.items()
             if table.identity.get(k) != v and k != "version"]
     if diff:
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
