@@ -614,12 +614,14 @@ def test_force_log_frames_chosen_that_it_holds_no_row_of_are_refused_by_the_opti
 
 def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, capsys, monkeypatch, dough_scene):
     """A force log with a NaN force, two rows for a frame, a time off its frame, a unit the fit
-    does not read, or its header row lost (the command line's, or the second experiment's of an
+    does not read, or its header row lost (and, read before any scene too: a header and no row,
+    a spreadsheet's semicolons, forces in kN) (the command line's, or the second experiment's of an
     ``--experiments`` file) was refused after the scene's resolution check had built a model
     and launched its kernels (and, for the experiment's, after the first experiment's scene):
     each is refused in one line, exit 2, before any scene is read; and one timed in
     milliseconds, or of a tool the scene has not, which need the scene, once its file is read
-    and before any kernel (the tool's was refused by the loss, after the model was built)."""
+    and before any kernel (the tool's was refused by the loss, after the model was built), the
+    second experiment's too (every experiment's scene read ahead of the first one's model)."""
     from warp_esph import scenes  # noqa: PLC0415
     from warp_esph.cli import main  # noqa: PLC0415
 
@@ -630,7 +632,11 @@ def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, caps
            "repeated": (good + good[2:], r"row 5: frame 2 of tool 'plane0' is not allowed: row 4 already gives it"),
            "late": (good[:1] + ["1,0.05,plane0,0,1,0"] + good[2:], r"row 3 \(frame 1, tool 'plane0'\): time = 0\.05 is not allowed"),
            "unit": (good, r"is not allowed as a force target: its column 'fy \[mN\]' is in mN"),
-           "headless": (good, r"cannot be read as a point cloud: .*its first row reads as a force log's")}
+           "headless": (good, r"cannot be read as a point cloud: .*its first row reads as a force log's"),
+           "header_only": ([], r"header_only\.csv is not allowed as a force target: it has no rows"),
+           "semicolons": ([r.replace(",", ";").replace(".", ",") for r in good],
+                          r"its fields are separated by semicolons \(a spreadsheet's export with decimal commas\?\)"),
+           "kN": (good, r"its column 'fx \(kN\)' is in kN; give fx in N")}
     launched = []
 
     def no_kernel(*args, **kwargs):
@@ -645,7 +651,8 @@ def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, caps
     fit = ["fit", str(scene), "--iterations", "0", "--no-usd", "--no-progress", "--output-dir", str(tmp_path / "fit")]
     for name, (rows, said) in bad.items():
         log = tmp_path / f"{name}.csv"
-        header = {"unit": "frame,time,tool,fx,fy [mN],fz\n", "headless": ""}.get(name, "frame,time,tool,fx,fy,fz\n")
+        header = {"unit": "frame,time,tool,fx,fy [mN],fz\n", "headless": "", "semicolons": "frame;time;tool;fx;fy;fz\n",
+                  "kN": "frame,time,tool,fx (kN),fy (kN),fz (kN)\n"}.get(name, "frame,time,tool,fx,fy,fz\n")
         log.write_text(header + "".join(f"{r}\n" for r in rows))
         ok = _tools_csv(tmp_path / "ok.csv", good)
         (tmp_path / "exp.json").write_text(json.dumps([{"scene": "guess.toml", "target": log.name}]))
@@ -667,6 +674,13 @@ def test_a_bad_force_log_is_refused_in_one_line_before_any_kernel(tmp_path, caps
         assert main(fit + ["--target", str(log)]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and said in err, err
+        # The second experiment's: it was refused after the first experiment's scene had
+        # launched its kernels (seen failing so: 'a kernel was launched before the refusal').
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": "guess.toml", "target": log.name}]))
+        capsys.readouterr()
+        assert main(fit + ["--target", str(ok), "--experiments", str(tmp_path / "exp.json")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "exp.json: experiment #1: target " in err and said in err, err
     assert not launched and not (tmp_path / "fit").exists()
 
 

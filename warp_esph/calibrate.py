@@ -305,7 +305,10 @@ def run_fit(args, out=None, err=None) -> int:
     chosen = [load(where, spec, targets_only=True, shared=shared) for where, spec in specs]
     wheres = [where for where, _ in specs]
     _refuse_shared_observations([observed for _, observed in chosen], wheres)
-    exps = [load(where, spec, read_targets=read) for (where, spec), (read, _) in zip(specs, chosen)]
+    # Every experiment's force logs held to its scene's rate and tools, before any model.
+    read_scenes = [load(where, spec, read_targets=read, scene_only=True) for (where, spec), (read, _) in zip(specs, chosen)]
+    exps = [load(where, spec, read_targets=read, read_scene=scene)
+            for (where, spec), (read, _), scene in zip(specs, chosen, read_scenes)]
     _refuse_shared_observations([list(zip(e.targets, e.observed, e.target_frames)) for e in exps], wheres)
     # A noise nothing reads: refused, not ignored. --noise is metres, read by position, cloud
     # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
@@ -864,12 +867,15 @@ def _refuse_repeated_frames(entries, where: str, key) -> None:
 
 
 def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep, *, targets_only=False,
-                shared=frozenset(), read_targets=None):
+                shared=frozenset(), read_targets=None, scene_only=False, read_scene=None):
     """One experiment of the command: scene, model (jittered), targets, loss, time step.
     ``targets_only``: only its targets whose frames are chosen, or whose file (by
-    ``checks.file_identity``) is in ``shared`` or given twice, read before any scene is built:
-    those (by index) and what each observes (``_refuse_shared_observations``' entries, frames
-    None where the scene sets them); ``read_targets``: those, read so before."""
+    ``checks.file_identity``) is in ``shared`` or given twice, or a CSV (where a force log is
+    among them, every target), read before any scene is read: those (by index) and what each
+    observes (``_refuse_shared_observations``' entries, frames None where the scene sets them);
+    ``read_targets``: those, read so before. ``scene_only``: where a force log is among them,
+    the scene read without a kernel, the logs held to its rate and tools (else None);
+    ``read_scene``: that scene."""
     import types  # noqa: PLC0415
 
     def key(name):
@@ -936,6 +942,56 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 raise ValueError(f"{where}{e}") from None
         return t
 
+    flag = "fps" if where else "--fps"
+
+    def held_to_scene(file_targets, scene):
+        """The experiment's rate (its ``fps``, a stored target's, or the scene's) and the rates
+        ``file_targets`` store (path, fps); each force log refused where its times are not at
+        that rate or its tool is none of the scene's (read from its builder: no kernel runs)."""
+        fps = spec.get("fps")
+        # Frame k of the fit is compared with each target's frame k: a target of another rate was
+        # fitted at other times than it was recorded (and --fps 0.001 planned millions of steps).
+        # A run's USD and an .npz store their rate; a force log's is implied by its time column.
+        stored = [(checks.shown_path(t.path, False), t.fps) for t in file_targets if t.fps is not None and t.kind != "forces"]
+        if fps is not None:
+            fps = checks.positive(f"{where}{flag}", fps)
+            for path, rate in stored:
+                if not math.isclose(fps, rate, rel_tol=1e-9):
+                    raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the target {checks.shown_path(path, False)} was recorded at {rate:g} fps; "
+                                     f"leave {flag} out or give {rate:g}")
+        rate = fps if fps is not None else next((r for _, r in stored), scene.fps)
+        for path, other in stored:
+            if not math.isclose(other, rate, rel_tol=1e-9):
+                # The first target's rate was taken for all: this one was fitted at other times.
+                raise ValueError(f"{where}target {checks.shown_path(path, False)} is not allowed beside the target {stored[0][0]}: it was recorded at "
+                                 f"{other:g} fps, the other at {rate:g} fps, and frame k of the fit is one time for both; "
+                                 "fit targets of another rate as an experiment of their own (--experiments)")
+        for t in file_targets:
+            # The reader's own criterion (each row at frame / fps within a tenth of a frame): a float32
+            # run's log writes 9 digits of time, which miss the rate by 1e-9 to 1e-8 relative.
+            if t.kind == "forces" and t.fps is not None and any(abs(r["time"] * rate - r["frame"]) > 0.1 for r in t.data):
+                # The rate is frame / time: a log timed in milliseconds implied 0.03 fps for a
+                # 30 fps scene, and the fit planned 33 s frames of 16,000 steps each, exit 0.
+                last = max(t.data, key=lambda r: r["frame"])
+                implied = f"its column 'time' implies {t.fps:g} fps (frame {last['frame']} at time = {last['time']:g})"
+                units = ("times are seconds, frame / fps (a log timed in milliseconds implies 1000 times fewer frames a "
+                         "second)")
+                if fps is not None:
+                    raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the force log {checks.shown_path(t.path, False)} says otherwise: "
+                                     f"{implied}; {units}")
+                if stored:
+                    raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the {rate:g} fps the target "
+                                     f"{stored[0][0]} was recorded at; {units}")
+                raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
+                                 f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
+        from .sim.integrate import static_collider_names  # noqa: PLC0415
+        from .tools import tool_names  # noqa: PLC0415
+
+        for t in file_targets:
+            if t.kind == "forces":  # a log of a tool the scene has not: the loss's refusal, before the model
+                t.check_tool(tool_names(scene.builder.tools, scene.builder.pins), static_collider_names(scene.builder))
+        return rate, stored
+
     # A target whose frames are chosen is read first: the choice is refused before the scene's
     # checks launch their kernels (a range past the frames an .npz stores was found after them).
     # A file given more than once is read too, its frames compared before the scene's; and a
@@ -945,17 +1001,31 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         k: read(path, fspecs[k]) for k, path in enumerate(targets)
         if not cameras and (fspecs[k] is not None or k in repeated or real[k] in shared
                             or os.path.splitext(str(path))[1].lower() == ".csv") and os.path.isfile(path)}
+    from .scenes import load_scaled_scene, refuse_unresolved  # noqa: PLC0415
+
     if targets_only:
         known = {k: _chosen_frames(t, fspecs[k], f"{where}{key('target_frames')}") for k, t in early.items()}
         _refuse_repeated_frames([(k, path, fspecs[k], known[k]) for k, path in enumerate(targets) if k in early and k in repeated],
                                 where, key)
-        return early, [(targets[k], (real[k], _bodies_observed(t), t.tool), known[k]) for k, t in early.items()]
-    from .scenes import load_scaled_scene, refuse_unresolved  # noqa: PLC0415
+        observed = [(targets[k], (real[k], _bodies_observed(t), t.tool), known[k]) for k, t in early.items()]
+        if any(t.kind == "forces" for t in early.values()):
+            # The rate a force log is held to may be another target's (scene_only, below).
+            early.update((k, read(path, fspecs[k])) for k, path in enumerate(targets) if k not in early)
+        return early, observed
+    if scene_only:
+        if not any(t.kind == "forces" for t in early.values()):
+            return None
+        # A force log's rate and tool are the scene's to judge: its file is read here, with no
+        # kernel, so that an experiment's log is refused before the experiments before it build
+        # their models (a frame-rate problem in the second was found after the first's kernels).
+        scene = load_scaled_scene(spec["scene"], scale, scale_name, resolution=False)
+        held_to_scene([early[k] for k in range(len(targets))], scene)
+        return scene
 
     # Read without the check of its resolution, which launches kernels: the targets are read
     # and held to the scene's rate first, so that a bad one (a force log's NaN row, its times
     # in milliseconds) is refused before any kernel runs, as a bad option is.
-    scene = load_scaled_scene(spec["scene"], scale, scale_name, resolution=False)
+    scene = read_scene if read_scene is not None else load_scaled_scene(spec["scene"], scale, scale_name, resolution=False)
     # The solver's options checked as options, before the targets are read; set on the builder
     # after the resolution check, which reads the scene as its file sets it.
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
@@ -1011,50 +1081,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                  f"each entry of the target {checks.shown_path(path, False)} is one frame")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
-    fps = spec.get("fps")
-    flag = "fps" if where else "--fps"
-    # Frame k of the fit is compared with each target's frame k: a target of another rate was
-    # fitted at other times than it was recorded (and --fps 0.001 planned millions of steps).
-    # A run's USD and an .npz store their rate; a force log's is implied by its time column.
-    stored = [(checks.shown_path(t.path, False), t.fps) for t in file_targets if t.fps is not None and t.kind != "forces"]
-    if fps is not None:
-        fps = checks.positive(f"{where}{flag}", fps)
-        for path, rate in stored:
-            if not math.isclose(fps, rate, rel_tol=1e-9):
-                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the target {checks.shown_path(path, False)} was recorded at {rate:g} fps; "
-                                 f"leave {flag} out or give {rate:g}")
-    rate = fps if fps is not None else next((r for _, r in stored), scene.fps)
-    for path, other in stored:
-        if not math.isclose(other, rate, rel_tol=1e-9):
-            # The first target's rate was taken for all: this one was fitted at other times.
-            raise ValueError(f"{where}target {checks.shown_path(path, False)} is not allowed beside the target {stored[0][0]}: it was recorded at "
-                             f"{other:g} fps, the other at {rate:g} fps, and frame k of the fit is one time for both; "
-                             "fit targets of another rate as an experiment of their own (--experiments)")
-    for t in file_targets:
-        # The reader's own criterion (each row at frame / fps within a tenth of a frame): a float32
-        # run's log writes 9 digits of time, which miss the rate by 1e-9 to 1e-8 relative.
-        if t.kind == "forces" and t.fps is not None and any(abs(r["time"] * rate - r["frame"]) > 0.1 for r in t.data):
-            # The rate is frame / time: a log timed in milliseconds implied 0.03 fps for a
-            # 30 fps scene, and the fit planned 33 s frames of 16,000 steps each, exit 0.
-            last = max(t.data, key=lambda r: r["frame"])
-            implied = f"its column 'time' implies {t.fps:g} fps (frame {last['frame']} at time = {last['time']:g})"
-            units = ("times are seconds, frame / fps (a log timed in milliseconds implies 1000 times fewer frames a "
-                     "second)")
-            if fps is not None:
-                raise ValueError(f"{where}{flag} = {checks.shorten(fps)!r} is not allowed: the force log {checks.shown_path(t.path, False)} says otherwise: "
-                                 f"{implied}; {units}")
-            if stored:
-                raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the {rate:g} fps the target "
-                                 f"{stored[0][0]} was recorded at; {units}")
-            raise ValueError(f"{where}target {checks.shown_path(t.path, False)} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
-                             f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
-    fps = rate
-    from .sim.integrate import static_collider_names  # noqa: PLC0415
-    from .tools import tool_names  # noqa: PLC0415
-
-    for t in file_targets:
-        if t.kind == "forces":  # a log of a tool the scene has not: the loss's refusal, before the model
-            t.check_tool(tool_names(scene.builder.tools, scene.builder.pins), static_collider_names(scene.builder))
+    fps, stored = held_to_scene(file_targets, scene)
     # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
     refuse_unresolved(scene, spec["scene"], scale, scale_name)
     _apply_solver_options(scene.builder, solver_options)
