@@ -187,9 +187,10 @@ def test_the_hold_fades_with_where_each_base_particle_starts_the_step():
     np.testing.assert_allclose(x_held - x_free, dt * (v_held - v_free), rtol=0.0, atol=1e-15)
 
 
-#: Each particle's elastic ``F`` at the start of the flowing window (and of the one step below): an isochoric stretch whose
-#: deviatoric stress (about 440 Pa) is far above the hardened yield stress (about 80 Pa), so that
-#: every particle flows in every step and its ``alpha`` grows inside the window (and of the one step below).
+#: Each particle's elastic ``F`` at the start of the flowing window and of the one hardened step:
+#: an isochoric stretch whose deviatoric stress ``|2 mu dev sigma|`` (about 620 Pa) is above every
+#: hardened yield stress they read (80 Pa in the window, up to 260 Pa in the step), so that every
+#: particle flows in every step and its ``alpha`` grows.
 FLOWING_F = np.diag([1.12, 1.0 / 1.12, 1.0])
 
 
