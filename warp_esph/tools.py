@@ -1057,6 +1057,10 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 wp.atomic_add(rtorque, base + k, wp.cross(x1 - p1, fr))
                 x = x1
                 v = v1
+                # The pin's place is the position, whole: an integrated position that rounded
+                # onto it kept the integration's round-off, which the next step's fits read as
+                # a displacement of a particle that did not move.
+                x_lo = vec3()
         x_out[i] = x
         x_lo_out[i] = kin.placed_round_off(x, xe, x_lo)
         v_out[i] = v
