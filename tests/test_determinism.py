@@ -558,3 +558,38 @@ def test_floor_particles_the_papers_force_stressed_keep_the_floors_reaction_torq
     assert np.abs(t_skip - t_full).max() < 1e-4 * np.abs(t_full).max()
     assert far > 300  # of the floor's 520
 
+
+def test_floor_particles_out_of_reach_of_another_resting_set_keep_both_reaction_rows():
+    """A block on a one-layer clamp (a second pinned set at rest) on its particle floor: the
+    clamp's pressure, loaded by the block, meets far floor particles, and a pair of the two
+    sets' particles left out moved each set's reaction row by its share (0.035 N of the
+    floor's 44 N and the clamp's 11 N over 200 steps), not cancelling within either set. Far
+    particles are those whose rows hold their own set's particles alone: both rows match the
+    step that runs every pass to round-off, and every state to the bit."""
+    b = we.SceneBuilder(spacing=0.02)
+    mat = we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=100.0, flow_rate=50.0)
+    block = b.add_box((0.0, 0.09, 0.0), (0.12, 0.14, 0.12), mat, name="block")
+    b.add_particle_floor(block, margin=0.06)
+    b.pin(body="block", region=((-1.0, 0.02, -1.0), (1.0, 0.04, 1.0)), name="clamp")
+
+    def run(still):
+        m = b.finalize()
+        if not still:
+            m.tools.still_particles = lambda: None
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        rows = []
+        for _ in range(60):
+            s.step(a, c, 0.5 * m.stable_dt())
+            a, c = c, a
+            r = s.reaction_forces(a)
+            rows.append([r["block_floor"][0], r["clamp"][0]])
+        return {name: getattr(a, name).numpy() for name in _STILL_STATE}, np.array(rows), s.scratch.far.numpy().sum()
+
+    skip, r_skip, far = run(True)
+    full, r_full, _ = run(False)
+    for name in _STILL_STATE:
+        assert np.array_equal(full[name], skip[name]), name
+    for k in range(2):
+        assert np.abs(r_skip[:, k] - r_full[:, k]).max() < 1e-5 * np.abs(r_full[:, k]).max(), k
+    assert far > 0

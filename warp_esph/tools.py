@@ -1410,14 +1410,15 @@ class ToolSet:
                 still.append(k)
         if not still:
             return None
-        flags = np.isin(self._pin_of, still).astype(np.int32)
+        # Each set's own number (+ 1): a pair of two sets' particles moves both their rows.
+        flags = np.where(np.isin(self._pin_of, still), np.asarray(self._pin_of) + 1, 0).astype(np.int32)
         held = self._still
         if held is not None and np.array_equal(held.numpy(), flags):
             return held
         return wp.array(flags, dtype=wp.int32, device=self.model.device)
 
     def still_particles(self):
-        """Per particle 1 where it is pinned to a set that stays at its rest pose (``_still_flags``)
+        """Per particle its set's number + 1 where it is pinned to a set that stays at its rest pose (``_still_flags``)
         as the tools' arrays were at the last ``check_arrays`` (which ``Solver.step`` calls
         before its first launch: an optimiser that moves such a set is seen at the next step),
         else 0; None where no set stays at rest. The fused step leaves out the neighbour passes

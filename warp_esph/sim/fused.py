@@ -66,9 +66,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def held_still(j: int, still: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                    rest: wp.array(dtype=vec3)) -> int:
-        """1 where particle ``j`` is pinned to a set at rest (``ToolSet.still_particles``) and
-        starts the step at its pinned place ``rest`` with no round-off carried, where the pin
-        puts it again: its displacement over the step is then 0."""
+        """1 where particle ``j`` is pinned to a set at rest (``ToolSet.still_particles``: its
+        set's number + 1) and starts the step at its pinned place ``rest`` with no round-off
+        carried, where the pin puts it again: its displacement over the step is then 0."""
         out = int(0)
         if still[j] != 0:
             if x[j] == rest[j] and x_lo[j] == vec3():
@@ -78,15 +78,19 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def out_of_reach(i: int, still: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                      rest: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int) -> int:
-        """1 where particle ``i`` and every particle in its row are ``held_still``, else 0.
-        Its pair forces then act on such particles alone, whose places the pins set, and
-        every displacement its fit sums is 0, so ``dF = I``: nothing another particle reads
-        comes of its neighbour passes, and the step leaves them out (the pins' reaction rows
-        then sum the same forces less pairs that cancel, equal and opposite, to round-off)."""
+        """1 where particle ``i`` and every particle in its row are ``held_still``, pinned to
+        the same set, else 0. Its pair forces then act on that set alone, whose places the
+        pins set, and every displacement its fit sums is 0, so ``dF = I``: nothing another
+        particle reads comes of its neighbour passes, and the step leaves them out (the set's
+        reaction row then sums the same forces less pairs that cancel, equal and opposite, to
+        round-off; a pair with another set's particle would move both sets' rows by its share)."""
         out = held_still(i, still, x, x_lo, rest)
         k = int(0)
         while out != 0 and k < n:
-            out = held_still(nbr[i, k], still, x, x_lo, rest)
+            j = nbr[i, k]
+            out = held_still(j, still, x, x_lo, rest)
+            if still[j] != still[i]:
+                out = 0
             k += 1
         return out
 
