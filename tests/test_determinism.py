@@ -505,6 +505,26 @@ def test_floor_particles_out_of_reach_in_worlds_leave_every_state_the_same_bit_f
     assert far[:start].sum() > 0 and far[start:].sum() > 0 and far[:start].sum() != far[start:].sum()
 
 
+def _block_run(b, steps: int, still: bool, read, start=None):
+    """``steps`` steps of half the stable one of ``b.finalize()`` (a block on its pinned floor);
+    ``still`` False as in ``_slump_run``; ``start(model, state)`` sets the first state up.
+    Returns the state arrays at the end, ``read(solver, state)`` after each step, the
+    particles the last step left out and the model."""
+    m = b.finalize()
+    if not still:
+        m.tools.still_particles = lambda: None
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    if start is not None:
+        start(m, a)
+    out = []
+    for _ in range(steps):
+        s.step(a, c, 0.5 * m.stable_dt())
+        a, c = c, a
+        out.append(read(s, a))
+    return {name: getattr(a, name).numpy().copy() for name in _STILL_STATE}, out, s.scratch.far.numpy().sum(), m
+
+
 def test_a_pin_places_its_particles_whole_so_far_floor_particles_stay_the_same_bit_for_bit():
     """Under a gravity of 1e-4 m/s^2 half the floor's integrated positions round onto their
     pinned places, where the integration's round-off was kept in ``x_lo`` as if the particle
@@ -516,21 +536,12 @@ def test_a_pin_places_its_particles_whole_so_far_floor_particles_stay_the_same_b
     block = b.add_box((0.0, 0.05, 0.0), (0.08, 0.08, 0.08), mat, name="block")
     b.add_particle_floor(block, margin=0.08)
 
-    def run(still):
-        m = b.finalize()
-        if not still:
-            m.tools.still_particles = lambda: None
-        s = we.Solver(m)
-        a, c = m.state(), m.state()
-        out = []
-        for _ in range(3):
-            s.step(a, c, 0.5 * m.stable_dt())
-            a, c = c, a
-            out.append(({name: getattr(a, name).numpy().copy() for name in _STILL_STATE}, s.scratch.far.numpy().sum()))
-        return out, m.tools.pin.numpy() >= 0
+    def read(s, a):
+        return {name: getattr(a, name).numpy().copy() for name in _STILL_STATE}, s.scratch.far.numpy().sum()
 
-    left, pinned = run(True)
-    ran, _ = run(False)
+    _, left, _, m = _block_run(b, 3, True, read)
+    _, ran, _, _ = _block_run(b, 3, False, read)
+    pinned = m.tools.pin.numpy() >= 0
     for (skip, far), (full, _) in zip(left, ran):
         assert not skip["x_lo"][pinned].any()
         assert far > 0.5 * pinned.sum()
@@ -549,28 +560,21 @@ def test_floor_particles_the_papers_force_stressed_keep_the_floors_reaction_torq
     block = b.add_box((-0.075, 0.07, 0.0), (0.06, 0.06, 0.06), mat, name="block")
     b.add_particle_floor(block, margin=0.15)
 
-    def run(still):
-        m = b.finalize()
-        if not still:
-            m.tools.still_particles = lambda: None
-        s = we.Solver(m)
-        a, c = m.state(), m.state()
+    def throw(m, a):
         free = m.tools.pin.numpy() < 0
         a.v.assign(a.v.numpy() + np.where(free[:, None], [1.5, 0.0, 0.0], 0.0).astype(np.float32))
-        torque = []
-        for _ in range(200):
-            s.step(a, c, 0.5 * m.stable_dt())
-            a, c = c, a
-            torque.append(s.reaction_forces(a)["block_floor"][1])
-        return {name: getattr(a, name).numpy() for name in _STILL_STATE}, np.array(torque), s.scratch.far.numpy().sum()
 
-    skip, t_skip, far = run(True)
-    full, t_full, _ = run(False)
+    def torque(s, a):
+        return s.reaction_forces(a)["block_floor"][1]
+
+    skip, t_skip, far, _ = _block_run(b, 200, True, torque, throw)
+    full, t_full, _, _ = _block_run(b, 200, False, torque, throw)
+    t_skip, t_full = np.array(t_skip), np.array(t_full)
     for name in _STILL_STATE:
         assert np.array_equal(full[name], skip[name]), name
     assert np.abs(t_full).max() > 0.1
     assert np.abs(t_skip - t_full).max() < 1e-4 * np.abs(t_full).max()
-    assert far > 300  # of the floor's 520
+    assert far > 300  # of the floor's 482
 
 
 def test_floor_particles_out_of_reach_of_another_resting_set_keep_both_reaction_rows():
@@ -586,22 +590,13 @@ def test_floor_particles_out_of_reach_of_another_resting_set_keep_both_reaction_
     b.add_particle_floor(block, margin=0.06)
     b.pin(body="block", region=((-1.0, 0.02, -1.0), (1.0, 0.04, 1.0)), name="clamp")
 
-    def run(still):
-        m = b.finalize()
-        if not still:
-            m.tools.still_particles = lambda: None
-        s = we.Solver(m)
-        a, c = m.state(), m.state()
-        rows = []
-        for _ in range(60):
-            s.step(a, c, 0.5 * m.stable_dt())
-            a, c = c, a
-            r = s.reaction_forces(a)
-            rows.append([r["block_floor"][0], r["clamp"][0]])
-        return {name: getattr(a, name).numpy() for name in _STILL_STATE}, np.array(rows), s.scratch.far.numpy().sum()
+    def rows(s, a):
+        r = s.reaction_forces(a)
+        return [r["block_floor"][0], r["clamp"][0]]
 
-    skip, r_skip, far = run(True)
-    full, r_full, _ = run(False)
+    skip, r_skip, far, _ = _block_run(b, 60, True, rows)
+    full, r_full, _, _ = _block_run(b, 60, False, rows)
+    r_skip, r_full = np.array(r_skip), np.array(r_full)
     for name in _STILL_STATE:
         assert np.array_equal(full[name], skip[name]), name
     for k in range(2):
