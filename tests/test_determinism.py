@@ -442,27 +442,22 @@ def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
 
 def test_floor_particles_off_their_places_or_moving_run_their_passes():
     """Pinned particles that start off their pinned places (0.1 mm at random), or at them with
-    round-off carried in ``x_lo`` (1e-9 m), move onto them whole in the first step, so no fit over them is the identity: that step runs every neighbour
-    pass, and its states are the bits of the step that runs them all; from the next, with the
+    round-off carried in ``x_lo`` (1e-9 m), move onto them whole in the first step, so no fit
+    over them is the identity: that step runs every neighbour pass, and its states are the bits of the step that runs them all; from the next, with the
     floor in place, the step leaves the far ones out again. A floor set moving through the
     tools' velocity array (as an optimiser writes it) leaves none out from the next step."""
     from benchmarks import validation
 
     model, free, _, _ = validation.slump_model(0.2, 6, floor_radius=2.2)
-    ran = _slump_run(model, 2, still=False, jitter=1e-4)
-    left = _slump_run(model, 2, still=True, jitter=1e-4)
-    for (full, _, _, _), (skip, _, _, _) in zip(ran, left):
-        for name in _STILL_STATE:
-            assert np.array_equal(full[name], skip[name]), name
-    assert not left[0][3].any() and left[1][3].sum() > 0.5 * (~free).sum()
-    # At their places with round-off carried (a state saved before pins placed theirs whole):
-    # the fits read -x_lo as their displacement, so that step runs every pass too.
-    ran = _slump_run(model, 2, still=False, jitter_lo=1e-9)
-    left = _slump_run(model, 2, still=True, jitter_lo=1e-9)
-    for (full, _, _, _), (skip, _, _, _) in zip(ran, left):
-        for name in _STILL_STATE:
-            assert np.array_equal(full[name], skip[name]), name
-    assert not left[0][3].any() and left[1][3].sum() > 0.5 * (~free).sum()
+    # Off their places, or at them with round-off carried (a state saved before pins placed
+    # theirs whole: the fits read -x_lo as their displacement): that step runs every pass.
+    for jitter in ({"jitter": 1e-4}, {"jitter_lo": 1e-9}):
+        ran = _slump_run(model, 2, still=False, **jitter)
+        left = _slump_run(model, 2, still=True, **jitter)
+        for (full, _, _, _), (skip, _, _, _) in zip(ran, left):
+            for name in _STILL_STATE:
+                assert np.array_equal(full[name], skip[name]), (name, jitter)
+        assert not left[0][3].any() and left[1][3].sum() > 0.5 * (~free).sum(), jitter
     k = model.tools.names.index("floor")
     for name, value in (("velocity", (0.0, 1e-6, 0.0)), ("angular_velocity", (0.0, 1e-6, 0.0))):
         v = getattr(model.tools, name)
