@@ -1418,11 +1418,12 @@ class ToolSet:
         return wp.array(flags, dtype=wp.int32, device=self.model.device)
 
     def still_particles(self):
-        """Per particle its set's number + 1 where it is pinned to a set that stays at its rest pose (``_still_flags``)
-        as the tools' arrays were at the last ``check_arrays`` (which ``Solver.step`` calls
-        before its first launch: an optimiser that moves such a set is seen at the next step),
-        else 0; None where no set stays at rest. The fused step leaves out the neighbour passes
-        of those with only such particles in their rows (``fused.out_of_reach``)."""
+        """Per particle its set's number + 1 where it is pinned to a set that stays at its rest
+        pose (``_still_flags``) as the tools' arrays were at the last ``check_arrays`` (which
+        ``Solver.step`` calls before its first launch: an optimiser that moves such a set is
+        seen at the next step), else 0; None where no set stays at rest. The fused step leaves
+        out the neighbour passes of those with only their own set's such particles in their
+        rows (``fused.out_of_reach``)."""
         return self._still
 
     def motion_gradient(self, name: str) -> dict[str, np.ndarray]:

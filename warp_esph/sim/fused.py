@@ -185,7 +185,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_inv_out[i] = Finv
         # (reach 0: no pinned set at rest, or images, whose own F the update writes.) The
         # paper's pair forces of a stressed particle are not central: their torque on the set
-        # does not cancel, and leaving them out moved a floor's reaction torque by 1 % after a
+        # does not cancel, and leaving them out moved a floor's reaction torque by 1.2 % after a
         # thrown block had passed over it (docs/performance.md), so those run.
         out = int(0)
         if reach != 0 and (mat.elastic_force[m] != 0 or P == mat33()):
