@@ -907,6 +907,22 @@ def _tresca_continuum_said(mpm: dict | None, width: float, duration: float) -> s
             f"{' / '.join(str(r['res_cells_across']) for r in rows)} cells across)")
 
 
+def near_yield_study(rs: list[dict]) -> tuple[list[dict], list[dict]]:
+    """A floor's fixed-width rows ``rs`` (by resolution) split into one resolution study, those
+    as wide and run as long (within 1 %) as the finest resolution's shortest run, and the rest:
+    a column run on to rest reads more, and another width is another column, so neither is a
+    resolution of the study."""
+    finest = min((r for r in rs if r["resolution"] == rs[-1]["resolution"]), key=lambda r: r["duration"])
+    study = [r for r in rs if math.isclose(r["width"], finest["width"])
+             and math.isclose(r["duration"], finest["duration"], rel_tol=0.01)]
+    return study, [r for r in rs if r not in study]
+
+
+def _near_yield_apart(r: dict) -> str:
+    return (f"{r['resolution']} across, {100 * r['width']:g} cm wide, {r['duration']:.3g} s: "
+            f"{r['plastic_over_theory']:.2f} x, {_run(r)}")
+
+
 def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | None = None) -> list[tuple[str, str, str, str]]:
     """The near-yield column's row: its fixed-width study (``near_yield_column`` with a
     ``width``; docs/physics.md, "The near-yield column at a fixed width") per floor, judged on
@@ -935,7 +951,8 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | No
         rs = sorted((r for r in rows if r.get("floor", "ground") == floor), key=lambda r: r["resolution"])
         if not rs:
             continue
-        used += rs
+        rs, apart = near_yield_study(rs)
+        used += rs + apart
         ns = " / ".join(str(r["resolution"]) for r in rs)
 
         def each(key, fmt, rs=rs):
@@ -950,7 +967,8 @@ def _near_yield_target(results, weight: str = DEFAULT_FIT_WEIGHT, mpm: dict | No
             f"at {each('upper_peak_over_weight', '.2f')} x its weight's stress, top "
             f"{' / '.join(format(abs(r['residual_rate_pct_per_s']), '.2g') for r in rs)} % of the theory's shortening per s, "
             f"kinetic energy {each('kinetic_over_weight', '.1e')} M g x it, lean {each('lean', '.1g')} dx"
-            + (_tresca_continuum_said(mpm, w, rs[-1]["duration"]) if floor == TRESCA else ""))
+            + (_tresca_continuum_said(mpm, w, rs[-1]["duration"]) if floor == TRESCA else "")
+            + (f" (apart, not read with these: {', '.join(_near_yield_apart(r) for r in apart)})" if apart else ""))
         holds = all(r["lean"] < 1.0 and r["shortening"] < 2.0 * r["theory"] for r in rs)
         base = all(r["highest_yielded_depth"] >= r["yield_depth"] - w / H for r in rs)
         fine = rs[-1]

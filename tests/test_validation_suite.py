@@ -1537,6 +1537,32 @@ def test_the_near_yield_target_does_not_judge_convergence_on_columns_still_creep
     assert "; converging: yes (order 0.9, limit 0.62 x)" in at_rest and "at rest" not in at_rest, at_rest
 
 
+def test_the_near_yield_target_reads_one_study_per_floor_leaving_a_column_run_on_or_of_another_width_apart():
+    """A floor's rows of one resolution study alone are judged: as wide and run as long as its
+    finest resolution's (the plan's 36 periods). A 4-across column run on to 108 periods (it
+    reads more: R100's rests at 0.227 x against 0.223) or 6 cm wide is named apart, with its
+    run, and neither enters the shortening list, the convergence nor the continuum's match."""
+    from benchmarks.validation_report import NEAR_YIELD_TARGET, _targets
+
+    study = [dict(_near_yield_row(n, q, validation.TRESCA, front=0.72), fit_weight=DEFAULT_WEIGHT)
+             for n, q in ((4, 0.22), (6, 0.34), (8, 0.41))]
+    run_on = dict(_near_yield_row(4, 0.23, validation.TRESCA, front=0.72), fit_weight=DEFAULT_WEIGHT, duration=7.05,
+                  run=4)
+    wide = dict(_near_yield_row(8, 0.95, validation.TRESCA, front=0.72), fit_weight=DEFAULT_WEIGHT, width=0.06, run=5)
+    mpm = {"checks": [_continuum_column(4, 0.58, duration=2.35), _continuum_column(4, 0.70, duration=7.05)]}
+
+    def target(rows):
+        (t,) = [t for t in _targets(rows, mpm) if t[0] == NEAR_YIELD_TARGET]
+        return t
+
+    _, alone, met, runs = target(study)
+    _, measured, met_with, runs_with = target(study[:1] + [run_on] + study[1:] + [wide])
+    assert met_with == met and runs == "R1" and runs_with == "R1, R5, R6", (met, met_with, runs_with)
+    assert measured == alone.removesuffix(")") + ") (apart, not read with these: 4 across, 4 cm wide, 7.05 s: 0.23 x, " \
+        "R5, 8 across, 6 cm wide, 2.35 s: 0.95 x, R6)", measured
+    assert "at 4 / 6 / 8 across: plastic shortening 0.22 / 0.34 / 0.41 x" in measured and "0.58 x at 4 cells" in alone
+
+
 @pytest.mark.parametrize("width", [0.0, -0.04, float("nan"), "4 cm"])
 def test_near_yield_column_refuses_a_width_that_is_not_a_positive_length(width):
     with pytest.raises(ValueError, match=r"^width = .* is not allowed: must be"):
