@@ -644,3 +644,21 @@ def test_every_number_accuracy_md_quotes_from_a_validation_row_is_the_rows():
     assert found >= 20, f"docs/accuracy.md marks {found} numbers: has the marker's format changed?"
     assert found == text.count("<!-- vj:"), "a marker of docs/accuracy.md follows no number it can read"
     assert not wrong, "\n".join(wrong)
+
+
+def test_every_continuum_near_yield_column_records_the_width_it_ran():
+    """docs/mpm_slump.json's near-yield columns record their ``width`` (the report matches the
+    Tresca ground's 4 cm columns to the continuum's by it; the four rows before the field ran the
+    CLI's 6 cm). The width each ran is in its own numbers: the elastic drop over the closed form
+    ``rho g L^2 / (2 E)`` gives the height L (5 widths, the columns' aspect), and the run lasts
+    ``periods`` of the fixed-free axial mode, ``4 L / sqrt(E / rho)``."""
+    import json  # noqa: PLC0415
+
+    from benchmarks.validation import G, RHO
+
+    rows = [r for r in json.loads((DOCS / "mpm_slump.json").read_text())["checks"] if r["case"] == "near_yield_column"]
+    assert len(rows) >= 8, len(rows)
+    for r in rows:
+        L = math.sqrt(r["elastic_drop"] / r["elastic_over_theory"] * 2.0 * r["E"] / (RHO * G))
+        assert 5.0 * r["width"] == pytest.approx(L, rel=1e-9), r
+        assert r["duration"] == pytest.approx(r["periods"] * 4.0 * L / math.sqrt(r["E"] / RHO), rel=1e-3), r
