@@ -1158,7 +1158,14 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
         if shear_cap_pa is None:
             raise ValueError(f"shear_cap_pa = None is not allowed with floor = {TRESCA!r}: the elastic column has no "
                              "shear yield stress to scale the Tresca ground's hold; give the hold in Pa")
-        yielding = {"yield_stress": math.sqrt(2.0) * checks.positive("shear_cap_pa", shear_cap_pa) / ELASTIC_TWIN_CAP}
+        cap = checks.positive("shear_cap_pa", shear_cap_pa)
+        if cap > E:
+            # Above the column's own stiffness no hold is a plastic column's, and the twin's
+            # scaled yield stress (cap / ELASTIC_TWIN_CAP) would leave float32's range.
+            raise ValueError(f"shear_cap_pa = {checks.shorten(shear_cap_pa)!r} is not allowed: must be in (0, E] = "
+                             f"(0, {E:g}] Pa, the elastic column's Young's modulus (the plastic column's shear yield "
+                             "stress is what it stands for)")
+        yielding = {"yield_stress": math.sqrt(2.0) * cap / ELASTIC_TWIN_CAP}
     elif shear_cap_pa is not None:
         raise ValueError(f"shear_cap_pa = {checks.shorten(shear_cap_pa)!r} is not allowed with floor = {floor!r}: it is "
                          f"the Tresca ground's hold; give floor = {TRESCA!r} or leave shear_cap_pa at None")
