@@ -62,17 +62,17 @@ def test_the_pile_profile_reads_a_lattice_cylinder_and_a_uniform_squash_exactly(
     assert np.allclose([L["y_over_H0"] for L in layers], [q * (1.0 - L["depth0_over_H0"]) for L in layers])
 
 
-def _plug_row(plugs, mpm=None):
+def _plug_row(plugs, mpm=None, floor="particles"):
     """The report's plug target over made slump rows ``{(S, resolution): (fraction below
-    0.99 Y, plastic strain in yield strains)}``, the other fields those of a pile at rest,
-    with the continuum's (MPM) rows ``mpm`` if given."""
+    0.99 Y, plastic strain in yield strains)}`` on ``floor``, the other fields those of a pile
+    at rest, with the continuum's (MPM) rows ``mpm`` if given."""
     from benchmarks.validation_report import _slump_targets
 
-    rows = [{"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": "particles",
+    rows = [{"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": floor,
              "fit_weight": DEFAULT_WEIGHT, "theory_h_over_H0": 0.5, "thickness_over_H0": 0.5, "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
              "at_rest": True, "duration": 8.0, "plug_particles": 24, "plug_unyielded_fraction": f,
              "plug_plastic_strain": e, "run": 0} for (S, n), (f, e) in plugs.items()]
-    return next(t for t in _slump_targets(rows, "particles", mpm=mpm) if t[0].startswith("an unyielded plug"))
+    return next(t for t in _slump_targets(rows, floor, mpm=mpm) if t[0].startswith("an unyielded plug"))
 
 
 def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
@@ -88,10 +88,12 @@ def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
 def test_the_plug_target_says_where_the_continuum_misses_it_too():
     """The continuum (MPM) read by the same plug criterion (``validation.plug_measures``) on
     the base the particle floor is judged against (the slip floor that only pushes): where it
-    keeps no plug either, the report's verdict stays "no" and says so with its numbers
-    (docs/validation.md, the plug); an MPM on another base (no-slip, or the slip floor that
-    pulled, which here keeps the S = 0.3 plug), a coarser-only reading, or one that keeps its
-    plug changes nothing."""
+    keeps no plug either, its numbers are shown beside the piles' (docs/validation.md, the
+    plug), but the verdict stays "no" without naming it a shared miss, since the particle
+    floor grips and that continuum does not (as the height's, ``SAME_WALL``); on the ghost
+    floor, whose no-slip continuum runs its wall law, the verdict names it. An MPM on another
+    base (no-slip under the particle floor, or the slip floor that pulled, which here keeps
+    the S = 0.3 plug), a coarser-only reading, or one that keeps its plug changes nothing."""
     slip = "slip"
 
     def mpm(S, cells, f, e, floor=slip):
@@ -103,7 +105,7 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
     continuum = {"slumps": [mpm(0.2, 12, 0.0, 22.0), mpm(0.3, 12, 0.36, 3.4), mpm(0.3, 16, 0.3, 3.0),
                             mpm(0.5, 12, 1.0, 0.0), mpm(0.3, 24, 0.95, 0.2, floor="pulling slip")]}
     _, got, verdict, _ = _plug_row(plugs, continuum)
-    assert verdict == f"no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a {slip} base misses it too: S = 0.2, S = 0.3)", verdict
+    assert verdict == "no (S = 0.2, S = 0.3; held: S = 0.5)", verdict
     assert f"the continuum (MPM, {slip} base) by the same criterion: S = 0.2 at H0 / 12: 0 % of it below 0.99 Y, 22 yield strains" in got, got
     assert "S = 0.3 at H0 / 12/16: 30-36 % of it below 0.99 Y, 3-3.4 yield strains" in got and "H0 / 12/16/24" not in got, got
     bare = _plug_row(plugs)
@@ -117,6 +119,12 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
     # Only on the other base: not the continuum this floor stands for.
     other = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.36, 3.4, floor="sticky")]})
     assert other[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", other
+    assert "continuum" not in other[1], other
+    # The ghost floor's continuum (no-slip, the MPM's "sticky") runs its wall law: named there.
+    sticky = {"slumps": [dict(r, floor="sticky") for r in continuum["slumps"] if r["floor"] == slip]}
+    _, got, verdict, _ = _plug_row(plugs, sticky, floor="ghost_particles")
+    assert verdict == "no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a no-slip base misses it too: S = 0.2, S = 0.3)", verdict
+    assert "the continuum (MPM, no-slip base) by the same criterion: S = 0.2 at H0 / 12" in got, got
 
 
 def test_the_yield_stress_a_slump_fit_recovers_inverts_the_measured_piles():
@@ -2300,6 +2308,23 @@ def test_report_judges_the_default_fit_weight_and_gives_the_biweight_targets_of_
     assert "| within 10 %: no (S = 0.1, S = 0.2, S = 0.3, S = 0.5);" in height[1], height[1]
     assert len([line for line in text.splitlines()
                 if line.startswith(f"| 0.2 | 16 | variational | particles | {OTHER_WEIGHT} |")]) == 1
+
+
+def test_the_validation_page_names_a_shared_miss_only_on_a_floor_whose_continuum_runs_its_wall_law():
+    """docs/validation.md said of the particle floor's plug "the continuum on a slip base misses
+    it too", in its table and its opening, though that floor grips and the slip continuum does
+    not: a loss of the plug by a continuum on another wall law is shown beside the piles', not
+    named as the same miss (as the height's). Every verdict on the page that names one is a
+    row on a floor of ``SAME_WALL``, naming that floor's own continuum."""
+    from benchmarks.validation_report import CONTINUUM_BASE, FLOOR_NAMES, SAME_WALL, _base_name
+
+    page = (pathlib.Path(__file__).resolve().parent.parent / "docs" / "validation.md").read_text()
+    lines = [line for line in page.splitlines() if "misses it too" in line]
+    assert lines, "the page names no shared miss (the ghost floor's and the Tresca ground's rows do)"
+    for line in lines:
+        floors = [f for f in FLOOR_NAMES if f" on {FLOOR_NAMES[f]}" in line.split(": ")[0].split(" | ")[0]]
+        assert len(floors) == 1 and floors[0] in SAME_WALL, line
+        assert f"the continuum on a {_base_name(CONTINUUM_BASE[floors[0]])} base misses it too" in line, line
 
 
 def test_the_validation_page_opens_with_every_target_it_does_not_meet():
