@@ -334,19 +334,67 @@ def test_a_float32_ground_at_a_value_float32_does_not_hold_records_its_shortest_
     load_state(path, moved())
     # Version 2 (a checkpoint written before) records the build as given: still resumed by the
     # model built there.
-    with np.load(path) as data:
-        arrays = {k: data[k] for k in data.files}
-    meta = json.loads(arrays["meta"].tobytes())
-    assert meta["fingerprint_version"] == 3 and meta["fingerprint"] != model_fingerprint(built, 2)
-    meta["fingerprint_version"], meta["fingerprint"] = 2, model_fingerprint(built, 2)
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    np.savez(path, **arrays)
+    meta = _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": 2,
+                                             "fingerprint": model_fingerprint(built, 2)})
+    assert meta["fingerprint_version"] == 4 and meta["fingerprint"] != model_fingerprint(built, 2)
     load_state(path, _model(ground=-1.0 / 3.0))
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
     b.add_ground(-1.0 / 3.0, friction=0.3)
     for unchanged in (_model(ground=-0.1), b.finalize(dtype=wp.float64)):
         assert model_fingerprint(unchanged, 3) == model_fingerprint(unchanged, 2)
+
+
+def _rewrite_meta(path, change) -> dict:
+    """Rewrite the checkpoint ``path``'s metadata as ``change(meta)`` gives it (as a file an
+    earlier version wrote); the metadata it had."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    arrays["meta"] = np.frombuffer(json.dumps(change(meta)).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+    return meta
+
+
+def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_where_the_hold_changed(tmp_path):
+    """Since 2026-12-07 the Tresca ground's hold reads each particle's yield stress as the flow
+    does (``yield_stress + hardening * alpha``), where it read the given one, with the package's
+    version unchanged: a checkpoint of fingerprint version 3 (or before) of a scene with a
+    Tresca ground and a nonzero hardening resumed that run under the other hold without a word.
+    It is refused, naming why; the same file of version 4 resumes, and so does an old one of a
+    Tresca scene without hardening (the two holds the same, bit for bit), of one whose
+    checkpoint holds a hardening of 0 (the run's, set on the model) and of a plain ground with
+    hardening. Seen failing with ``older_hold``'s check removed from ``load_state``."""
+    from warp_esph.checkpoint import model_fingerprint
+
+    def scene(hardening, tresca=True):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough").replace(hardening=hardening))
+        b.add_ground(0.0, friction=0.0 if tresca else 0.5, images=True, shear_cap=1.0 if tresca else None)
+        return b.finalize()
+
+    def old(model, name, written=None):
+        """A checkpoint of ``written`` (default ``model``) as version 3 wrote it: the same
+        fingerprint, its version 3."""
+        written = written or model
+        path = save_state(tmp_path / name, written, written.state(), step=0, frame=0)
+        meta = _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": 3})
+        assert meta["fingerprint_version"] == 4 and meta["fingerprint"] == model_fingerprint(model, 3)
+        return path
+
+    hardened = scene(500.0)
+    new = save_state(tmp_path / "new.npz", hardened, hardened.state(), step=0, frame=0)
+    load_state(new, scene(500.0))
+    with pytest.raises(ValueError, match=r"^path = .*old\.npz' is not allowed: it was written with fingerprint version 3, "
+                                         r"before the Tresca ground's hold read the hardened yield stress \(yield_stress \+ "
+                                         r"hardening \* alpha, since version 4\), and this scene has a Tresca ground "
+                                         r"\(shear_cap = 1\) under a hardening of 500 Pa, so resumed it would mix the two "
+                                         r"holds; run it again from the start$"):
+        load_state(old(hardened, "old.npz"), hardened)
+    for model, written in ((scene(0.0), None), (scene(500.0, tresca=False), None), (hardened, scene(0.0))):
+        resumed, _ = load_state(old(model, "plain.npz", written), model)
+        np.testing.assert_array_equal(resumed.x.numpy(), model.state().x.numpy())
+    assert float(hardened.hardening.numpy()[0]) == 0.0  # the checkpoint's, which its run had
 
 
 def test_save_state_judges_a_state_by_the_scene_its_model_had_when_it_made_it(tmp_path):

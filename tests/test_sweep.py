@@ -2489,7 +2489,7 @@ def test_a_table_of_fingerprint_version_2_resumes_where_the_scene_is_the_one_it_
 
     specs = ["yield_stress=10,1000"]
     first = sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1)
-    assert first.identity["fingerprint_version"] == 3
+    assert first.identity["fingerprint_version"] == 4
     model = _thirds_box(-1.0 / 3.0).builder.finalize()
     v2, v3 = _model_digest(model, 2), _model_digest(model)
     assert v2 != v3 and first.identity["model"].endswith(v3)  # version 2 and 3 record this scene apart
@@ -2497,9 +2497,51 @@ def test_a_table_of_fingerprint_version_2_resumes_where_the_scene_is_the_one_it_
     write_outputs(SweepTable(first.columns, first.rows, first.params, old), tmp_path / "old", plot_figure=False)
     _no_sample_runs(monkeypatch)
     resumed = sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1, resume=tmp_path / "old")
-    assert _rows(resumed) == _rows(first) and resumed.identity == first.identity  # rewritten as version 3's
+    assert _rows(resumed) == _rows(first) and resumed.identity == first.identity  # rewritten as this version's
     with pytest.raises(ValueError, match=r"its table is of another sweep: model = .* there, .* here"):
         sweep(_thirds_box(-1.0 / 3.0 - 0.01), specs, frames=1, workers=1, resume=tmp_path / "old")
     mislabelled = SweepTable(first.columns, first.rows, first.params, {**first.identity, "fingerprint_version": 2})
     with pytest.raises(ValueError, match=r"its table is of another sweep: model = "):
         sweep(_thirds_box(-1.0 / 3.0), specs, frames=1, workers=1, resume=mislabelled)
+
+
+def _paste_on(tresca: bool, hardening: float = 0.0) -> Scene:
+    """``_box``'s toothpaste (with ``hardening``) on the Tresca ground (K = 1), or on the
+    frictional imaged ground."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.06, 0.0), (0.1, 0.1, 0.1), Material.preset("toothpaste").replace(hardening=hardening), name="paste")
+    b.add_ground(friction=0.0 if tresca else 0.5, images=True, shear_cap=1.0 if tresca else None)
+    return Scene("paste_box", "a small box of toothpaste", b, frames=FRAMES, fps=30.0)
+
+
+def test_a_table_written_before_the_hardened_tresca_hold_is_refused_only_where_the_hold_changed(monkeypatch, tmp_path):
+    """The Tresca ground's hold reads the hardened yield stress since 2026-12-07 (fingerprint
+    version 4; the package's version unchanged): a half-done table of version 3 of a sweep on
+    the Tresca ground with a nonzero hardening (the scene's, or a swept one) resumed, and its
+    rows of the old hold were mixed with the new one's. It is refused in one line naming why;
+    the same sweeps' tables of version 4 resume, and so do old ones of a sweep whose every
+    sample runs hardening 0 on the Tresca ground (the two holds the same: the scene's
+    hardening swept to 0 too) and of the imaged frictional ground with hardening. Seen
+    failing with ``older_hold``'s check removed from ``_resumed_rows``."""
+    from warp_esph.sweep import write_outputs
+
+    runs = [(True, 0.0, ["hardening=0,1000"], True), (True, 1000.0, ["yield_stress=10,1000"], True),
+            (True, 0.0, ["yield_stress=10,1000"], False), (True, 1000.0, ["hardening=0"], False),
+            (False, 1000.0, ["hardening=0,1000"], False)]
+    firsts = [sweep(_paste_on(tresca, h), specs, frames=1, workers=1) for tresca, h, specs, _ in runs]
+    _no_sample_runs(monkeypatch)
+    for k, ((tresca, h, specs, refused), first) in enumerate(zip(runs, firsts)):
+        assert first.identity["fingerprint_version"] == 4
+        resumed = sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=first)
+        assert _rows(resumed) == _rows(first)
+        old = SweepTable(first.columns, first.rows, first.params, {**first.identity, "fingerprint_version": 3})
+        write_outputs(old, tmp_path / f"old{k}", plot_figure=False)
+        if not refused:
+            resumed = sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"old{k}")
+            assert _rows(resumed) == _rows(first) and resumed.identity == first.identity
+            continue
+        with pytest.raises(ValueError, match=r"^resume = .* is not allowed: it was written with fingerprint version 3, before the "
+                                             r"Tresca ground's hold read the hardened yield stress .*, and this scene has a "
+                                             r"Tresca ground \(shear_cap = 1\) under a hardening of 1000 Pa, so resumed it "
+                                             r"would mix the two holds; rerun without resume$"):
+            sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"old{k}")

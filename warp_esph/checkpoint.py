@@ -42,7 +42,31 @@ FORMAT = "warp_esph.checkpoint/1"
 #: a float32 plane built at -1/3 and one moved there in place record alike; a scene whose every
 #: collider value the precision holds as given (every float64 one) has the fingerprint of 2, and a
 #: checkpoint of version 2 is compared with the fingerprint of 2, so none written before is refused.
-FINGERPRINT_VERSION = 3
+#: 4 records what 3 does (every scene's fingerprint is 3's): it marks a file written since the
+#: Tresca ground's hold reads each particle's hardened yield stress, which one of 3 or before
+#: does not say (``older_hold``).
+FINGERPRINT_VERSION = 4
+#: The first fingerprint version written by the Tresca ground's hold as it is now: it reads
+#: ``yield_stress + hardening * alpha`` at the step's start (2026-12-07, the package's version
+#: unchanged), where before it read ``yield_stress`` as given.
+HARDENED_HOLD = 4
+
+
+def older_hold(version, shear_cap: float, hardening) -> str | None:
+    """Why a checkpoint or sweep table of fingerprint ``version`` does not continue in a scene
+    of Tresca ground ``shear_cap`` (0: none) whose materials (a sweep's samples too) have the
+    ``hardening`` values, or None where it does. Written before ``HARDENED_HOLD``, a flowed
+    particle's hold read the given yield stress: resumed, the run would be one hold's up to
+    the file and the other's after it, which no run straight through is. The two holds are
+    the same only where there is no Tresca ground or every hardening is 0 (bit for bit,
+    docs/physics.md, "The Tresca ground (built)"): every other file resumes as before."""
+    h = np.asarray(hardening, dtype=np.float64).ravel()
+    if not isinstance(version, int) or version >= HARDENED_HOLD or not shear_cap > 0.0 or not np.any(h != 0.0):
+        return None
+    return (f"it was written with fingerprint version {version}, before the Tresca ground's hold read the hardened "
+            f"yield stress (yield_stress + hardening * alpha, since version {HARDENED_HOLD}), and this scene has a "
+            f"Tresca ground (shear_cap = {shear_cap:g}) under a hardening of {h[h != 0.0][0]:g} Pa, so resumed it "
+            "would mix the two holds")
 
 
 def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION, rest_positions=None,
@@ -457,6 +481,10 @@ def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[Sta
             m.replace(**values)
         except ValueError as e:
             raise ValueError(f"{where}: its material {k}: {e}") from None
+    # At the checkpoint's hardening, which the run it continues had (the model's is set to it).
+    why = older_hold(version, model.shear_cap, arrays["material_hardening"])
+    if why is not None:
+        raise ValueError(f"{where}: {why}; run it again from the start")
     _check_state_values(where, arrays, model,
                         _takes_inverted_fits(model, meta.get("rest_model"), arrays["material_yield_stress"],
                                              arrays["material_flow_rate"]))

@@ -1419,6 +1419,9 @@ class _Plan:
     #: (``_identity``'s ``version``), which a table of that version is compared with, as a
     #: checkpoint of an earlier version is with that version's fingerprint.
     earlier: dict
+    #: The Tresca ground's ``shear_cap`` and every hardening a sample runs
+    #: (``checkpoint.older_hold``: whether a table of an earlier version can be resumed).
+    hold: tuple
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
@@ -1499,6 +1502,10 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     record = (scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
     identity = _identity(*record)
     earlier = {v: _identity(*record, version=v) for v in range(FIRST_FINGERPRINT_OF_FORMAT, identity["fingerprint_version"])}
+    # The scene's hardening where no parameter sets it, each sample's where one does.
+    swept = {k: name for name, field, idx in assignments if field == "hardening" for k in idx}
+    hold = (model.shear_cap, [m.hardening for k, m in enumerate(model.materials) if k not in swept]
+            + [values[name] for name in set(swept.values()) for values in points])
     _check_some_sample_material(model, assignments, points, flag)
     if dt is None:
         _check_some_sample_steps(model, assignments, points, frames, fps, rate, length, flag)
@@ -1506,7 +1513,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
-    return _Plan(sc, plist, tasks, identity, earlier)
+    return _Plan(sc, plist, tasks, identity, earlier, hold)
 
 
 def _spec(p: Param) -> str:
@@ -1772,6 +1779,11 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
                          f"it with the settings it was run with{_weight_hint(table.identity, plan.identity, name)}, or "
                          f"run this sweep anew without resuming")
+    from .checkpoint import older_hold  # noqa: PLC0415
+
+    why = older_hold(theirs, *plan.hold)
+    if why is not None:
+        raise ValueError(f"{name} = {shown} is not allowed: {why}; {_again(name)}")
     names = [p.name for p in plan.params]
     kept: dict[int, dict] = {}
     for r in table.rows:
@@ -1808,13 +1820,18 @@ def _weight_hint(theirs: dict, ours: dict, name: str) -> str:
     return f" (its fit weight: {how}{then})"
 
 
+def _again(name: str) -> str:
+    """What a refused resume says to do instead (``name``: ``--resume``, or ``resume``)."""
+    return "rerun without --resume" if name.startswith("--") else "rerun without resume"
+
+
 def _check_record_format(theirs: dict, ours: dict, name: str, shown: str) -> None:
     """Refuse, in one line, a table another version of the package wrote: of another record
     format its identity cannot be compared (its model digest is made otherwise, and every
     table of the same scene read as another scene's), and of the same format but another
     version its rows may hold other results (a physics change), which resumed rows would mix
     with this version's where a run straight through holds one version's alone."""
-    again = "rerun without --resume" if name.startswith("--") else "rerun without resume"
+    again = _again(name)
     fmt = (theirs.get("format", 1), theirs.get("fingerprint_version", 1 if "format" not in theirs else None))
     here = (ours["format"], ours["fingerprint_version"])
     by = f"warp_esph {theirs['version']}" if isinstance(theirs.get("version"), str) else "an earlier warp_esph"
