@@ -814,10 +814,11 @@ def _fitted_yield_target(results, mpm, floor: str = "particles") -> list[tuple[s
     piles = [r for r in results if r["case"] == "slump" and r.get("floor") == floor
              and _fit_weight(r) == DEFAULT_FIT_WEIGHT and r["elastic_force"] == "variational"
              and r.get("aspect", 1.0) == 1.0 and r.get("thickness_over_H0")]
-    curves = {n: c for n, c in _slump_curves(piles, floor, DEFAULT_FIT_WEIGHT).items() if len(c) >= 3}
-    got, used, worst = [], [], 0.0
+    every = _slump_curves(piles, floor, DEFAULT_FIT_WEIGHT)
+    curves = {n: c for n, c in every.items() if len(c) >= 3}
+    got, used, worst, read_at = [], [], 0.0, {}
     for S in sorted({S for c in curves.values() for S in c} & set(base)):
-        n = max(k for k, c in curves.items() if S in c)
+        n = read_at[S] = max(k for k, c in curves.items() if S in c)
         ratio = slump_yield_ratio(curves[n], base[S][1], S)
         worst = max(worst, abs(ratio - 1.0) if math.isfinite(ratio) else math.inf)
         got.append(f"S = {S:g} at {n} across {ratio:.3f} (to the 1-D height: "
@@ -825,6 +826,15 @@ def _fitted_yield_target(results, mpm, floor: str = "particles") -> list[tuple[s
         used += [r for r in piles if r["resolution"] == n]
     if not got:
         return []
+    # A finer resolution holding fewer than three S is no curve for the fit, which interpolates
+    # between one resolution's piles: its piles are named beside, so that the row, read coarser,
+    # does not stand for them (the Tresca ground's 24-across S = 0.2 and 0.3 were left unsaid).
+    unread = [f"{', '.join(f'S = {S:g}' for S in sorted(c) if S in base and k > read_at.get(S, 0))} at {k} across"
+              for k, c in sorted(every.items()) if k not in curves
+              and any(S in base and k > read_at.get(S, 0) for S in c)]
+    if unread:
+        got.append("not fitted (finer piles at a resolution of fewer than three S, no curve to fit): "
+                   + "; ".join(unread))
     return [(f"a yield stress fitted to a slump is the continuum's{_on(floor)}: this method's piles fitted to the Bingham "
              f"continuum's (MPM, {_base_name(CONTINUUM_BASE[floor])} base) recover its yield stress within 10 %, S in "
              "[0.1, 0.5], at the finer resolution (not a "
