@@ -596,13 +596,15 @@ def _slump_targets(results, floor: str, weight: str = DEFAULT_FIT_WEIGHT,
 FIT_WEIGHT_ORDER = (DEFAULT_FIT_WEIGHT, *(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT))
 
 
-def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
-    """The spread limit's target over the rows on the particle floor with the fit ``weight``
-    (the default's unnamed)."""
+def _spread_target(results, weight: str, floor: str = "particles") -> list[tuple[str, str, str, str]]:
+    """The spread limit's target over the rows on ``floor`` (the suite's ``"particles"``, or
+    another of ``FLOOR_NAMES``, whose row is named for it) with the fit ``weight`` (the
+    default's unnamed). The theory's base carries the shear yield stress wherever the pile
+    flowed, the Tresca ground's wall law, so every floor is judged against the same radius."""
     default = "variational"
     out = []
     spreads = [r for r in results if r["case"] == "spread" and r.get("elastic_force", default) == default
-               and r.get("floor", "particles") == "particles" and _fit_weight(r) == weight]
+               and r.get("floor", "particles") == floor and _fit_weight(r) == weight]
     if spreads:
         rs = sorted(spreads, key=lambda r: (-r["shallowness"], r["resolution"]))
         # As the slump's target: at the finest resolution of each shallowness, and converging
@@ -613,8 +615,8 @@ def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
             within = within and errs[-1] <= 0.10
             converging = converging and all(e1 <= e0 for e0, e1 in zip(errs, errs[1:]))
         with_weight = _with_weight(weight)
-        out.append(("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging "
-                    f"(the suite's own target){with_weight}",
+        out.append(("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging"
+                    f"{_on(floor)} (the suite's own target){with_weight}",
                     "; ".join(f"a = {r['shallowness']:g}, {r['resolution']} through: {r['radius_over_theory']:.3f} R_RC "
                               f"({r['radius_rate_pct_per_s']:.2g} % R_RC/s at {r['duration']:.3g} s)" for r in rs),
                     f"within 10 %: {'yes' if within else 'no'}; converging: {'yes' if converging else 'no'}",
@@ -1031,7 +1033,8 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     for weight in FIT_WEIGHT_ORDER:
         out += _near_yield_target(results, weight, mpm)
     for weight in FIT_WEIGHT_ORDER:
-        out += _spread_target(results, weight)
+        for floor in ("particles", *FLOOR_NAMES):
+            out += _spread_target(results, weight, floor)
     for weight in FIT_WEIGHT_ORDER:
         out += _stability_target(results, weight)
     return out

@@ -1948,16 +1948,50 @@ def test_report_reads_the_spread_target_at_the_finest_resolution_and_its_converg
     resolution of each shallowness, and each finer resolution no further from it."""
     from benchmarks import validation_report
 
-    rows = [{"case": "spread", "shallowness": 0.25, "resolution": n, "elastic_force": "variational", "floor": "particles",
-             "particles": 100 * n, "duration": 14.0, "radius_over_theory": r, "height_over_theory": 1.1,
-             "height_over_radius": 0.3, "profile_over_theory": [1.0] * 8, "radius_rate_pct_per_s": 0.01,
-             "kinetic_over_Mgh": 1e-11, "time_history": [0.0, 14.0], "radius_history": [0.5, r],
-             "height_history": [2.0, 1.1], "run": 0}
-            for n, r in zip((3, 4, 5), radii)]
+    rows = [_spread_row(n, r) for n, r in zip((3, 4, 5), radii)]
     doc = {"runs": [{"command": "rows", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}], "results": rows}
     md, _ = validation_report.write(rows, tmp_path, doc)
     target = next(line for line in md.read_text().splitlines() if line.startswith("| spread limit"))
     assert f"| {verdict} |" in target, target
+
+
+def _spread_row(n, radius, floor="particles"):
+    """A made spread row (a = 0.25, 14 s, at rest) ``n`` through, resting at ``radius`` R_RC."""
+    return {"case": "spread", "shallowness": 0.25, "resolution": n, "elastic_force": "variational", "floor": floor,
+            "fit_weight": DEFAULT_WEIGHT, "particles": 100 * n, "duration": 14.0, "radius_over_theory": radius,
+            "height_over_theory": 1.1, "height_over_radius": 0.3, "profile_over_theory": [1.0] * 8,
+            "radius_rate_pct_per_s": 0.01, "kinetic_over_Mgh": 1e-11, "time_history": [0.0, 14.0],
+            "radius_history": [0.5, radius], "height_history": [2.0, 1.1], "run": 0}
+
+
+def test_the_tresca_grounds_spread_piles_get_their_own_target_row_counted_apart():
+    """The spread piles on the Tresca ground (floor "tresca_images") are judged as the particle
+    floor's, against the same Roussel & Coussot radius (its base carries the shear yield stress,
+    the ground's wall law), in a row named for the ground that the opening counts apart; the
+    particle floor's row reads its own piles alone, and the rough imaged ground's (no target of
+    its own) are in neither."""
+    from benchmarks.validation_report import _summary, _targets
+
+    suite = [_spread_row(n, r) for n, r in ((3, 0.82), (4, 0.87), (5, 0.91))]
+    ground = [_spread_row(n, r, "tresca_images") for n, r in ((3, 0.95), (4, 1.02))]
+    imaged = [_spread_row(n, r, "ground_images") for n, r in ((3, 0.70), (4, 0.75))]
+    targets = _targets(suite + ground + imaged)
+    spread = {t[0]: t for t in targets if t[0].startswith("spread limit")}
+    name = ("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging on the Tresca "
+            "ground (the suite's own target)")
+    assert set(spread) == {name.replace(" on the Tresca ground", ""), name}, list(spread)
+    _, got, verdict, _ = spread[name]
+    assert got == ("a = 0.25, 3 through: 0.950 R_RC (0.01 % R_RC/s at 14 s); a = 0.25, 4 through: 1.020 R_RC "
+                   "(0.01 % R_RC/s at 14 s)"), got
+    assert verdict == "within 10 %: yes; converging: yes", verdict
+    particles = spread[name.replace(" on the Tresca ground", "")]
+    assert "0.820 R_RC" in particles[1] and "0.950" not in particles[1] and "0.700" not in particles[1], particles
+    # The headline counts the suite's floors' rows alone; the ground's row is counted apart.
+    alone = _summary(_targets(suite))
+    text = _summary(targets)
+    assert re.search(r"\*\*In short\*\*: \d+ of the \d+ rows", text).group() == \
+        re.search(r"\*\*In short\*\*: \d+ of the \d+ rows", alone).group(), (alone, text)
+    assert "(the 1 on the opt-in Tresca ground apart, below)" in text and "1 of their 1 rows are met in full" in text, text
 
 
 def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
