@@ -363,8 +363,11 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
     Tresca ground and a nonzero hardening resumed that run under the other hold without a word.
     It is refused, naming why; the same file of version 4 resumes, and so does an old one of a
     Tresca scene without hardening (the two holds the same, bit for bit), of one whose
-    checkpoint holds a hardening of 0 (the run's, set on the model) and of a plain ground with
-    hardening. Seen failing with ``older_hold``'s check removed from ``load_state``."""
+    checkpoint holds a hardening of 0 (the run's, set on the model), of a plain ground with
+    hardening, and of the hardened Tresca scene before any particle flowed (``alpha`` 0
+    everywhere: every step up to it read the same yield stress under both holds, and it was
+    refused as mixing them). Seen failing with ``older_hold``'s check removed from
+    ``load_state``, and (the unflowed one) with its ``alpha`` not passed."""
     from warp_esph.checkpoint import model_fingerprint
 
     def scene(hardening, tresca=True):
@@ -373,17 +376,25 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
         b.add_ground(0.0, friction=0.0 if tresca else 0.5, images=True, shear_cap=1.0 if tresca else None)
         return b.finalize()
 
-    def old(model, name, written=None):
-        """A checkpoint of ``written`` (default ``model``) as version 3 wrote it: the same
-        fingerprint, its version 3."""
+    def flowed(model, alpha=0.01):
+        """``model``'s start with one particle's plastic strain ``alpha`` (0: none flowed)."""
+        state = model.state()
+        a = state.alpha.numpy()
+        a[3] = alpha
+        state.alpha.assign(a)
+        return state
+
+    def old(model, name, written=None, alpha=0.01):
+        """A checkpoint of ``written`` (default ``model``) as version 3 wrote it, of ``flowed``'s
+        state: the same fingerprint, its version 3."""
         written = written or model
-        path = save_state(tmp_path / name, written, written.state(), step=0, frame=0)
+        path = save_state(tmp_path / name, written, flowed(written, alpha), step=0, frame=0)
         meta = _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": 3})
         assert meta["fingerprint_version"] == 4 and meta["fingerprint"] == model_fingerprint(model, 3)
         return path
 
     hardened = scene(500.0)
-    new = save_state(tmp_path / "new.npz", hardened, hardened.state(), step=0, frame=0)
+    new = save_state(tmp_path / "new.npz", hardened, flowed(hardened), step=0, frame=0)
     load_state(new, scene(500.0))
     with pytest.raises(ValueError, match=r"^path = .*old\.npz' is not allowed: it was written with fingerprint version 3, "
                                          r"before the Tresca ground's hold read the hardened yield stress \(yield_stress \+ "
@@ -391,9 +402,11 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
                                          r"\(shear_cap = 1\) under a hardening of 500 Pa, so resumed it would mix the two "
                                          r"holds; run it again from the start$"):
         load_state(old(hardened, "old.npz"), hardened)
-    for model, written in ((scene(0.0), None), (scene(500.0, tresca=False), None), (hardened, scene(0.0))):
-        resumed, _ = load_state(old(model, "plain.npz", written), model)
+    for model, written, alpha in ((scene(0.0), None, 0.01), (scene(500.0, tresca=False), None, 0.01),
+                                  (hardened, scene(0.0), 0.01), (scene(500.0), None, 0.0)):
+        resumed, _ = load_state(old(model, "plain.npz", written, alpha), model)
         np.testing.assert_array_equal(resumed.x.numpy(), model.state().x.numpy())
+        assert float(resumed.alpha.numpy()[3]) == np.float32(alpha)
     assert float(hardened.hardening.numpy()[0]) == 0.0  # the checkpoint's, which its run had
 
 

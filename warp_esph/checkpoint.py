@@ -52,16 +52,20 @@ FINGERPRINT_VERSION = 4
 HARDENED_HOLD = 4
 
 
-def older_hold(version, shear_cap: float, hardening) -> str | None:
+def older_hold(version, shear_cap: float, hardening, alpha=None) -> str | None:
     """Why a checkpoint or sweep table of fingerprint ``version`` does not continue in a scene
     of Tresca ground ``shear_cap`` (0: none) whose materials (a sweep's samples too) have the
     ``hardening`` values, or None where it does. Written before ``HARDENED_HOLD``, a flowed
     particle's hold read the given yield stress: resumed, the run would be one hold's up to
     the file and the other's after it, which no run straight through is. The two holds are
-    the same only where there is no Tresca ground or every hardening is 0 (bit for bit,
-    docs/physics.md, "The Tresca ground (built)"): every other file resumes as before."""
+    the same where there is no Tresca ground or every hardening is 0 (bit for bit,
+    docs/physics.md, "The Tresca ground (built)"), and up to a checkpoint whose ``alpha`` (its
+    hardening variables; None: a sweep's rows, finished runs) shows no particle flowed yet:
+    ``alpha`` only grows, so every step before it read ``yield_stress + hardening * 0``. Every
+    such file resumes as before."""
     h = np.asarray(hardening, dtype=np.float64).ravel()
-    if not isinstance(version, int) or version >= HARDENED_HOLD or not shear_cap > 0.0 or not np.any(h != 0.0):
+    if (not isinstance(version, int) or version >= HARDENED_HOLD or not shear_cap > 0.0 or not np.any(h != 0.0)
+            or (alpha is not None and not flowed_by_hardening(alpha))):
         return None
     return (f"it was written with fingerprint version {version}, before the Tresca ground's hold read the hardened "
             f"yield stress (yield_stress + hardening * alpha, since version {HARDENED_HOLD}), and this scene has a "
@@ -482,7 +486,7 @@ def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[Sta
         except ValueError as e:
             raise ValueError(f"{where}: its material {k}: {e}") from None
     # At the checkpoint's hardening, which the run it continues had (the model's is set to it).
-    why = older_hold(version, model.shear_cap, arrays["material_hardening"])
+    why = older_hold(version, model.shear_cap, arrays["material_hardening"], arrays["alpha"])
     if why is not None:
         raise ValueError(f"{where}: {why}; run it again from the start")
     _check_state_values(where, arrays, model,
