@@ -834,13 +834,15 @@ def _fitted_yield_target(results, mpm, floor: str = "particles") -> list[tuple[s
         return []
     # A finer resolution holding fewer than three S is no curve for the fit, which interpolates
     # between one resolution's piles: its piles are named beside, so that the row, read coarser,
-    # does not stand for them (the Tresca ground's 24-across S = 0.2 and 0.3 were left unsaid).
-    unread = [f"{', '.join(f'S = {S:g}' for S in sorted(c) if S in base and k > read_at.get(S, 0))} at {k} across"
-              for k, c in sorted(every.items()) if k not in curves
-              and any(S in base and k > read_at.get(S, 0) for S in c)]
+    # does not stand for them (the Tresca ground's 24-across S = 0.2 and 0.3 were left unsaid),
+    # and their runs are the row's too, as every pile it names.
+    unread = {k: [S for S in sorted(c) if S in base and k > read_at.get(S, 0)]
+              for k, c in sorted(every.items()) if k not in curves}
+    unread = {k: ss for k, ss in unread.items() if ss}
     if unread:
         got.append("not fitted (finer piles at a resolution of fewer than three S, no curve to fit): "
-                   + "; ".join(unread))
+                   + "; ".join(f"{', '.join(f'S = {S:g}' for S in ss)} at {k} across" for k, ss in unread.items()))
+        used += [r for r in piles if r["S"] in unread.get(r["resolution"], ())]
     return [(f"a yield stress fitted to a slump is the continuum's{_on(floor)}: this method's piles fitted to the Bingham "
              f"continuum's (MPM, {_base_name(CONTINUUM_BASE[floor])} base) recover its yield stress within 10 %, S in "
              "[0.1, 0.5], at the finer resolution (not a "

@@ -334,15 +334,16 @@ def test_the_fitted_yield_row_names_the_finer_piles_it_cannot_fit():
     """The fit interpolates between one resolution's piles, so a resolution of fewer than three
     S is no curve for it and the row reads a coarser one: the Tresca ground's row read 16
     across while its S = 0.2 and 0.3 piles at 24 across (R101, R102) went unsaid, the row's
-    "at the finer resolution" standing for them. They are named beside, not fitted; a finer
-    resolution with three S is the one read."""
+    "at the finer resolution" standing for them. They are named beside, not fitted, their run
+    among the row's; a finer resolution with three S is the one read."""
     from benchmarks.validation_report import _fitted_yield_target
 
     tresca = "Tresca 1 tau_y"
     ground = [_tresca_pile(S, n, 0.95) for S in (0.1, 0.2, 0.3, 0.5) for n in (12, 16)]
     continuum = {"slumps": [_continuum_pile(S, 16, 0.95, tresca) for S in (0.1, 0.2, 0.3, 0.5)]}
-    finer = [_tresca_pile(S, 24, 0.9) for S in (0.2, 0.3)]
+    finer = [dict(_tresca_pile(S, 24, 0.9), run=1) for S in (0.2, 0.3)]
     (_, got, met, runs), = _fitted_yield_target(ground + finer, continuum, "tresca_images")
+    assert runs == "R1, R2", runs  # the named piles' run too (it was left out: R1)
     # Each S read at 16 across (the continuum's piles where the particles' rest: 1.000).
     assert re.findall(r"S = (\S+) at (\d+) across 1\.000", got) == [(S, "16") for S in ("0.1", "0.2", "0.3", "0.5")], got
     assert got.endswith("; not fitted (finer piles at a resolution of fewer than three S, no curve to fit): "
