@@ -608,22 +608,24 @@ def _spread_target(results, weight: str, floor: str = "particles") -> list[tuple
     if spreads:
         rs = sorted(spreads, key=lambda r: (-r["shallowness"], r["resolution"]))
         # As the slump's target: at the finest resolution of each shallowness, and converging
-        # (each finer resolution no further from the theory than the one before), which one
-        # resolution cannot show.
-        within, converging, single = True, True, []
+        # (each finer resolution no further from the theory than the one before), which needs
+        # three resolutions, as the slump's: two show only which is nearer, and a pile nearer
+        # at the finer of two may still be moving away from the theory with resolution.
+        within, converging, unshown = True, True, []
         for a in sorted({r["shallowness"] for r in rs}):
             errs = [abs(r["radius_over_theory"] - 1.0) for r in rs if r["shallowness"] == a]
             within = within and errs[-1] <= 0.10
             converging = converging and all(e1 <= e0 for e0, e1 in zip(errs, errs[1:]))
-            if len(errs) == 1:
-                single += [f"a = {a:g} only {r['resolution']} through" for r in rs if r["shallowness"] == a]
+            if len(errs) < 3:
+                ns = "/".join(str(r["resolution"]) for r in rs if r["shallowness"] == a)
+                unshown.append(f"a = {a:g} (resolutions {ns}: three needed)")
         with_weight = _with_weight(weight)
         out.append(("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging"
                     f"{_on(floor)} (the suite's own target){with_weight}",
                     "; ".join(f"a = {r['shallowness']:g}, {r['resolution']} through: {r['radius_over_theory']:.3f} R_RC "
                               f"({r['radius_rate_pct_per_s']:.2g} % R_RC/s at {r['duration']:.3g} s)" for r in rs),
                     f"within 10 %: {'yes' if within else 'no'}; converging: "
-                    + ("no" if not converging else f"not shown ({', '.join(single)} measured)" if single else "yes"),
+                    + ("no" if not converging else f"not shown for {', '.join(unshown)}" if unshown else "yes"),
                     _runs_of(rs)))
     return out
 
