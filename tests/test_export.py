@@ -198,9 +198,16 @@ def test_points_that_are_not_n_by_3_real_numbers_are_refused_not_reshaped():
     np.testing.assert_allclose(np.linalg.norm(one - [0.1, 0.2, 0.3], axis=1), 0.011, rtol=0.1)
 
 
-def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, capsys):
+def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, capsys, monkeypatch):
     """-o a.usdc and -o a.usda in one folder: the preview, the exported frames and the
-    checkpoint are named from the whole output name, so neither run overwrites the other's."""
+    checkpoint are named from the whole output name, so neither run overwrites the other's.
+    The previews are drawn 80 x 60 (the command's own path and names, a smaller picture):
+    what is asked here is where they go; the full-size 1600 x 1200 drawing, about half
+    this test's CPU, is ``test_run_with_surface_export_and_preview``'s."""
+    from warp_esph import render
+
+    full = render.render_usd
+    monkeypatch.setattr(render, "render_usd", lambda path, output=None, **kw: full(path, output, width=80, height=60, **kw))
     runs = {"a.usdc": "0.3", "a.usda": "0.35"}  # two sizes: the files differ in what they hold
     for name, scale in runs.items():
         assert main(["run", "dough_drop", "--scale", scale, "--frames", "1", "--no-progress", "-o", str(tmp_path / name),
