@@ -508,8 +508,8 @@ def test_loss_is_smooth_through_the_imaged_ground(name, taped_base):
 
 @pytest.mark.parametrize("name", ["mu", "viscosity"])
 def test_no_jump_in_the_loss_through_ground_contact(name, taped_base):
-    """The loss and the tape's gradient at the middle 7 of 11 values over +-1 % of the
-    parameter (-0.6 % to +0.6 %, 0.2 % apart): the loss's increment over each interval is the
+    """The loss and the tape's gradient at the middle 5 of 11 values over +-1 % of the
+    parameter (-0.4 % to +0.4 %, 0.2 % apart): the loss's increment over each interval is the
     mean of the tape's gradients at its ends (the trapezoid rule, exact to the loss's
     curvature) within 2 %; neighbouring gradients differ by at most 8 % of the centre's, and
     none by more than 25 %. A jump, or a kink, anywhere in the range shows as one interval far
@@ -528,8 +528,15 @@ def test_no_jump_in_the_loss_through_ground_contact(name, taped_base):
     gradients 0.93-1.03 here but down to 0.45 on the imaged ground (below). With the instant
     contact law, which removed all inward velocity of a particle once it crossed the surface:
     increments of -20 to 4 times the slope; with the flow's volume factor jumping where J left
-    [0.8, 1.25]: 0.71 and 1.25 (over all 11, when first measured)."""
-    _assert_smooth(*_scan_against_trapezoid(name, taped_base, points=range(2, 9)))
+    [0.8, 1.25]: 0.71 and 1.25 (over all 11, when first measured).
+
+    The middle 5 (was 7; four taped runs and the shared centre instead of six, the suite's
+    cost) are four of the 7's six intervals, so their readings lie within those above. The
+    instant contact law (``contact_ramp = 0``, the mutation) still fails them, measured at
+    2a8dfb3b: one interval at 0.351 (mu, +0.2 % to +0.4 %) and -0.634 (viscosity, 0 to +0.2 %)
+    times the trapezoid, against the bound 2 %; the same two intervals are its worst over the
+    middle 7."""
+    _assert_smooth(*_scan_against_trapezoid(name, taped_base, points=range(3, 8)))
 
 
 @pytest.mark.parametrize("fit_weight", ["poly6", "biweight"])
