@@ -10,6 +10,7 @@ import warp as wp
 import warp_esph as we
 from warp_esph import tools
 from warp_esph.scenes import get_scene
+from warp_esph.sim.fused import KEPT_FIT
 
 
 
@@ -369,17 +370,24 @@ def test_a_taped_rollouts_next_run_replays_its_launches_on_the_very_arrays(monke
     assert np.abs(g1["mu"]).max() > 0.0 and np.abs(g1["v0"]).max() > 0.0  # the gradients reach them
 
 
-_STILL_STATE = ("x", "x_lo", "v", "F", "F_lo", "alpha", "stress", "F_inv", "guard", "density")
+_STILL_STATE = ("x", "x_lo", "v", "F", "F_lo", "alpha", "stress", "F_inv", "guard", "density", "neighbor_count")
 
 
-def _slump_run(model, steps: int, still: bool, jitter: float = 0.0, jitter_lo: float = 0.0):
+def _rows(state) -> np.ndarray:
+    """Every particle's neighbour row up to its count, one after another."""
+    nbr, count = state.neighbors.numpy(), state.neighbor_count.numpy()
+    return nbr[np.arange(nbr.shape[1])[None, :] < count[:, None]]
+
+
+def _slump_run(model, steps: int, still: bool, jitter: float = 0.0, jitter_lo: float = 0.0, between=None, every=50):
     """``steps`` fused float32 steps of ``model`` (a slumping cylinder on its pinned floor); with
     ``still`` False the floor particles out of reach run their neighbour passes as every other
     (``ToolSet.still_particles`` hidden: no set reads as at rest). ``jitter``: the pinned
     particles start that far off their pinned places, at random; ``jitter_lo`` as far in their
-    carried round-off ``x_lo``. Returns, every 50 steps and
-    at the first two, the state arrays, the force rows and the floor's reaction, and the
-    particles the step left out."""
+    carried round-off ``x_lo``; ``between(k, solver, state)`` is called before step ``k``.
+    Returns, every ``every`` steps and at the first two, the state arrays (with ``"rows"``,
+    ``_rows``, and ``"kept"``, the particles whose fits ``fused.KeptRows`` kept), the force rows
+    and the floor's reaction, and the particles the step left out."""
     from benchmarks import validation
 
     if not still:
@@ -400,11 +408,16 @@ def _slump_run(model, steps: int, still: bool, jitter: float = 0.0, jitter_lo: f
         dt = 0.9 * model.stable_dt()
         out = []
         for k in range(steps):
+            if between is not None:
+                between(k, s, a)
             s.step(a, c, dt)
             a, c = c, a
-            if k < 2 or (k + 1) % 50 == 0:
-                out.append(({name: getattr(a, name).numpy().copy() for name in _STILL_STATE}, a.force.numpy().copy(),
-                            s.reaction_forces(a)["floor"][0], s.scratch.far.numpy().copy()))
+            if k < 2 or (k + 1) % every == 0:
+                kept = s.scratch.kept_rows
+                arrays = {name: getattr(a, name).numpy().copy() for name in _STILL_STATE}
+                arrays["rows"] = _rows(a)
+                arrays["kept"] = np.zeros(model.particle_count, bool) if kept is None else kept.kept.numpy() == KEPT_FIT
+                out.append((arrays, a.force.numpy().copy(), s.reaction_forces(a)["floor"][0], s.scratch.far.numpy().copy()))
         return out
     finally:
         model.tools.__dict__.pop("still_particles", None)
@@ -421,15 +434,33 @@ def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
     from benchmarks import validation
 
     model, free, _, _ = validation.slump_model(0.2, 6, floor_radius=2.2)
+    poisoned = []
+
+    def poison(k, s, a):
+        # Sealed ones' rows are not selected again (fused.KeptRows): with their candidates
+        # emptied (no rebuild follows at rest) the rows and every state stay the same.
+        kept = s.scratch.kept_rows
+        if k == 250 and kept is not None:
+            sealed = kept.kept.numpy() == KEPT_FIT
+            count = s.search.candidate_count.numpy()
+            count[sealed] = 0
+            s.search.candidate_count.assign(count)
+            poisoned.append(int(sealed.sum()))
+
     ran = _slump_run(model, 300, still=False)
-    left = _slump_run(model, 300, still=True)
+    left = _slump_run(model, 300, still=True, between=poison)
     for (full, f_full, r_full, far_full), (skip, f_skip, r_skip, far_skip) in zip(ran, left):
-        for name in _STILL_STATE:
+        for name in _STILL_STATE + ("rows",):
             assert np.array_equal(full[name], skip[name]), name
         assert np.array_equal(f_full[free], f_skip[free])
         assert r_skip == pytest.approx(r_full, rel=1e-5, abs=1e-5 * abs(r_full[1]))
         assert not far_full.any() and not far_skip[free].any()
         assert far_skip.sum() > 0.5 * (~free).sum(), far_skip.sum()
+        # Their rows and fits kept from the first step on: most far ones (sealed: no free
+        # particle among their candidates, within h + skin).
+        assert not full["kept"].any() and not (skip["kept"] & ~far_skip.astype(bool)).any()
+        assert skip["kept"].sum() > 0.6 * far_skip.sum(), (skip["kept"].sum(), far_skip.sum())
+    assert poisoned and poisoned[0] > 0.6 * left[-1][3].sum()
     # Exactly those whose rows (the search's, in a first step) hold only floor particles.
     a = model.state()
     s = validation._solver(model)
@@ -468,6 +499,39 @@ def test_floor_particles_off_their_places_or_moving_run_their_passes():
         assert not _slump_run(model, 1, still=True)[0][3].any(), name
         v.assign(held)
     assert _slump_run(model, 1, still=True)[0][3].sum() > 0.5 * (~free).sum()
+
+    # With their rows and fits kept (fused.KeptRows): a floor particle at the floor's rim
+    # nudged 0.1 mm off its place before step 10, and again before step 15, a step of the
+    # non-fused kernels (which select every row, their squared distances too), the floor set
+    # moving at 1 um/s for step 20 and at rest again; every state is the bits of the step
+    # that runs every pass, and the marks are dropped at those steps (the whole set's: one
+    # particle off its place) and back at the next.
+    x0 = model.particle_x0
+    rim = np.flatnonzero(~free)[np.argmax(np.hypot(x0[~free, 0], x0[~free, 2]))]
+    v = model.tools.velocity
+
+    def events(step, s, a):
+        if step in (10, 15):
+            x = a.x.numpy()
+            x[rim, 0] += 1e-4
+            a.x.assign(x)
+        s.fused = step != 15
+        moving = held.copy()
+        if step == 20:
+            moving[k] = (0.0, 1e-6, 0.0)
+        v.assign(moving)
+
+    try:
+        ran = _slump_run(model, 24, still=False, between=events, every=1)
+        left = _slump_run(model, 24, still=True, between=events, every=1)
+    finally:
+        v.assign(held)
+    kept = [skip["kept"].sum() for skip, _, _, _ in left]  # after each step
+    for (full, _, _, _), (skip, _, _, _) in zip(ran, left):
+        for name in _STILL_STATE + ("rows",):
+            assert np.array_equal(full[name], skip[name]), name
+    assert kept[10] == kept[15] == kept[20] == kept[21] == 0, kept
+    assert min(kept[:10] + kept[11:15] + kept[16:20] + kept[22:]) > 0.3 * (~free).sum(), kept
 
 
 def test_floor_particles_out_of_reach_in_worlds_leave_every_state_the_same_bit_for_bit():

@@ -42,6 +42,36 @@ from .roundoff import compensated_sum
 
 #: Where each body's skipped fits are counted (``deformation.COUNT_BODY``).
 COUNT_BODY = deformation.COUNT_BODY
+#: ``KeptRows``' states of a particle (``neighbors.KEPT_MARKED`` and on).
+KEPT_MARKED, KEPT_ROW, KEPT_FIT = neighbors.KEPT_MARKED, neighbors.KEPT_ROW, neighbors.KEPT_FIT
+
+
+@wp.kernel(enable_backward=False, module="unique")
+def keep_marks(pin: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
+               recheck: int, still: wp.array(dtype=wp.int32), moved: wp.array(dtype=wp.int32),
+               sealed: wp.array(dtype=wp.int32), kept: wp.array(dtype=wp.int32)):
+    """``KeptRows``' marks of this step. With ``recheck`` (candidates built since the last
+    marks) ``sealed``: 1 where a pinned particle's candidates are all of its own set, so its
+    row holds them alone until the candidates are built again. ``kept``: 0 unless sealed, its
+    set at rest (``still``) and every particle of the set at its place (``moved`` 0);
+    else at least ``KEPT_MARKED``, what is kept from earlier steps staying kept."""
+    i = wp.tid()
+    if recheck != 0:
+        s = int(0)
+        own = pin[i]
+        if own >= 0:
+            s = int(1)
+            k = int(0)
+            while s != 0 and k < cand_count[i]:
+                if pin[cand[i, k]] != own:
+                    s = 0
+                k += 1
+        sealed[i] = s
+    at_rest = still[i]
+    if sealed[i] != 0 and at_rest != 0 and moved[at_rest] == 0:
+        kept[i] = wp.max(kept[i], KEPT_MARKED)
+    else:
+        kept[i] = 0
 
 
 @functools.cache
@@ -129,6 +159,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         still: wp.array(dtype=wp.int32),
         x_lo: wp.array(dtype=vec3),
         rest: wp.array(dtype=vec3),
+        kept: wp.array(dtype=wp.int32),
         F_out: wp.array(dtype=mat33),
         F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
@@ -189,7 +220,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # thrown block had passed over it (docs/performance.md), so those run.
         out = int(0)
         if reach != 0 and (mat.elastic_force[m] != 0 or P == mat33()):
-            out = out_of_reach(i, still, x, x_lo, rest, nbr, count[i])
+            if reach == 2 and kept[i] != 0:
+                out = 1  # its row holds its own resting set's particles alone, at their places (keep_marks)
+            else:
+                out = out_of_reach(i, still, x, x_lo, rest, nbr, count[i])
         far[i] = out
         if out != 0:
             return
@@ -298,31 +332,54 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         images: int,
         Fg_prev: wp.array(dtype=mat33),
         far: wp.array(dtype=wp.int32),
+        with_kept: int,
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
         Fg_out: wp.array(dtype=mat33),
         share_out: wp.array(dtype=scalar),
+        kept: wp.array(dtype=wp.int32),
+        kept_A: wp.array(dtype=mat33),
+        kept_code: wp.array(dtype=wp.int32),
+        kept_scale: wp.array(dtype=scalar),
     ):
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit; of a
-        particle out of reach (``far``, ``out_of_reach``) on A alone, its B - A being 0."""
+        particle out of reach (``far``, ``out_of_reach``) on A alone, its B - A being 0.
+        ``with_kept`` (``KeptRows``): a far particle whose row is kept (``KEPT_ROW``) keeps its
+        A and guard too, and one whose fit is kept (``KEPT_FIT``) takes them from there."""
         i = wp.tid()
         A = mat33()
         B = mat33()
         same = scalar(0.0)
-        if far[i] != 0:
-            # The same A and count (position_moments: the same terms in the same order), so the
-            # same guard and counts; B - A stays 0, so F + F_lo is carried as the fit would.
-            A, same = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, 0)
-        elif images != 0:
-            A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
+        code = int(0)
+        s = scalar(0.0)
+        held = int(0)
+        if with_kept != 0 and far[i] != 0:
+            held = kept[i]
+        if held == KEPT_FIT:
+            # Its row and their places as when they were kept: the same A, guard and fade.
+            A = kept_A[i]
+            code = kept_code[i]
+            s = kept_scale[i]
         else:
-            # Each particle's displacement from the launch before (u): one load per
-            # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
-            A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
-        code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
+            if far[i] != 0:
+                # The same A and count (position_moments: the same terms in the same order), so the
+                # same guard and counts; B - A stays 0, so F + F_lo is carried as the fit would.
+                A, same = df.position_moments(i, x, body, nbr, count[i], h, gn, goff, gmin, 0)
+            elif images != 0:
+                A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
+            else:
+                # Each particle's displacement from the launch before (u): one load per
+                # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
+                A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
+            code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
+            if held == KEPT_ROW:
+                kept_A[i] = A
+                kept_code[i] = code
+                kept_scale[i] = s
+                kept[i] = KEPT_FIT
         guard[i] = code
         F_new, F_new_lo = df.deformation_update(A, B, code, s, F_prev[i], F_prev_lo[i], COUNT_BODY + body[i], counters)
         F_out[i] = F_new
@@ -336,6 +393,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         share_out[i] = c
 
     @wp.kernel(enable_backward=False, module="unique")
+    def set_moved(still: wp.array(dtype=wp.int32), x: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                  rest: wp.array(dtype=vec3), moved: wp.array(dtype=wp.int32)):
+        """``moved[k]`` 1 where a particle of the resting set ``k - 1`` (``still``) starts the
+        step off its place or with round-off carried (not ``held_still``)."""
+        i = wp.tid()
+        k = still[i]
+        if k != 0:
+            if held_still(i, still, x, x_lo, rest) == 0:
+                moved[k] = 1
+
+    @wp.kernel(enable_backward=False, module="unique")
     def displacements(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                       y_lo: wp.array(dtype=vec3), u: wp.array(dtype=vec3)):
         """Each particle's ``deformation.displacement`` over the step, for ``update_deformation``."""
@@ -343,19 +411,86 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         u[i] = df.displacement(x[i], y[i], x_lo[i], y_lo[i])
 
     return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation,
-                                 displacements=displacements)
+                                 displacements=displacements, set_moved=set_moved)
+
+
+class KeptRows:
+    """The neighbour rows, fit moments and guards the fused step keeps for particles sealed
+    among their own resting set (``keep_marks``): pinned to a set at rest (``ToolSet.still_particles``),
+    every particle of the set at its place with no round-off carried, and every candidate of
+    the search (all within ``h`` + skin, complete until the search builds them again) of the
+    same set. Such a row is every particle within ``h`` of the pinned place, at its pinned
+    place, whatever the free particles do: the same while the particle stays sealed, so it is
+    selected once, stored, and copied into each later step's row (``select_neighbors``, its
+    squared distances kept in the search's ``nbr_d2``; its densities summed again, of the
+    masses and materials as they are), and its fit's ``A``, guard and fade, the same
+    bits, are kept too (``update_deformation``). Rows within ``h`` only (not those the paper's
+    force stretches, whose reach follows each step's ``F``), untaped, without images. Every
+    mark is dropped at a step that does not keep rows (a step that selects them anew, the
+    kept squared distances then written over), and each particle's at a step where it is not
+    sealed: its set set moving, a particle of it off its place, a free particle among its
+    candidates."""
+
+    def __init__(self, model):
+        n, dev, T = model.particle_count, model.device, model.types
+        self.kept = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.sealed = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.row = wp.zeros((n, model.max_neighbors), dtype=wp.int32, device=dev)
+        self.count = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.A = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.code = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.scale = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.moved = wp.zeros(model.tools.count + 1, dtype=wp.int32, device=dev)
+        #: The search's ``rebuilds`` when ``sealed`` was last found (None: never).
+        self.sealed_at = None
+        #: Whether this step keeps rows (``kept_rows``).
+        self.on = False
+
+    def mark(self, model, state_in, search, still) -> tuple:
+        """``keep_marks`` at ``state_in`` on ``search``'s candidates; ``select_neighbors``' ``kept``."""
+        recheck = int(search.rebuilds != self.sealed_at)
+        self.sealed_at = search.rebuilds
+        self.moved.zero_()
+        n = model.particle_count
+        model.launches(kernels(model.scalar, model.fit_weight).set_moved, n,
+                       [still, state_in.x, state_in.x_lo, model.tools.rest_x], [self.moved], device=model.device,
+                       record_tape=False)
+        model.launches(keep_marks, n, [model.tools.pin, search.candidates, search.candidate_count, recheck, still,
+                                       self.moved], [self.sealed, self.kept], device=model.device, record_tape=False)
+        return self.kept, self.row, self.count
+
+
+def kept_rows(model, state_in, scratch, keep: bool):
+    """The neighbour search's ``kept=`` of this step (``KeptRows.mark`` bound to it), or None
+    where no rows are kept: not ``keep`` (the step is not the fused one untaped, or its rows
+    reach past ``h``), no pinned set at rest, or images. Where none are kept, every earlier
+    mark is dropped (the step's selection writes the kept squared distances over)."""
+    still = model.tools.still_particles() if keep and model.tools is not None else None
+    k = scratch.kept_rows
+    if still is None or model.image_plane is not None:
+        if k is not None and k.on:
+            k.kept.zero_()
+            k.on = False
+        return None
+    if k is None:
+        k = scratch.kept_rows = KeptRows(model)
+    k.on = True
+    return functools.partial(k.mark, model, state_in, still=still)
 
 
 def reach_args(model, state_in, scratch) -> tuple:
-    """``constitutive_forces``' ``reach, still, x_lo, rest``: whether it marks the particles out
-    of reach (``out_of_reach``, into ``scratch.far``, which ``update_deformation`` reads), the
-    tools' ``still_particles``, ``state_in.x_lo`` and the pinned places; 0 where no pinned set
-    is at rest, or where the model has images (a particle's update then also writes its
-    image's F)."""
+    """``constitutive_forces``' ``reach, still, x_lo, rest, kept``: whether it marks the
+    particles out of reach (``out_of_reach``, into ``scratch.far``, which ``update_deformation``
+    reads; 2: also taking those ``KeptRows`` marked as such), the tools' ``still_particles``,
+    ``state_in.x_lo``, the pinned places and ``KeptRows.kept``; 0 where no pinned set is at
+    rest, or where the model has images (a particle's update then also writes its image's F)."""
     still = model.tools.still_particles() if model.tools is not None else None
     if still is None or model.image_plane is not None:
-        return 0, scratch.far, state_in.x_lo, state_in.x_lo
-    return 1, still, state_in.x_lo, model.tools.rest_x
+        return 0, scratch.far, state_in.x_lo, state_in.x_lo, scratch.far
+    k = scratch.kept_rows
+    if k is not None and k.on:
+        return 2, still, state_in.x_lo, model.tools.rest_x, k.kept
+    return 1, still, state_in.x_lo, model.tools.rest_x, scratch.far
 
 
 def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool, tape=None):
@@ -434,6 +569,7 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     S = model.scalar
     images = model.image_plane is not None
     u = scratch.displacement
+    k = scratch.kept_rows
     if not images:
         model.launches(kernels(S, model.fit_weight).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
                   [u], device=model.device, record_tape=False)
@@ -444,8 +580,11 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, u, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
             S(scratch.max_condition), *model.image_args(), deformation.image_F_flowed(model, state_out), scratch.far,
+            int(k is not None and k.on),
         ],
-        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image, state_out.image_share],
+        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image, state_out.image_share,
+         *((scratch.far, state_out.F, scratch.far, scratch.pressure) if k is None or not k.on else
+           (k.kept, k.A, k.code, k.scale))],
         device=model.device,
         record_tape=tape is None,
     )

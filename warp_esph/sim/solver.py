@@ -146,6 +146,9 @@ class StepScratch:
         # 1 where the fused step left a particle's neighbour passes out (fused.out_of_reach):
         # written by its constitutive_forces, read by its update_deformation.
         self.far = wp.zeros(n, dtype=wp.int32, device=dev)
+        # The rows, fits and guards the fused step keeps for the sealed ones (fused.KeptRows),
+        # made at the first step that keeps any.
+        self.kept_rows = None
         self._pressure_volume = None
         # Solver(yield_with_pressure=True)'s pressure stress of untaped steps (_pressure_stress).
         self.pressure_stress = None
@@ -1149,7 +1152,10 @@ class Solver(Unpicklable):
         # path also sums the SPH density (and an energy_spiky material's pressure density)
         # there (docs/method.md, Warp pitfall 1: it is finished before any pressure uses it).
         own = fast and sph and m.separate_pressure_density
+        stretch = self._stretch_rows()
         with phase("neighbors"):
+            # Untaped, the fused step keeps the rows of particles sealed among a resting set.
+            kept = fused.kept_rows(m, state_in, scratch, fast and tape is None and not stretch)
             self.search.update(
                 state_in.x, m.particle_body, state_out.neighbors, scratch.neighbor_d2, state_out.neighbor_count,
                 None if fast else state_out.guard,
@@ -1157,9 +1163,9 @@ class Solver(Unpicklable):
                  state_out.density, scratch.pressure, scratch.sph_volume,
                  pressure.pressure_density(m, state_out) if own else None,
                  scratch.pressure_volume() if own else None) if fast and sph else None,
-                F=state_in.F if self._stretch_rows() else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
+                F=state_in.F if stretch else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
                 rest=self._rest if self.hourglass > 0.0 else None,
-                flow=(m.particle_material, m.material_arrays()) if self._stretch_rows() else None,
+                flow=(m.particle_material, m.material_arrays()) if stretch else None, kept=kept,
             )
             if ghosts is not None:
                 # The ghost floor's stencils and weights at the step's start.
