@@ -386,7 +386,7 @@ def _slump_run(model, steps: int, still: bool, jitter: float = 0.0, jitter_lo: f
     particles start that far off their pinned places, at random; ``jitter_lo`` as far in their
     carried round-off ``x_lo``; ``between(k, solver, state)`` is called before step ``k``.
     Returns, every ``every`` steps and at the first two, the state arrays (with ``"rows"``,
-    ``_rows``, and ``"kept"``, the particles whose fits ``fused.KeptRows`` kept), the force rows
+    ``_rows``, and ``"kept"``, the particles whose fits ``fused.KeptFits`` kept), the force rows
     and the floor's reaction, and the particles the step left out."""
     from benchmarks import validation
 
@@ -413,10 +413,11 @@ def _slump_run(model, steps: int, still: bool, jitter: float = 0.0, jitter_lo: f
             s.step(a, c, dt)
             a, c = c, a
             if k < 2 or (k + 1) % every == 0:
-                kept = s.scratch.kept_rows
+                kept = s.scratch.kept_fits
                 arrays = {name: getattr(a, name).numpy().copy() for name in _STILL_STATE}
                 arrays["rows"] = _rows(a)
-                arrays["kept"] = np.zeros(model.particle_count, bool) if kept is None else kept.kept.numpy() == KEPT_FIT
+                arrays["kept"] = ((kept.kept.numpy() == KEPT_FIT) if kept is not None and kept.on else
+                                  np.zeros(model.particle_count, bool))
                 out.append((arrays, a.force.numpy().copy(), s.reaction_forces(a)["floor"][0], s.scratch.far.numpy().copy()))
         return out
     finally:
@@ -434,21 +435,19 @@ def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
     from benchmarks import validation
 
     model, free, _, _ = validation.slump_model(0.2, 6, floor_radius=2.2)
-    poisoned = []
+    sealed = []
 
-    def poison(k, s, a):
-        # Sealed ones' rows are not selected again (fused.KeptRows): with their candidates
-        # emptied (no rebuild follows at rest) the rows and every state stay the same.
-        kept = s.scratch.kept_rows
-        if k == 250 and kept is not None:
-            sealed = kept.kept.numpy() == KEPT_FIT
-            count = s.search.candidate_count.numpy()
-            count[sealed] = 0
-            s.search.candidate_count.assign(count)
-            poisoned.append(int(sealed.sum()))
+    def seal(k, s, a):
+        # The fits kept are those of the floor particles whose candidates (the search's, within
+        # h + skin) are all floor particles (fused.keep_marks), exactly.
+        if k in (150, 299):
+            pin = model.tools.pin.numpy()
+            cand, count = s.search.candidates.numpy(), s.search.candidate_count.numpy()
+            own = np.array([p >= 0 and (pin[cand[i, :count[i]]] == p).all() for i, p in enumerate(pin)])
+            sealed.append((own, s.scratch.kept_fits.kept.numpy() == KEPT_FIT))
 
     ran = _slump_run(model, 300, still=False)
-    left = _slump_run(model, 300, still=True, between=poison)
+    left = _slump_run(model, 300, still=True, between=seal)
     for (full, f_full, r_full, far_full), (skip, f_skip, r_skip, far_skip) in zip(ran, left):
         for name in _STILL_STATE + ("rows",):
             assert np.array_equal(full[name], skip[name]), name
@@ -460,7 +459,9 @@ def test_floor_particles_out_of_reach_leave_every_state_the_same_bit_for_bit():
         # particle among their candidates, within h + skin).
         assert not full["kept"].any() and not (skip["kept"] & ~far_skip.astype(bool)).any()
         assert skip["kept"].sum() > 0.6 * far_skip.sum(), (skip["kept"].sum(), far_skip.sum())
-    assert poisoned and poisoned[0] > 0.6 * left[-1][3].sum()
+    assert len(sealed) == 2
+    for own, kept in sealed:
+        assert np.array_equal(own, kept) and own.sum() > 0.6 * left[-1][3].sum(), (own.sum(), kept.sum())
     # Exactly those whose rows (the search's, in a first step) hold only floor particles.
     a = model.state()
     s = validation._solver(model)
@@ -500,12 +501,12 @@ def test_floor_particles_off_their_places_or_moving_run_their_passes():
         v.assign(held)
     assert _slump_run(model, 1, still=True)[0][3].sum() > 0.5 * (~free).sum()
 
-    # With their rows and fits kept (fused.KeptRows): a floor particle at the floor's rim
-    # nudged 0.1 mm off its place before step 10, and again before step 15, a step of the
-    # non-fused kernels (which select every row, their squared distances too), the floor set
-    # moving at 1 um/s for step 20 and at rest again; every state is the bits of the step
-    # that runs every pass, and the marks are dropped at those steps (the whole set's: one
-    # particle off its place) and back at the next.
+    # With their fits kept (fused.KeptFits): a floor particle at the floor's rim nudged 0.1
+    # mm off its place before step 10, and again before step 15, a step of the non-fused
+    # kernels (which keep nothing), the floor set moving at 1 um/s for step 20 and at rest
+    # again; every state is the bits of the step that runs every pass, and no fit is kept at
+    # those steps (the whole set's marks drop: one particle off its place) nor at step 21,
+    # which starts with the floor off its places, and they are kept again at the next.
     x0 = model.particle_x0
     rim = np.flatnonzero(~free)[np.argmax(np.hypot(x0[~free, 0], x0[~free, 2]))]
     v = model.tools.velocity

@@ -42,15 +42,17 @@ from .roundoff import compensated_sum
 
 #: Where each body's skipped fits are counted (``deformation.COUNT_BODY``).
 COUNT_BODY = deformation.COUNT_BODY
-#: ``KeptRows``' states of a particle (``neighbors.KEPT_MARKED`` and on).
-KEPT_MARKED, KEPT_ROW, KEPT_FIT = neighbors.KEPT_MARKED, neighbors.KEPT_ROW, neighbors.KEPT_FIT
+#: ``KeptFits``' states of a particle: sealed among its own resting set this step; its fit's
+#: moments and guard kept too.
+KEPT_MARKED = 1
+KEPT_FIT = 2
 
 
 @wp.kernel(enable_backward=False, module="unique")
 def keep_marks(pin: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
                recheck: int, still: wp.array(dtype=wp.int32), moved: wp.array(dtype=wp.int32),
                sealed: wp.array(dtype=wp.int32), kept: wp.array(dtype=wp.int32)):
-    """``KeptRows``' marks of this step. With ``recheck`` (candidates built since the last
+    """``KeptFits``' marks of this step. With ``recheck`` (candidates built since the last
     marks) ``sealed``: 1 where a pinned particle's candidates are all of its own set, so its
     row holds them alone until the candidates are built again. ``kept``: 0 unless sealed, its
     set at rest (``still``) and every particle of the set at its place (``moved`` 0);
@@ -347,8 +349,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit; of a
         particle out of reach (``far``, ``out_of_reach``) on A alone, its B - A being 0.
-        ``with_kept`` (``KeptRows``): a far particle whose row is kept (``KEPT_ROW``) keeps its
-        A and guard too, and one whose fit is kept (``KEPT_FIT``) takes them from there."""
+        ``with_kept`` (``KeptFits``): a far particle marked sealed (``KEPT_MARKED``) keeps its
+        A, guard and fade, and one whose fit is kept (``KEPT_FIT``) takes them from there."""
         i = wp.tid()
         A = mat33()
         B = mat33()
@@ -375,7 +377,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
                 A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
             code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
-            if held == KEPT_ROW:
+            if held == KEPT_MARKED:
                 kept_A[i] = A
                 kept_code[i] = code
                 kept_scale[i] = s
@@ -414,80 +416,68 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  displacements=displacements, set_moved=set_moved)
 
 
-class KeptRows:
-    """The neighbour rows, fit moments and guards the fused step keeps for particles sealed
-    among their own resting set (``keep_marks``): pinned to a set at rest (``ToolSet.still_particles``),
-    every particle of the set at its place with no round-off carried, and every candidate of
-    the search (all within ``h`` + skin, complete until the search builds them again) of the
-    same set. Such a row is every particle within ``h`` of the pinned place, at its pinned
-    place, whatever the free particles do: the same while the particle stays sealed, so it is
-    selected once, stored, and copied into each later step's row (``select_neighbors``, its
-    squared distances kept in the search's ``nbr_d2``; its densities summed again, of the
-    masses and materials as they are), and its fit's ``A``, guard and fade, the same
-    bits, are kept too (``update_deformation``). Rows within ``h`` only (not those the paper's
-    force stretches, whose reach follows each step's ``F``), untaped, without images. Every
-    mark is dropped at a step that does not keep rows (a step that selects them anew, the
-    kept squared distances then written over), and each particle's at a step where it is not
-    sealed: its set set moving, a particle of it off its place, a free particle among its
-    candidates."""
+class KeptFits:
+    """What the fused step keeps of particles sealed among their own resting set
+    (``keep_marks``): pinned to a set at rest (``ToolSet.still_particles``), every particle of
+    the set at its place with no round-off carried, and every candidate of the neighbour
+    search (all within ``h`` + skin, complete until the search builds them again) of the
+    same set. Such a particle's row is every particle within ``h`` of its place, each at its
+    place, whatever the free particles do, so it is out of reach (``out_of_reach``, without
+    reading the row) and its fit's ``A``, guard and fade, the same bits at every step, are
+    summed once and kept (``update_deformation``). Rows within ``h`` only (not those the
+    paper's force stretches, whose reach follows each step's ``F``), untaped, without images.
+    A particle's mark drops at a step where it is not sealed: its set set moving, a particle
+    of the set off its place, a free particle among its candidates."""
 
     def __init__(self, model):
-        n, dev, T = model.particle_count, model.device, model.types
+        n, dev = model.particle_count, model.device
         self.kept = wp.zeros(n, dtype=wp.int32, device=dev)
         self.sealed = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.row = wp.zeros((n, model.max_neighbors), dtype=wp.int32, device=dev)
-        self.count = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.A = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.A = wp.zeros(n, dtype=model.types.mat33, device=dev)
         self.code = wp.zeros(n, dtype=wp.int32, device=dev)
         self.scale = wp.zeros(n, dtype=model.scalar, device=dev)
         self.moved = wp.zeros(model.tools.count + 1, dtype=wp.int32, device=dev)
         #: The search's ``rebuilds`` when ``sealed`` was last found (None: never).
         self.sealed_at = None
-        #: Whether this step keeps rows (``kept_rows``).
+        #: Whether this step keeps fits (``keep_fits``).
         self.on = False
 
-    def mark(self, model, state_in, search, still) -> tuple:
-        """``keep_marks`` at ``state_in`` on ``search``'s candidates; ``select_neighbors``' ``kept``."""
-        recheck = int(search.rebuilds != self.sealed_at)
-        self.sealed_at = search.rebuilds
-        self.moved.zero_()
-        n = model.particle_count
-        model.launches(kernels(model.scalar, model.fit_weight).set_moved, n,
-                       [still, state_in.x, state_in.x_lo, model.tools.rest_x], [self.moved], device=model.device,
-                       record_tape=False)
-        model.launches(keep_marks, n, [model.tools.pin, search.candidates, search.candidate_count, recheck, still,
-                                       self.moved], [self.sealed, self.kept], device=model.device, record_tape=False)
-        return self.kept, self.row, self.count
 
-
-def kept_rows(model, state_in, scratch, keep: bool):
-    """The neighbour search's ``kept=`` of this step (``KeptRows.mark`` bound to it), or None
-    where no rows are kept: not ``keep`` (the step is not the fused one untaped, or its rows
-    reach past ``h``), no pinned set at rest, or images. Where none are kept, every earlier
-    mark is dropped (the step's selection writes the kept squared distances over)."""
+def keep_fits(model, state_in, scratch, search, keep: bool):
+    """``keep_marks`` of this step on ``search``'s candidates (after its update: complete for
+    the positions ``state_in`` holds) into ``scratch.kept_fits``, where ``keep`` (the step is
+    the fused one, untaped, its rows within ``h``), a pinned set is at rest and the model has
+    no images; else the step keeps none (``KeptFits.on`` False)."""
     still = model.tools.still_particles() if keep and model.tools is not None else None
-    k = scratch.kept_rows
+    k = scratch.kept_fits
     if still is None or model.image_plane is not None:
-        if k is not None and k.on:
-            k.kept.zero_()
+        if k is not None:
             k.on = False
-        return None
+        return
     if k is None:
-        k = scratch.kept_rows = KeptRows(model)
+        k = scratch.kept_fits = KeptFits(model)
     k.on = True
-    return functools.partial(k.mark, model, state_in, still=still)
+    recheck = int(search.rebuilds != k.sealed_at)
+    k.sealed_at = search.rebuilds
+    k.moved.zero_()
+    n = model.particle_count
+    model.launches(kernels(model.scalar, model.fit_weight).set_moved, n,
+                   [still, state_in.x, state_in.x_lo, model.tools.rest_x], [k.moved], device=model.device,
+                   record_tape=False)
+    model.launches(keep_marks, n, [model.tools.pin, search.candidates, search.candidate_count, recheck, still, k.moved],
+                   [k.sealed, k.kept], device=model.device, record_tape=False)
 
 
 def reach_args(model, state_in, scratch) -> tuple:
     """``constitutive_forces``' ``reach, still, x_lo, rest, kept``: whether it marks the
     particles out of reach (``out_of_reach``, into ``scratch.far``, which ``update_deformation``
-    reads; 2: also taking those ``KeptRows`` marked as such), the tools' ``still_particles``,
-    ``state_in.x_lo``, the pinned places and ``KeptRows.kept``; 0 where no pinned set is at
+    reads; 2: also taking those ``KeptFits`` marked as such), the tools' ``still_particles``,
+    ``state_in.x_lo``, the pinned places and ``KeptFits.kept``; 0 where no pinned set is at
     rest, or where the model has images (a particle's update then also writes its image's F)."""
     still = model.tools.still_particles() if model.tools is not None else None
     if still is None or model.image_plane is not None:
         return 0, scratch.far, state_in.x_lo, state_in.x_lo, scratch.far
-    k = scratch.kept_rows
+    k = scratch.kept_fits
     if k is not None and k.on:
         return 2, still, state_in.x_lo, model.tools.rest_x, k.kept
     return 1, still, state_in.x_lo, model.tools.rest_x, scratch.far
@@ -569,7 +559,7 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     S = model.scalar
     images = model.image_plane is not None
     u = scratch.displacement
-    k = scratch.kept_rows
+    k = scratch.kept_fits
     if not images:
         model.launches(kernels(S, model.fit_weight).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
                   [u], device=model.device, record_tape=False)

@@ -85,11 +85,6 @@ TYPICAL_STRETCH = 1.1
 #: The interior lattice neighbour counts are scaled by this for the default row width
 #: (``default_max_neighbors``): room for compression, so the cap never binds in practice.
 DEFAULT_CAP_FACTOR = 3.0
-#: ``fused.KeptRows``' states of a particle (``select_neighbors``' ``kept``): sealed among
-#: its own resting set this step; its row kept; its row and its fit's moments kept.
-KEPT_MARKED = 1
-KEPT_ROW = 2
-KEPT_FIT = 3
 #: The paper's neighbour count ("up to 30 neighbours", paper §4).
 PAPER_MAX_NEIGHBORS = 30
 #: Default ``Solver(max_condition=)``: where the fade of an ill-conditioned fit starts (``guards``).
@@ -377,7 +372,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
-        with_kept: int,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
         count: wp.array(dtype=wp.int32),
@@ -388,9 +382,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rho_p: wp.array(dtype=scalar),
         vol_p: wp.array(dtype=scalar),
         counters: wp.array(dtype=wp.int32),
-        kept: wp.array(dtype=wp.int32),
-        kept_row: wp.array2d(dtype=wp.int32),
-        kept_count: wp.array(dtype=wp.int32),
     ):
         """The neighbour rows at ``x``; with ``with_guard`` the guards of paper §4; with
         ``with_density`` the SPH density ``rho`` (poly6), volume ``m / rho`` and pressure
@@ -405,12 +396,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         candidate some kernel of the step may weigh (its ``weight_key`` below ``h^2``; an
         ``F_i`` that is not invertible: any candidate). ``rest``
         (``with_rest``): the rest positions, whose distances the hourglass control weighs;
-        ``with_flow``: ``material`` and ``mat`` say which particles' ``F`` flows this step.
-
-        ``with_kept`` (rows within ``h``, ``fused.KeptRows``): a particle whose ``kept`` is
-        ``KEPT_ROW`` or more takes its row from ``kept_row`` (and its squared distances left
-        in ``nbr_d2``) instead of selecting it; one at ``KEPT_MARKED`` stores the row it
-        selects there (a row that dropped none) and goes on to ``KEPT_ROW``."""
+        ``with_flow``: ``material`` and ``mat`` say which particles' ``F`` flows this step."""
         i = wp.tid()
         xi = x[i]
         bi = body[i]
@@ -433,11 +419,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_i = xi
         slack2 = slack * slack
         nc = cand_count[i]
-        held = int(0)
-        if with_kept != 0:
-            held = kept[i]
-        if held >= KEPT_ROW:
-            nc = 0  # the row is the one kept: no candidate is looked at
         # Pass 1: the candidates within the selection radius in index order while the row
         # has room. A row that overflows becomes a max-heap on the key (k, j), k the squared
         # distance (keyed: weight_key, so that the pairs a kernel weighs are kept before
@@ -527,15 +508,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                         if k < h_fit2 and key_greater(k, j, max_k, max_j):
                             cut = 1
                     c += 1
-        if held >= KEPT_ROW:
-            n = kept_count[i]
-            for q in range(n):
-                nbr[i, q] = kept_row[i, q]
-        elif held == KEPT_MARKED and n_in <= kmax and cut == 0:
-            for q in range(n):
-                kept_row[i, q] = nbr[i, q]
-            kept_count[i] = n
-            kept[i] = KEPT_ROW
         count[i] = n
         if cut != 0:
             wp.atomic_add(counters, cut_index, 1)
@@ -819,15 +791,14 @@ class NeighborSearch:
         return spread < SKIN_SAFETY * self.skin
 
     def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0, rest=None,
-                flow=None, kept=None):
+                flow=None):
         """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)
         (``rho_p``, ``vol_p`` None: the pressure reads ``rho``); ``F``:
         None (rows within h) or the deformation gradients the rows must cover
         (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short,
         ``rest`` (None: no term weighs rest distances) the rest positions they are judged by too,
         ``flow`` (None, or (particle material, materials struct)) which particles' ``F`` may flow
-        before the force reads it, ``kept`` (None, or ``select_neighbors``' ``kept, kept_row,
-        kept_count``) the rows kept from an earlier step."""
+        before the force reads it."""
         d = self._dummy_arrays()
         if sph is None:
             mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
@@ -848,11 +819,9 @@ class NeighborSearch:
                 d["v"] if rest is None else rest, int(rest is not None), int(flow is not None), int(cut_index),
                 *(self.image_args if self.image_args is not None else
                   (type_set(self.scalar).vec3(0.0, 1.0, 0.0), self.scalar(0.0), self.scalar(0.0), 0)),
-                int(kept is not None),
             ],
             [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["s"] if rho_p is None else rho_p,
-             d["s"] if vol_p is None else vol_p, d["c"] if counters is None else counters,
-             *((d["i"], d["row"], d["i"]) if kept is None else kept)],
+             d["s"] if vol_p is None else vol_p, d["c"] if counters is None else counters],
             device=self.device,
             record_tape=False,
         )
@@ -867,7 +836,6 @@ class NeighborSearch:
                 "F": wp.zeros(1, dtype=type_set(self.scalar).mat33, device=self.device),
                 "c": wp.zeros(1, dtype=wp.int32, device=self.device),
                 "v": wp.zeros(1, dtype=type_set(self.scalar).vec3, device=self.device),
-                "row": wp.zeros((1, 1), dtype=wp.int32, device=self.device),
             }
         return self._dummies
 
@@ -877,7 +845,7 @@ class NeighborSearch:
         self._build_candidates(x, body, stretch.get("F"))
         self._select(x, body, nbr, nbr_d2, count, guard, sph, **stretch)
 
-    def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None, kept=None, **stretch):
+    def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None, **stretch):
         """The same lists as ``build``, reusing the candidates while they are complete.
 
         With ``sph = (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)``
@@ -888,12 +856,9 @@ class NeighborSearch:
         deformation gradients at ``x``) the rows reach ``h sigma_max(F)``; with
         ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``;
         ``rest=``: the rest positions where a term weighs their distances; ``flow=``: the
-        materials, whose plastic flow changes the ``F`` the force reads). ``kept`` (rows within
-        ``h``): a callable that, given this search with its candidates complete, marks the rows
-        it keeps and returns ``select_neighbors``' ``kept, kept_row, kept_count``
-        (``fused.KeptRows.mark``)."""
+        materials, whose plastic flow changes the ``F`` the force reads)."""
         self.updates += 1
         F = stretch.get("F")
         if not self.candidates_valid(x, F):
             self._build_candidates(x, body, F)
-        self._select(x, body, nbr, nbr_d2, count, guard, sph, kept=None if kept is None else kept(self), **stretch)
+        self._select(x, body, nbr, nbr_d2, count, guard, sph, **stretch)

@@ -146,9 +146,9 @@ class StepScratch:
         # 1 where the fused step left a particle's neighbour passes out (fused.out_of_reach):
         # written by its constitutive_forces, read by its update_deformation.
         self.far = wp.zeros(n, dtype=wp.int32, device=dev)
-        # The rows, fits and guards the fused step keeps for the sealed ones (fused.KeptRows),
-        # made at the first step that keeps any.
-        self.kept_rows = None
+        # The fits and guards the fused step keeps for the sealed ones (fused.KeptFits), made
+        # at the first step that keeps any.
+        self.kept_fits = None
         self._pressure_volume = None
         # Solver(yield_with_pressure=True)'s pressure stress of untaped steps (_pressure_stress).
         self.pressure_stress = None
@@ -1154,8 +1154,6 @@ class Solver(Unpicklable):
         own = fast and sph and m.separate_pressure_density
         stretch = self._stretch_rows()
         with phase("neighbors"):
-            # Untaped, the fused step keeps the rows of particles sealed among a resting set.
-            kept = fused.kept_rows(m, state_in, scratch, fast and tape is None and not stretch)
             self.search.update(
                 state_in.x, m.particle_body, state_out.neighbors, scratch.neighbor_d2, state_out.neighbor_count,
                 None if fast else state_out.guard,
@@ -1165,8 +1163,10 @@ class Solver(Unpicklable):
                  scratch.pressure_volume() if own else None) if fast and sph else None,
                 F=state_in.F if stretch else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
                 rest=self._rest if self.hourglass > 0.0 else None,
-                flow=(m.particle_material, m.material_arrays()) if stretch else None, kept=kept,
+                flow=(m.particle_material, m.material_arrays()) if stretch else None,
             )
+            # Untaped, the fused step keeps the fits of particles sealed among a resting set.
+            fused.keep_fits(m, state_in, scratch, self.search, fast and tape is None and not stretch)
             if ghosts is not None:
                 # The ghost floor's stencils and weights at the step's start.
                 ghosts.update(state_in, state_out, scratch.counters, COUNT_NEIGHBORS_CUT)
