@@ -394,6 +394,21 @@ def convergence(ns, hs, *, p_max: float = 6.0):
     return p, h3 + d2 * n3 ** -p / (n2 ** -p - n3 ** -p)
 
 
+def _converging(label: str, ns, values, step, limit, unit: str):
+    """The targets' convergence rule (the slump's height, the spread's radius) for one series:
+    ``values`` at resolutions ``ns`` (increasing) judged by ``convergence`` over the last three.
+    Returns ``(law, None)``, the law's text (``label``, its order or "settled", and its limit in
+    ``limit``'s format, whether or not it is the theory's), or ``(None, why)`` where convergence
+    is not shown: fewer than three resolutions, or the last three (each in ``step``'s format,
+    then ``unit``) fit no law."""
+    if len(ns) < 3:
+        return None, f"{label} (resolutions {'/'.join(map(str, ns))}: three needed)"
+    law = convergence(ns, values)
+    if law is None:
+        return None, f"{label} ({'/'.join(step(v) for v in values[-3:])}{unit} at {'/'.join(map(str, ns[-3:]))})"
+    return f"{label} {f'order {law[0]:.2g}' if math.isfinite(law[0]) else 'settled'}, limit {limit(law[1])}", None
+
+
 def _span(values, fmt: str) -> str:
     """``values``' range as ``lo-hi`` in ``fmt``, or one value where both read the same."""
     lo, hi = format(min(values), fmt), format(max(values), fmt)
@@ -464,17 +479,11 @@ def _slump_targets(results, floor: str, weight: str = DEFAULT_FIT_WEIGHT,
                 c = by_S[r["S"]][ns[-2]]
                 used.append(c)
                 nearer.append(abs(err(r)) <= abs(err(c)))
-            if len(ns) >= 3:
-                used += [by_S[r["S"]][n] for n in ns[-3:-2]]
-                steps = "/".join(f"{100 * err(by_S[r['S']][n]):+.1f}" for n in ns[-3:])
-                law = convergence(ns, [by_S[r["S"]][n][key] / r["theory_h_over_H0"] for n in ns])
-                if law is None:
-                    unshown.append(f"S = {r['S']:g} ({steps} % at {'/'.join(map(str, ns[-3:]))})")
-                else:
-                    order = f"order {law[0]:.2g}" if math.isfinite(law[0]) else "settled"
-                    laws.append(f"S = {r['S']:g} {order}, limit {100 * (law[1] - 1.0):+.1f} %")
-            else:
-                unshown.append(f"S = {r['S']:g} (resolutions {'/'.join(map(str, ns))}: three needed)")
+            used += [by_S[r["S"]][n] for n in ns[-3:-2]]
+            law, not_shown = _converging(f"S = {r['S']:g}", ns, [err(by_S[r["S"]][n]) for n in ns],
+                                         lambda e: f"{100 * e:+.1f}", lambda e: f"{100 * e:+.1f} %", " %")
+            laws += [law] if law else []
+            unshown += [not_shown] if not_shown else []
         if nearer:
             got += f"; nearer the 1-D height than at the next coarser resolution for {sum(nearer)} of {len(nearer)}"
         if laws:
@@ -607,25 +616,28 @@ def _spread_target(results, weight: str, floor: str = "particles") -> list[tuple
                and r.get("floor", "particles") == floor and _fit_weight(r) == weight]
     if spreads:
         rs = sorted(spreads, key=lambda r: (-r["shallowness"], r["resolution"]))
-        # As the slump's target: at the finest resolution of each shallowness, and converging
-        # (each finer resolution no further from the theory than the one before), which needs
-        # three resolutions, as the slump's: two show only which is nearer, and a pile nearer
-        # at the finer of two may still be moving away from the theory with resolution.
-        within, converging, unshown = True, True, []
+        # As the slump's target, by the same rule: at the finest resolution of each shallowness,
+        # and converging where the last three resolutions fit R_inf + C n^-p (or settle), the
+        # limit reported whether or not it is the theory's; fewer than three show only which is
+        # nearer, and a pile nearer at the finer of two may still be moving away from the theory.
+        within, laws, unshown = True, [], []
         for a in sorted({r["shallowness"] for r in rs}):
-            errs = [abs(r["radius_over_theory"] - 1.0) for r in rs if r["shallowness"] == a]
-            within = within and errs[-1] <= 0.10
-            converging = converging and all(e1 <= e0 for e0, e1 in zip(errs, errs[1:]))
-            if len(errs) < 3:
-                ns = "/".join(str(r["resolution"]) for r in rs if r["shallowness"] == a)
-                unshown.append(f"a = {a:g} (resolutions {ns}: three needed)")
+            series = [r for r in rs if r["shallowness"] == a]
+            within = within and abs(series[-1]["radius_over_theory"] - 1.0) <= 0.10
+            law, not_shown = _converging(f"a = {a:g}", [r["resolution"] for r in series],
+                                         [r["radius_over_theory"] for r in series],
+                                         lambda v: f"{v:.3f}", lambda v: f"{v:.2f} R_RC", " R_RC")
+            laws += [law] if law else []
+            unshown += [not_shown] if not_shown else []
         with_weight = _with_weight(weight)
+        got = "; ".join(f"a = {r['shallowness']:g}, {r['resolution']} through: {r['radius_over_theory']:.3f} R_RC "
+                        f"({r['radius_rate_pct_per_s']:.2g} % R_RC/s at {r['duration']:.3g} s)" for r in rs)
+        if laws:
+            got += "; changes over the last three resolutions fit R_inf + C n^-p: " + ", ".join(laws)
         out.append(("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging"
-                    f"{_on(floor)} (the suite's own target){with_weight}",
-                    "; ".join(f"a = {r['shallowness']:g}, {r['resolution']} through: {r['radius_over_theory']:.3f} R_RC "
-                              f"({r['radius_rate_pct_per_s']:.2g} % R_RC/s at {r['duration']:.3g} s)" for r in rs),
+                    f"{_on(floor)} (the suite's own target){with_weight}", got,
                     f"within 10 %: {'yes' if within else 'no'}; converging: "
-                    + ("no" if not converging else f"not shown for {', '.join(unshown)}" if unshown else "yes"),
+                    + (f"not shown for {', '.join(unshown)}" if unshown else "yes"),
                     _runs_of(rs)))
     return out
 
