@@ -1262,11 +1262,11 @@ def write(results, out: pathlib.Path, meta: dict):
                      f"default fit, the {DEFAULT_FIT_WEIGHT} fit weight, `energy_spiky` pressure force, particle floor; "
                      "a row named for another fit weight reads that weight's twins, one named for a floor that floor's rows, "
                      "the opt-in Tresca ground's counted apart in the opening); the case tables below give every "
-                     "run, the paper's force included. A slump height *converges* where its last three "
+                     "run, the paper's force included. A slump height (a spread radius) *converges* where its last three "
                      "resolutions n fit `h_inf + C n^-p` with p > 0 (changes of one sign, each smaller than the "
                      "slowest such law allows; `validation_report.convergence`), or its last change is too small "
                      "to tell (settled): the limit it converges to is then reported, whether or not it is the "
-                     "1-D theory's.\n\n" + _table(["target", "measured", "met", "run"], tg) + "\n")
+                     "1-D theory's (Roussel & Coussot's).\n\n" + _table(["target", "measured", "met", "run"], tg) + "\n")
     parts.append(f"## Notes\n\n{NOTES[0]}{notes or chr(10)}{NOTES[1]}\n")
     slumps = [r for r in results if r["case"] == "slump"]
     if slumps:
