@@ -27,6 +27,7 @@ ENTRY_POINTS = {
     "floors": ("_forward", "_taped"),
     "gradient_bench": ("measure", "block_model", "star_model"),
     "host_step": ("measure",),
+    "kept_fits": ("measure",),
     "launches": ("measure", "measure_taped"),
     "mpm_slump": ("slump", "column", "squeeze", "table"),
     "splishsplash": ("worker",),
@@ -200,6 +201,11 @@ def test_gradient_bench_measures_a_round_off_gradient_against_the_loss(monkeypat
                                          (["--taped-steps", "0"], "--taped-steps = 0"), (["--blocks", "-1"], "--blocks = -1")])
 def test_host_step(refused, argv, option):
     refused("host_step", argv, option)
+
+
+@pytest.mark.parametrize("argv,option", [(["--rounds", "0"], "--rounds = 0"), (["--block", "-3"], "--block = -3")])
+def test_kept_fits(refused, argv, option):
+    refused("kept_fits", argv, option)
 
 
 @pytest.mark.parametrize("argv,option", [(["--sizes", "abc"], "--sizes = 'abc'"), (["--steps", "0"], "--steps = 0"),
