@@ -21,19 +21,29 @@ from benchmarks import _cli
 PROG = "python -m benchmarks.kept_fits"
 
 
+def slump_after(steps: int, resolution: int, floor_radius: float):
+    """``benchmarks.validation``'s S = 0.2 slump (``resolution`` across, its pinned floor
+    ``floor_radius`` R0) after ``steps`` fused float32 steps of 0.9 ``stable_dt``:
+    ``(model, free, dt, solver, state)``."""
+    from benchmarks import validation
+
+    model, free, _, _ = validation.slump_model(0.2, resolution, floor_radius=floor_radius)
+    dt = 0.9 * model.stable_dt()
+    s = validation._solver(model)
+    a, c = model.state(), model.state()
+    for _ in range(steps):
+        s.step(a, c, dt)
+        a, c = c, a
+    return model, free, dt, s, a
+
+
 def measure(rounds: int, block_steps: int) -> dict:
     """The A / B blocks of the module's docstring: per-step thread CPU seconds of each block,
     the particles far and kept; refuses (RuntimeError) where the two runs' positions differ."""
     from benchmarks import validation
     from warp_esph.sim import fused
 
-    model, free, _, _ = validation.slump_model(0.2, 8, floor_radius=3.2)
-    dt = 0.9 * model.stable_dt()
-    s = validation._solver(model)
-    a, c = model.state(), model.state()
-    for _ in range(600):
-        s.step(a, c, dt)
-        a, c = c, a
+    model, free, dt, _, a = slump_after(600, 8, 3.2)
     keep_fits = fused.keep_fits
 
     def off(m, state_in, scratch, search, keep):
