@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from benchmarks.validation import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS, IDENTITY_DEFAULTS, TRESCA
+from benchmarks.validation import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS, IDENTITY_DEFAULTS, SUITE_FLOOR, TRESCA
 
 NOTES = ("<!-- notes -->", "<!-- /notes -->")
 MARK = {"paper": "o", "variational": "s"}
@@ -739,13 +739,8 @@ CONTINUUM_BASE = {"particles": "slip", "ghost_particles": "sticky", "tresca_imag
 #: side, or a plug both lose, is named as the continuum's miss too (not the particle floor:
 #: see ``CONTINUUM_BASE``).
 SAME_WALL = ("ghost_particles", "tresca_images")
-#: The suite's slump floor (since 2026-12-07; before, the particle floor): its slump, plug,
-#: spread and fitted-yield rows are the suite's, unnamed and counted in the page's headline.
-#: Its wall law is a continuum's (``CONTINUUM_BASE``), so a yield stress fitted on it is a
-#: defined wall's; the particle floor grips between slip and no-slip, a law no continuum runs
-#: (docs/physics.md, "Still open"; ``_suite_floor_said`` gives the rows' numbers).
-SUITE_FLOOR = TRESCA
-#: What the target rows of each floor but the suite's are named for.
+#: What the target rows of each floor but the suite's (``validation.SUITE_FLOOR``: unnamed, and
+#: counted in the headline; ``_suite_floor_said`` says why in the rows' numbers) are named for.
 FLOOR_NAMES = {"particles": "the particle floor", "ghost_particles": "the no-slip ghost floor",
                TRESCA: "the Tresca ground"}
 #: The floors the report reads, the suite's first.

@@ -473,13 +473,16 @@ def test_the_large_breathing_cube_on_the_corrected_incremental_fit_runs_away_at_
 
 
 #: The rows of docs/validation.md outside the full plan, as their case functions take them, with
-#: either weight: the quick plan's, the slumps on the slip ghost floor, the slumps and spread
-#: piles on the imaged ground, whose floor images keep an elastic scene on the incremental
-#: composition (``Model.scene_allows_rest``), and the fixed-width near-yield columns on the
-#: Tresca ground.
+#: either weight: the quick plan's, the paper's force's slumps on the particle floor (the
+#: suite's floor until 2026-12-07; the plan runs that force on the Tresca ground now), the
+#: slumps on the slip ghost floor, the slumps and spread piles on the imaged ground, whose
+#: floor images keep an elastic scene on the incremental composition
+#: (``Model.scene_allows_rest``), and the fixed-width near-yield columns on the Tresca ground.
 ROWS_OUTSIDE_THE_PLAN = [
     (case, kw | {"fit_weight": w}) for w in validation.FIT_WEIGHTS for case, kw in
     validation.plan(True)
+    + [("slump", {"S": S, "resolution": res, "elastic_force": "paper", "duration": 8.0, "floor": "particles"})
+       for res in (8, 12) for S in validation.SLUMP_S]
     + [("slump", {"S": S, "resolution": res, "floor": "slip_ghost_particles", "duration": 8.0})
      for res, Ss in ((8, (0.1, 0.2, 0.3)), (12, (0.2,))) for S in Ss]
     + [("slump", {"S": S, "resolution": res, "floor": "ground_images", "duration": 8.0})
@@ -2174,11 +2177,16 @@ def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan
     ``SLUMP_DURATION_FINE`` (12 s: the 16-across S = 0.1 pile still rang at 8 s), as do the
     24-across ones of the particle floor (the convergence verdict's third resolution); the CI-sized
     plan keeps its short runs. The ghost floor's piles rest by about 4 s at every resolution
-    (8 s each)."""
+    (8 s each), the Tresca ground's (the suite's floor) by 8 s up to 16 across (R98, R99), its
+    24-across ones run 12 s as the particle floor's."""
     full = [k for n, k in validation.plan(False) if n == "slump"]
     assert {k["resolution"] for k in full} == {8, 12, 16, 24}
     ghost = [k for k in full if k.get("floor") == "ghost_particles"]
     assert ghost and all(k["duration"] == validation.SLUMP_DURATION for k in ghost)
+    suite = [k for k in full if k.get("floor") == validation.SUITE_FLOOR == validation.TRESCA]
+    assert {k["resolution"] for k in suite} == {8, 12, 16, 24}, suite
+    assert all(k["duration"] == (validation.SLUMP_DURATION_FINE if k["resolution"] == 24 else validation.SLUMP_DURATION)
+               for k in suite)
     full = [k for k in full if k.get("floor", "particles") == "particles"]
     assert all(k["duration"] == validation.SLUMP_DURATION == 8.0 for k in full if k["resolution"] < 16)
     assert all(k["duration"] == validation.SLUMP_DURATION_FINE == 12.0 for k in full if k["resolution"] >= 16)
@@ -2207,11 +2215,15 @@ def test_the_full_plan_has_a_twin_of_every_target_row_below_24_across():
         (n, k["resolution"], k.get("S"), k.get("floor")) for n, k in other}
     twins = {(n, tuple(sorted((k | {"fit_weight": DEFAULT_WEIGHT}).items()))) for n, k in other}
     assert {(n, tuple(sorted((k | {"fit_weight": DEFAULT_WEIGHT}).items()))) for n, k in base} == twins
-    assert {k["floor"] for n, k in other if "floor" in k} == {"ghost_particles"}
+    # Every slump and spread entry names its floor: the suite's, the particle floor's counted
+    # apart, the ghost floor's.
+    assert {k.get("floor") for n, k in other} == {"ghost_particles", "particles", validation.SUITE_FLOOR}
     for weight in validation.FIT_WEIGHTS:
-        assert validation.select(runs, f"slump:S=0.05:elastic_force=variational:fit_weight={weight}") == [
-            ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0}
-             | ({"fit_weight": weight} if weight != DEFAULT_WEIGHT else {})) for res in (8, 12)]
+        picked = validation.select(runs, f"slump:S=0.05:elastic_force=variational:fit_weight={weight}")
+        assert sorted(picked, key=str) == sorted((
+            ("slump", {"S": 0.05, "resolution": res, "elastic_force": "variational", "duration": 8.0, "floor": floor}
+             | ({"fit_weight": weight} if weight != DEFAULT_WEIGHT else {}))
+            for floor in (validation.SUITE_FLOOR, "particles") for res in (8, 12)), key=str), picked
 
 
 def _planned(runs, default):
