@@ -48,6 +48,33 @@ KEPT_MARKED = 1
 KEPT_FIT = 2
 
 
+class KeptFits:
+    """What the fused step keeps of particles sealed among their own resting set
+    (``keep_marks``): pinned to a set at rest (``ToolSet.still_particles``), every particle of
+    the set at its place with no round-off carried, and every candidate of the neighbour
+    search (all within ``h`` + skin, complete until the search builds them again) of the
+    same set. Such a particle's row is every particle within ``h`` of its place, each at its
+    place, whatever the free particles do, so it is out of reach (``out_of_reach``, without
+    reading the row) and its fit's ``A``, guard and fade, the same bits at every step, are
+    summed once and kept (``update_deformation``). Rows within ``h`` only (not those the
+    paper's force stretches, whose reach follows each step's ``F``), untaped, without images.
+    A particle's mark drops at a step where it is not sealed: its set set moving, a particle
+    of the set off its place, a free particle among its candidates."""
+
+    def __init__(self, model):
+        n, dev = model.particle_count, model.device
+        self.kept = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.sealed = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.A = wp.zeros(n, dtype=model.types.mat33, device=dev)
+        self.code = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.scale = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.moved = wp.zeros(model.tools.count + 1, dtype=wp.int32, device=dev)
+        #: The search's ``rebuilds`` when ``sealed`` was last found (None: never).
+        self.sealed_at = None
+        #: Whether this step keeps fits (``keep_fits``).
+        self.on = False
+
+
 @wp.kernel(enable_backward=False, module="unique")
 def keep_marks(pin: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
                recheck: int, still: wp.array(dtype=wp.int32), moved: wp.array(dtype=wp.int32),
@@ -74,6 +101,31 @@ def keep_marks(pin: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32), 
         kept[i] = wp.max(kept[i], KEPT_MARKED)
     else:
         kept[i] = 0
+
+
+def keep_fits(model, state_in, scratch, search, keep: bool):
+    """``keep_marks`` of this step on ``search``'s candidates (after its update: complete for
+    the positions ``state_in`` holds) into ``scratch.kept_fits``, where ``keep`` (the step is
+    the fused one, untaped, its rows within ``h``), a pinned set is at rest and the model has
+    no images; else the step keeps none (``KeptFits.on`` False)."""
+    still = model.tools.still_particles() if keep and model.tools is not None else None
+    k = scratch.kept_fits
+    if still is None or model.image_plane is not None:
+        if k is not None:
+            k.on = False
+        return
+    if k is None:
+        k = scratch.kept_fits = KeptFits(model)
+    k.on = True
+    recheck = int(search.rebuilds != k.sealed_at)
+    k.sealed_at = search.rebuilds
+    k.moved.zero_()
+    n = model.particle_count
+    model.launches(kernels(model.scalar, model.fit_weight).set_moved, n,
+                   [still, state_in.x, state_in.x_lo, model.tools.rest_x], [k.moved], device=model.device,
+                   record_tape=False)
+    model.launches(keep_marks, n, [model.tools.pin, search.candidates, search.candidate_count, recheck, still, k.moved],
+                   [k.sealed, k.kept], device=model.device, record_tape=False)
 
 
 @functools.cache
@@ -414,58 +466,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation,
                                  displacements=displacements, set_moved=set_moved)
-
-
-class KeptFits:
-    """What the fused step keeps of particles sealed among their own resting set
-    (``keep_marks``): pinned to a set at rest (``ToolSet.still_particles``), every particle of
-    the set at its place with no round-off carried, and every candidate of the neighbour
-    search (all within ``h`` + skin, complete until the search builds them again) of the
-    same set. Such a particle's row is every particle within ``h`` of its place, each at its
-    place, whatever the free particles do, so it is out of reach (``out_of_reach``, without
-    reading the row) and its fit's ``A``, guard and fade, the same bits at every step, are
-    summed once and kept (``update_deformation``). Rows within ``h`` only (not those the
-    paper's force stretches, whose reach follows each step's ``F``), untaped, without images.
-    A particle's mark drops at a step where it is not sealed: its set set moving, a particle
-    of the set off its place, a free particle among its candidates."""
-
-    def __init__(self, model):
-        n, dev = model.particle_count, model.device
-        self.kept = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.sealed = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.A = wp.zeros(n, dtype=model.types.mat33, device=dev)
-        self.code = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.scale = wp.zeros(n, dtype=model.scalar, device=dev)
-        self.moved = wp.zeros(model.tools.count + 1, dtype=wp.int32, device=dev)
-        #: The search's ``rebuilds`` when ``sealed`` was last found (None: never).
-        self.sealed_at = None
-        #: Whether this step keeps fits (``keep_fits``).
-        self.on = False
-
-
-def keep_fits(model, state_in, scratch, search, keep: bool):
-    """``keep_marks`` of this step on ``search``'s candidates (after its update: complete for
-    the positions ``state_in`` holds) into ``scratch.kept_fits``, where ``keep`` (the step is
-    the fused one, untaped, its rows within ``h``), a pinned set is at rest and the model has
-    no images; else the step keeps none (``KeptFits.on`` False)."""
-    still = model.tools.still_particles() if keep and model.tools is not None else None
-    k = scratch.kept_fits
-    if still is None or model.image_plane is not None:
-        if k is not None:
-            k.on = False
-        return
-    if k is None:
-        k = scratch.kept_fits = KeptFits(model)
-    k.on = True
-    recheck = int(search.rebuilds != k.sealed_at)
-    k.sealed_at = search.rebuilds
-    k.moved.zero_()
-    n = model.particle_count
-    model.launches(kernels(model.scalar, model.fit_weight).set_moved, n,
-                   [still, state_in.x, state_in.x_lo, model.tools.rest_x], [k.moved], device=model.device,
-                   record_tape=False)
-    model.launches(keep_marks, n, [model.tools.pin, search.candidates, search.candidate_count, recheck, still, k.moved],
-                   [k.sealed, k.kept], device=model.device, record_tape=False)
 
 
 def reach_args(model, state_in, scratch) -> tuple:
