@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import stat
 
 import numpy as np
@@ -366,8 +367,11 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
     checkpoint holds a hardening of 0 (the run's, set on the model), of a plain ground with
     hardening, and of the hardened Tresca scene before any particle flowed (``alpha`` 0
     everywhere: every step up to it read the same yield stress under both holds, and it was
-    refused as mixing them). Seen failing with ``older_hold``'s check removed from
-    ``load_state``, and (the unflowed one) with its ``alpha`` not passed."""
+    refused as mixing them). A version written 3.0 (JSON's float, a hand edit) is version 3
+    in every check: it passed the metadata's range check and then skipped the hold's. Seen
+    failing with ``older_hold``'s check removed from ``load_state``, (the unflowed one) with
+    its ``alpha`` not passed, and (3.0) with the version read as the file has it and
+    ``older_hold`` taking ints alone, as before."""
     from warp_esph.checkpoint import model_fingerprint
 
     def scene(hardening, tresca=True):
@@ -384,12 +388,12 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
         state.alpha.assign(a)
         return state
 
-    def old(model, name, written=None, alpha=0.01):
+    def old(model, name, written=None, alpha=0.01, label=3):
         """A checkpoint of ``written`` (default ``model``) as version 3 wrote it, of ``flowed``'s
-        state: the same fingerprint, its version 3."""
+        state: the same fingerprint, its version 3 (written as ``label``)."""
         written = written or model
         path = save_state(tmp_path / name, written, flowed(written, alpha), step=0, frame=0)
-        meta = _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": 3})
+        meta = _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": label})
         assert meta["fingerprint_version"] == 4 and meta["fingerprint"] == model_fingerprint(model, 3)
         return path
 
@@ -402,12 +406,30 @@ def test_a_checkpoint_written_before_the_hardened_tresca_hold_is_refused_only_wh
                                          r"\(shear_cap = 1\) under a hardening of 500 Pa, so resumed it would mix the two "
                                          r"holds; run it again from the start$"):
         load_state(old(hardened, "old.npz"), hardened)
-    for model, written, alpha in ((scene(0.0), None, 0.01), (scene(500.0, tresca=False), None, 0.01),
-                                  (hardened, scene(0.0), 0.01), (scene(500.0), None, 0.0)):
-        resumed, _ = load_state(old(model, "plain.npz", written, alpha), model)
+    with pytest.raises(ValueError, match=r"^path = .*old\.npz' is not allowed: it was written with fingerprint version 3, "):
+        load_state(old(hardened, "old.npz", label=3.0), hardened)
+    for (model, written, alpha), label in zip(((scene(0.0), None, 0.01), (scene(500.0, tresca=False), None, 0.01),
+                                               (hardened, scene(0.0), 0.01), (scene(500.0), None, 0.0)), (3, 3.0, 3, 3.0)):
+        resumed, _ = load_state(old(model, "plain.npz", written, alpha, label), model)
         np.testing.assert_array_equal(resumed.x.numpy(), model.state().x.numpy())
         assert float(resumed.alpha.numpy()[3]) == np.float32(alpha)
     assert float(hardened.hardening.numpy()[0]) == 0.0  # the checkpoint's, which its run had
+
+
+@pytest.mark.parametrize("label", [True, "3", 3.5, 0, -1, 5, None])
+def test_a_checkpoint_whose_fingerprint_version_is_no_version_is_refused_naming_it(tmp_path, label):
+    """A ``fingerprint_version`` that is no integral version this build reads (a bool, a string,
+    3.5, 0, -1, one newer than this build's, null) is refused in one line naming the field, its
+    value and what is allowed, before the scene is compared. Seen failing with
+    ``read_fingerprint_version`` taking a bool (True resumed as version 1), taking 3.5 as 3
+    (resumed), and without its range (0, -1 and 5 resumed: this scene hashes alike in each)."""
+    model = _model()
+    path = save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0)
+    _rewrite_meta(path, lambda meta: {**meta, "fingerprint_version": label})
+    with pytest.raises(ValueError, match=rf"^path = .*c\.npz' is not allowed: its metadata has fingerprint_version = "
+                                         rf"{re.escape(repr(label))} \(must be an integer from 1 to 4, the versions "
+                                         rf"this warp_esph reads\)$"):
+        load_state(path, model)
 
 
 def test_save_state_judges_a_state_by_the_scene_its_model_had_when_it_made_it(tmp_path):

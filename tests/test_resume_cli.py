@@ -318,3 +318,28 @@ def test_resume_counts_the_tools_work_before_the_checkpoint(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--resume", str(ckpt), "--frames", "21", "--no-progress"]) == 0, capsys.readouterr().err
     assert sorted(_points(out)["/World/block"]) == list(range(22))
+
+
+def test_a_resume_of_a_checkpoint_whose_fingerprint_version_is_no_version_is_one_line(tmp_path, capsys):
+    """``run --resume`` of a checkpoint whose ``fingerprint_version`` was edited to 3.5 prints
+    one line naming the field, its value and what is allowed, and exits 2; written 3.0 it is
+    version 3, which this scene's checkpoints resume as (the same fingerprint). Seen failing
+    with ``checkpoint.read_fingerprint_version`` taking 3.5 as 3 (resumed, exit 0)."""
+    ckpt = tmp_path / "a.usdc.checkpoint.npz"
+    assert main(["run", "dough_drop", "--scale", "0.3", "--no-progress", "-o", str(tmp_path / "a.usdc"), "--frames", "1",
+                 "--checkpoint-every", "1"]) == 0
+    with np.load(ckpt) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+
+    def resume(label) -> int:
+        arrays["meta"] = np.frombuffer(json.dumps({**meta, "fingerprint_version": label}).encode(), dtype=np.uint8)
+        np.savez(ckpt, **arrays)
+        capsys.readouterr()
+        return main(["run", "--resume", str(ckpt), "--frames", "2", "--no-progress"])
+
+    assert resume(3.5) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("a.usdc.checkpoint.npz' is not allowed: its metadata has fingerprint_version "
+                                             "= 3.5 (must be an integer from 1 to 4, the versions this warp_esph reads)"), err
+    assert resume(3.0) == 0

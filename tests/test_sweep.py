@@ -1744,6 +1744,41 @@ def test_a_sweep_that_ran_poly6_by_default_is_told_to_resume_with_fit_weight_pol
     assert _rows(SweepTable.read_csv(tmp_path / "sw" / "sweep.csv")) == _rows(SweepTable.read_csv(tmp_path / "whole" / "sweep.csv"))
 
 
+@pytest.mark.parametrize("label", [3.0, 3.5, True, "4", 0, 5, None])
+def test_a_sweep_table_s_fingerprint_version_reads_one_way(three_sample_sweep, scene_file, tmp_path, monkeypatch, capsys,
+                                                         label):
+    """``sweep --resume`` of a table whose record's ``fingerprint_version`` was edited: 3.0 is
+    version 3 (this scene's record of 3 is its record of 4), whose rows are kept (it was refused
+    as another record format's); a bool, a string, 3.5, 0, a version newer than this build's or
+    null is refused in one line naming the field, its value and what is allowed, exit 2, the
+    table untouched. Seen failing with ``_resumed_rows`` reading the version as the file has it
+    (3.0 refused, the rest refused as another format's, naming no field), and with
+    ``checkpoint.read_fingerprint_version`` taking a bool (True read as version 1, another
+    format's)."""
+    from warp_esph import sweep as sweep_module
+
+    out = tmp_path / "sw"
+    shutil.copytree(three_sample_sweep, out)
+    record = json.loads((out / "sweep.json").read_text())
+    record["sweep"]["fingerprint_version"] = label
+    (out / "sweep.json").write_text(json.dumps(record))
+    before = (out / "sweep.csv").read_bytes()
+    capsys.readouterr()
+    monkeypatch.setattr(sweep_module, "_run_sample", lambda *a: pytest.fail("a sample ran"))
+    argv = ["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1", "-o", str(out),
+            "--no-progress", "--resume"]
+    if label == 3.0:
+        assert cli.main(argv) == 0
+        assert "3 kept from its table, 0 to run" in capsys.readouterr().err
+        return
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith(
+        f"--resume of --output = '{out}' is not allowed: its record has fingerprint_version = {json.dumps(label)} (must be an "
+        "integer from 1 to 4, the versions this warp_esph reads); rerun without --resume\n"), err
+    assert (out / "sweep.csv").read_bytes() == before
+
+
 # ------------------------------------------------------------------ CUDA samples on Ray
 def test_a_cuda_sweep_s_ray_tasks_see_a_gpu_where_ray_hides_them_from_tasks_that_ask_none(monkeypatch):
     """Older Ray (as Ray with RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO=1, set here) sets
@@ -2521,8 +2556,10 @@ def test_a_table_written_before_the_hardened_tresca_hold_is_refused_only_where_t
     rows of the old hold were mixed with the new one's. It is refused in one line naming why;
     the same sweeps' tables of version 4 resume, and so do old ones of a sweep whose every
     sample runs hardening 0 on the Tresca ground (the two holds the same: the scene's
-    hardening swept to 0 too) and of the imaged frictional ground with hardening. Seen
-    failing with ``older_hold``'s check removed from ``_resumed_rows``."""
+    hardening swept to 0 too) and of the imaged frictional ground with hardening. A version
+    written 3.0 is version 3 (it was refused as another record format's). Seen failing with
+    ``older_hold``'s check removed from ``_resumed_rows``, and (3.0) with the version read as
+    the file has it, as before."""
     from warp_esph.sweep import write_outputs
 
     runs = [(True, 0.0, ["hardening=0,1000"], True), (True, 1000.0, ["yield_stress=10,1000"], True),
@@ -2536,12 +2573,16 @@ def test_a_table_written_before_the_hardened_tresca_hold_is_refused_only_where_t
         assert _rows(resumed) == _rows(first)
         old = SweepTable(first.columns, first.rows, first.params, {**first.identity, "fingerprint_version": 3})
         write_outputs(old, tmp_path / f"old{k}", plot_figure=False)
-        if not refused:
-            resumed = sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"old{k}")
-            assert _rows(resumed) == _rows(first) and resumed.identity == first.identity
-            continue
-        with pytest.raises(ValueError, match=r"^resume = .* is not allowed: it was written with fingerprint version 3, before the "
-                                             r"Tresca ground's hold read the hardened yield stress .*, and this scene has a "
-                                             r"Tresca ground \(shear_cap = 1\) under a hardening of 1000 Pa, so resumed it "
-                                             r"would mix the two holds; rerun without resume$"):
-            sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"old{k}")
+        # Written 3.0 (a hand edit of sweep.json): read as 3, the same as the file above.
+        old = SweepTable(first.columns, first.rows, first.params, {**first.identity, "fingerprint_version": 3.0})
+        write_outputs(old, tmp_path / f"float{k}", plot_figure=False)
+        for label in ("old", "float"):
+            if not refused:
+                resumed = sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"{label}{k}")
+                assert _rows(resumed) == _rows(first) and resumed.identity == first.identity
+                continue
+            with pytest.raises(ValueError, match=r"^resume = .* is not allowed: it was written with fingerprint version 3, "
+                                                 r"before the Tresca ground's hold read the hardened yield stress .*, and this "
+                                                 r"scene has a Tresca ground \(shear_cap = 1\) under a hardening of 1000 Pa, so "
+                                                 r"resumed it would mix the two holds; rerun without resume$"):
+                sweep(_paste_on(tresca, h), specs, frames=1, workers=1, resume=tmp_path / f"{label}{k}")

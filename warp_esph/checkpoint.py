@@ -50,10 +50,25 @@ FINGERPRINT_VERSION = 4
 #: ``yield_stress + hardening * alpha`` at the step's start (2026-12-07, the package's version
 #: unchanged), where before it read ``yield_stress`` as given.
 HARDENED_HOLD = 4
+#: What a file's ``fingerprint_version`` may be (``read_fingerprint_version``), as a refusal says it.
+FINGERPRINT_VERSIONS = f"an integer from 1 to {FINGERPRINT_VERSION}, the versions this warp_esph reads"
+
+
+def read_fingerprint_version(value) -> int | None:
+    """The fingerprint version ``value`` a checkpoint or sweep table records, as the int every
+    comparison reads, or None where it is none of ``FINGERPRINT_VERSIONS`` (the caller refuses
+    it, naming the field). JSON and a hand edit may write 3.0 for 3: both are version 3, read
+    one way by every check (3.0 passed the range check, then ``older_hold`` read it as no
+    version and resumed a file it refuses); a bool, a string, 3.5, 0 or a version newer than
+    this build's is none."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 1 <= value <= FINGERPRINT_VERSION:
+        return None
+    return int(value) if value == int(value) else None
 
 
 def older_hold(version, shear_cap: float, hardening, alpha=None) -> str | None:
-    """Why a checkpoint or sweep table of fingerprint ``version`` does not continue in a scene
+    """Why a checkpoint or sweep table of fingerprint ``version`` (an int, as
+    ``read_fingerprint_version`` reads the file's) does not continue in a scene
     of Tresca ground ``shear_cap`` (0: none) whose materials (a sweep's samples too) have the
     ``hardening`` values, or None where it does. Written before ``HARDENED_HOLD``, a flowed
     particle's hold read the given yield stress: resumed, the run would be one hold's up to
@@ -64,7 +79,7 @@ def older_hold(version, shear_cap: float, hardening, alpha=None) -> str | None:
     ``alpha`` only grows, so every step before it read ``yield_stress + hardening * 0``. Every
     such file resumes as before."""
     h = np.asarray(hardening, dtype=np.float64).ravel()
-    if (not isinstance(version, int) or version >= HARDENED_HOLD or not shear_cap > 0.0 or not np.any(h != 0.0)
+    if (version >= HARDENED_HOLD or not shear_cap > 0.0 or not np.any(h != 0.0)
             or (alpha is not None and not flowed_by_hardening(alpha))):
         return None
     return (f"it was written with fingerprint version {version}, before the Tresca ground's hold read the hardened "
@@ -442,7 +457,7 @@ def load_state(path, model: Model, solver=None, what: str = "path") -> tuple[Sta
         # run (another round-off from the first step on) nor a float64 one (digits it never had).
         raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}; a checkpoint resumes in the "
                          f"precision it was written in: finalize the model with dtype=wp.{meta['dtype']}")
-    version = meta.get("fingerprint_version", 1)
+    version = read_fingerprint_version(meta.get("fingerprint_version", 1))  # an int: _check_meta refused the rest
     if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model, version):
         from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
 
@@ -655,7 +670,7 @@ def _check_meta(where: str, meta: dict) -> None:
     if not isinstance(meta.get("solver", {}), dict):
         wrong.append(f"solver = {meta.get('solver')!r} (must be a table)")
     version = meta.get("fingerprint_version", 1)
-    if isinstance(version, bool) or version not in range(1, FINGERPRINT_VERSION + 1):
-        wrong.append(f"fingerprint_version = {version!r} (must be an integer in [1, {FINGERPRINT_VERSION}])")
+    if read_fingerprint_version(version) is None:
+        wrong.append(f"fingerprint_version = {version!r} (must be {FINGERPRINT_VERSIONS})")
     if wrong:
         raise ValueError(f"{where}: its metadata has " + "; ".join(wrong))

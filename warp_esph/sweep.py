@@ -1766,11 +1766,19 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
         raise ValueError(f"{name} = {shown} is not allowed: it holds no record of the sweep that wrote it (sweep.json "
                          f"beside the CSV table, or a Parquet table's metadata, as this version writes), so it cannot "
                          f"be told to be this sweep's; run the sweep anew")
+    from .checkpoint import FINGERPRINT_VERSIONS, older_hold, read_fingerprint_version  # noqa: PLC0415
+
     # A table of an earlier fingerprint version (written before that version's change) is of
     # this sweep where this scene's record of that version is its record.
     ours = plan.identity
     theirs = table.identity.get("fingerprint_version")
-    if table.identity.get("format") == ours["format"] and isinstance(theirs, int) and not isinstance(theirs, bool):
+    if "fingerprint_version" in table.identity:  # a table of record format 1 has none
+        theirs = read_fingerprint_version(theirs)
+        if theirs is None:
+            raise ValueError(f"{name} = {shown} is not allowed: its record has fingerprint_version = "
+                             f"{_shown(table.identity['fingerprint_version'])} (must be {FINGERPRINT_VERSIONS}); "
+                             f"{_again(name)}")
+    if table.identity.get("format") == ours["format"] and theirs is not None:
         ours = plan.earlier.get(theirs, ours)
     _check_record_format(table.identity, ours, name, shown)
     diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in ours.items()
@@ -1779,8 +1787,6 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
                          f"it with the settings it was run with{_weight_hint(table.identity, plan.identity, name)}, or "
                          f"run this sweep anew without resuming")
-    from .checkpoint import older_hold  # noqa: PLC0415
-
     why = older_hold(theirs, *plan.hold)
     if why is not None:
         raise ValueError(f"{name} = {shown} is not allowed: {why}; {_again(name)}")
