@@ -111,7 +111,10 @@ def keep_fits(model, state_in, scratch, search, keep: bool):
     still = model.tools.still_particles() if keep and model.tools is not None else None
     k = scratch.kept_fits
     if still is None or model.image_plane is not None:
-        if k is not None:
+        if k is not None and k.on:
+            # No marks run while none is kept: a set may move and come to rest elsewhere (a taped
+            # window's press), and marks kept through it would hold the sums of its old places.
+            k.kept.zero_()
             k.on = False
         return
     if k is None:
