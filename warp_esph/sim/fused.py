@@ -59,7 +59,22 @@ class KeptFits:
     summed once and kept (``update_deformation``). Rows within ``h`` only (not those the
     paper's force stretches, whose reach follows each step's ``F``), untaped, without images.
     A particle's mark drops at a step where it is not sealed: its set set moving, a particle
-    of the set off its place, a free particle among its candidates."""
+    of the set off its place, a free particle among its candidates.
+
+    A cache of the solver's, not of a state: ``Solver.scratch.kept_fits`` (``StepScratch``),
+    made at the first step that keeps any, each solver its own (never the model's). Per
+    particle it holds the mark ``kept`` (0, ``KEPT_MARKED``, ``KEPT_FIT``), ``sealed`` (found
+    again after each build of the search's candidates, ``sealed_at``) and the kept ``A``,
+    guard ``code`` and fade ``scale``; per set, ``moved``. Each step that keeps fits checks
+    them against its own ``state_in``: the set at rest and each of its particles at its place
+    with no round-off carried, read from ``state_in`` (``set_moved``), and the seals on the
+    search's candidates, which ``NeighborSearch.update`` has just checked against
+    ``state_in``'s positions, whatever state they were built from (built again where not
+    complete for them). A state swapped in (another run's, its free particles elsewhere),
+    one stepped twice or one moved by hand is thus stepped as a new solver steps it, to the
+    bit (``tests/test_determinism.py``). A step that keeps none (taped, the non-fused
+    kernels, rows reaching ``h sigma_max(F)``, floor images) reads nothing here and drops
+    every mark (``keep_fits``), so the next that keeps sums its fits afresh."""
 
     def __init__(self, model):
         n, dev = model.particle_count, model.device

@@ -133,7 +133,10 @@ class StepScratch:
     """What the launches of one step share besides the model and the two states: the
     guard counters, the fast path's per-particle SPH pressure and volume ``m / rho`` (and
     ``m / rho_p`` of the pressure density, ``pressure_volume``, allocated where a material
-    is ``energy_spiky``; all written and read within one step), and the guard thresholds."""
+    is ``energy_spiky``; all written and read within one step), and the guard thresholds.
+    One thing outlives a step: ``kept_fits``, the fused step's cache of the fits of pinned
+    particles at rest (``fused.KeptFits``: what it keeps, and how each step checks it against
+    its ``state_in``)."""
 
     def __init__(self, model: Model, min_neighbors: int, max_condition: float):
         n, dev = model.particle_count, model.device
@@ -241,7 +244,9 @@ class Solver(Unpicklable):
     constitutive update and all pair forces in one kernel with one SVD per particle; under
     a recording ``wp.Tape`` it still does, unrecorded, with the differentiable kernels'
     hand-written adjoints recorded in its place, where ``fast_under_tape()`` (and the
-    states have gradients), else the differentiable kernels run.
+    states have gradients), else the differentiable kernels run. Untaped, it keeps the fits
+    of particles pinned among a set at rest from step to step, a cache of this solver's
+    checked against each step's ``state_in`` (``fused.KeptFits``); a taped step keeps none.
 
     Whether SPH pressure and viscosity run, and the stable time step ``check_dt`` warns
     against, follow the model's parameter arrays at each step (``Model.sph_active``,
