@@ -152,6 +152,18 @@ def kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(hourglass_forces=hourglass_forces, hourglass_pair_force=hourglass_pair_force)
 
 
+def launch_hourglass_forces(model, state_in, state_out, rest, c: float):
+    """Add the control's forces (module doc) into ``state_out.force``; ``rest``: the rest
+    positions as a device array."""
+    S = model.scalar
+    model.launches(
+        kernels(S).hourglass_forces, model.particle_count,
+        [state_in.x, rest, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+         state_out.neighbor_count, model.particle_volume, S(model.support_radius), S(c)],
+        [state_out.force], device=model.device,
+    )
+
+
 @functools.cache
 def lattice_weight_ratio(k: float) -> float:
     """``W / S`` of an interior particle of the cubic lattice (``S`` in units of the spacing
@@ -171,15 +183,3 @@ def stable_dt(c: float, mu_over_rho: float, spacing: float, support_radius: floa
     ``support_radius``; ``inf`` where ``c mu = 0``."""
     stiffness = 4.0 * c * mu_over_rho * lattice_weight_ratio(support_radius / spacing) / spacing**2
     return 2.0 / math.sqrt(stiffness) if stiffness > 0.0 else math.inf
-
-
-def launch_hourglass_forces(model, state_in, state_out, rest, c: float):
-    """Add the control's forces (module doc) into ``state_out.force``; ``rest``: the rest
-    positions as a device array."""
-    S = model.scalar
-    model.launches(
-        kernels(S).hourglass_forces, model.particle_count,
-        [state_in.x, rest, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-         state_out.neighbor_count, model.particle_volume, S(model.support_radius), S(c)],
-        [state_out.force], device=model.device,
-    )
