@@ -520,8 +520,9 @@ def test_floor_particles_off_their_places_or_moving_run_their_passes():
             a.x.assign(x)
         s.fused = step != 15
         if step == 16 and s.scratch.kept_fits is not None:
-            # What step 16 reads kept from before step 15, which kept none, stands for sums gone
-            # stale while none was kept (a set moved and at rest again): it must read none.
+            # Step 15 kept none, so step 16 must sum afresh, reading nothing kept before it. Left
+            # through step 15, the marks give the same bits here (the floor is back at its
+            # places): only sums poisoned in the cache tell a read of them.
             s.scratch.kept_fits.A.assign(np.full((model.particle_count, 3, 3), np.nan))
             s.scratch.kept_fits.code.fill_(1)
         moving = held.copy()

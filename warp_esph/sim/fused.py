@@ -73,8 +73,8 @@ class KeptFits:
     complete for them). A state swapped in (another run's, its free particles elsewhere),
     one stepped twice or one moved by hand is thus stepped as a new solver steps it, to the
     bit (``tests/test_determinism.py``). A step that keeps none (taped, the non-fused
-    kernels, rows reaching ``h sigma_max(F)``, floor images) reads nothing here and drops
-    every mark (``keep_fits``), so the next that keeps sums its fits afresh."""
+    kernels, rows reaching ``h sigma_max(F)``, floor images, no set at rest) reads nothing
+    here and drops every mark (``keep_fits``), so the next that keeps sums its fits afresh."""
 
     def __init__(self, model):
         n, dev = model.particle_count, model.device
@@ -127,8 +127,9 @@ def keep_fits(model, state_in, scratch, search, keep: bool):
     k = scratch.kept_fits
     if still is None or model.image_plane is not None:
         if k is not None and k.on:
-            # No marks run while none is kept: a set may move and come to rest elsewhere (a taped
-            # window's press), and marks kept through it would hold the sums of its old places.
+            # No marks run while none is kept, so nothing checks what was kept against those
+            # steps; a set at rest again is at its rest places (still_particles), so the sums
+            # would hold, but the cache does not rest on that: the next step that keeps sums afresh.
             k.kept.zero_()
             k.on = False
         return
