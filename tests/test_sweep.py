@@ -1744,17 +1744,18 @@ def test_a_sweep_that_ran_poly6_by_default_is_told_to_resume_with_fit_weight_pol
     assert _rows(SweepTable.read_csv(tmp_path / "sw" / "sweep.csv")) == _rows(SweepTable.read_csv(tmp_path / "whole" / "sweep.csv"))
 
 
-@pytest.mark.parametrize("label", [3.0, 3.5, True, "4", 0, 5, None])
+@pytest.mark.parametrize("label", [3.0, 1.0, 3.5, True, "4", 0, 5, None])
 def test_a_sweep_table_s_fingerprint_version_reads_one_way(three_sample_sweep, scene_file, tmp_path, monkeypatch, capsys,
                                                          label):
     """``sweep --resume`` of a table whose record's ``fingerprint_version`` was edited: 3.0 is
     version 3 (this scene's record of 3 is its record of 4), whose rows are kept (it was refused
-    as another record format's); a bool, a string, 3.5, 0, a version newer than this build's or
-    null is refused in one line naming the field, its value and what is allowed, exit 2, the
-    table untouched. Seen failing with ``_resumed_rows`` reading the version as the file has it
-    (3.0 refused, the rest refused as another format's, naming no field), and with
+    as another record format's); 1.0, a version but none of this record format's, is refused as
+    another format's, named as read (1); a bool, a string, 3.5, 0, a version newer than this
+    build's or null is refused in one line naming the field, its value and what is allowed,
+    exit 2, the table untouched. Seen failing with ``_resumed_rows`` reading the version as the
+    file has it (3.0 refused, the rest refused as another format's, naming no field), with
     ``checkpoint.read_fingerprint_version`` taking a bool (True read as version 1, another
-    format's)."""
+    format's), and (1.0, shown as 1.0) with the format's check reading the file's value."""
     from warp_esph import sweep as sweep_module
 
     out = tmp_path / "sw"
@@ -1770,6 +1771,14 @@ def test_a_sweep_table_s_fingerprint_version_reads_one_way(three_sample_sweep, s
     if label == 3.0:
         assert cli.main(argv) == 0
         assert "3 kept from its table, 0 to run" in capsys.readouterr().err
+        return
+    if label == 1.0 and isinstance(label, float):  # not True, which == 1.0
+        # A version, but not one a table of this record format was written with: refused as
+        # another format's, naming the version as read (1, as every check reads it).
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "(record format 2, model fingerprint 1); this is" in err, err
+        assert (out / "sweep.csv").read_bytes() == before
         return
     assert cli.main(argv) == 2
     err = capsys.readouterr().err

@@ -1771,18 +1771,21 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
     # A table of an earlier fingerprint version (written before that version's change) is of
     # this sweep where this scene's record of that version is its record.
     ours = plan.identity
-    theirs = table.identity.get("fingerprint_version")
-    if "fingerprint_version" in table.identity:  # a table of record format 1 has none
-        theirs = read_fingerprint_version(theirs)
+    identity = table.identity
+    theirs = None
+    if "fingerprint_version" in identity:  # a table of record format 1 has none
+        theirs = read_fingerprint_version(identity["fingerprint_version"])
         if theirs is None:
             raise ValueError(f"{name} = {shown} is not allowed: its record has fingerprint_version = "
-                             f"{_shown(table.identity['fingerprint_version'])} (must be {FINGERPRINT_VERSIONS}); "
+                             f"{_shown(identity['fingerprint_version'])} (must be {FINGERPRINT_VERSIONS}); "
                              f"{_again(name)}")
-    if table.identity.get("format") == ours["format"] and theirs is not None:
+        # Every check below reads the version as read here (a 3.0 as 3, in a refusal too).
+        identity = {**identity, "fingerprint_version": theirs}
+    if identity.get("format") == ours["format"] and theirs is not None:
         ours = plan.earlier.get(theirs, ours)
-    _check_record_format(table.identity, ours, name, shown)
-    diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in ours.items()
-            if table.identity.get(k) != v and k != "version"]
+    _check_record_format(identity, ours, name, shown)
+    diff = [f"{k} = {_shown(identity.get(k))} there, {_shown(v)} here" for k, v in ours.items()
+            if identity.get(k) != v and k != "version"]
     if diff:
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
                          f"it with the settings it was run with{_weight_hint(table.identity, plan.identity, name)}, or "
