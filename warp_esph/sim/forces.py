@@ -648,6 +648,41 @@ def elastic_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(elastic_forces=elastic_forces)
 
 
+def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
+                          max_condition: float = neighbors.MAX_CONDITION, min_neighbors: int = neighbors.MIN_NEIGHBORS):
+    """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
+    from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
+    Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
+    ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
+    S = model.scalar
+    k = kernels(S, model.fit_weight)
+    inputs = [
+        state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+        state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+        state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
+        *image_constitutive(model, state_out),
+    ]
+    tape = recording_tape()
+    grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
+    if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
+            or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
+        with kept_through_backward(state_out.force):
+            model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        return
+    model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+
+    tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
+
+
+def image_constitutive(model, state_out):
+    """The images' stress and flowed F the variational force reads (``State.image_stress``,
+    ``State.F_image_flowed``, written by ``plasticity.launch_image_constitutive_update``);
+    without an image plane, arrays of the right shape that it does not read."""
+    if model.image_plane is None:
+        return state_out.stress, state_out.F_flowed
+    return state_out.image_stress, state_out.F_image_flowed
+
+
 @functools.cache
 def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
@@ -1049,41 +1084,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(elastic_forces=elastic_kernels(scalar, weight, "linear").elastic_forces,
                                  elastic_forces_adjoint=elastic_forces_adjoint,
                                  variational_forces_adjoint=variational_forces_adjoint)
-
-
-def image_constitutive(model, state_out):
-    """The images' stress and flowed F the variational force reads (``State.image_stress``,
-    ``State.F_image_flowed``, written by ``plasticity.launch_image_constitutive_update``);
-    without an image plane, arrays of the right shape that it does not read."""
-    if model.image_plane is None:
-        return state_out.stress, state_out.F_flowed
-    return state_out.image_stress, state_out.F_image_flowed
-
-
-def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
-                          max_condition: float = neighbors.MAX_CONDITION, min_neighbors: int = neighbors.MIN_NEIGHBORS):
-    """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
-    from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
-    Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
-    ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
-    S = model.scalar
-    k = kernels(S, model.fit_weight)
-    inputs = [
-        state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-        state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-        state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
-        *image_constitutive(model, state_out),
-    ]
-    tape = recording_tape()
-    grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
-    if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
-            or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
-        with kept_through_backward(state_out.force):
-            model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
-        return
-    model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
-
-    tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
 
 
 def launch_elastic_forces_adjoint(model, state_in, state_out):
