@@ -367,23 +367,6 @@ def kernels(scalar) -> types.SimpleNamespace:
                                  copy_floor_forces=copy_floor_forces, hand_over=hand_over)
 
 
-def allocate_state(model, state, requires_grad: bool):
-    """A state's ghost arrays (written by the step that produces it); None without a ghost floor."""
-    g = model.ghost_floor
-    if g is None:
-        state.ghost_y = state.ghost_y_lo = state.ghost_weights = state.ghost_rows = state.ghost_count = None
-        state.ghost_fill = state.ghost_force = None
-        return
-    T, dev, n, nf = model.types, model.device, model.particle_count, g.count
-    state.ghost_y = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
-    state.ghost_y_lo = wp.zeros(n, dtype=T.vec3, device=dev)
-    state.ghost_weights = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
-    state.ghost_fill = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
-    state.ghost_rows = wp.zeros((nf, g.rows), dtype=wp.int32, device=dev)
-    state.ghost_count = wp.zeros(nf, dtype=wp.int32, device=dev)
-    state.ghost_force = wp.zeros(nf, dtype=T.vec3, device=dev, requires_grad=requires_grad)
-
-
 class StencilSearch:
     """The hash grid of the ghosts' stencils (one per solver, kept alive while a tape may
     replay the step: docs/method.md, Warp pitfall 3)."""
@@ -430,3 +413,20 @@ def launch_fit_positions(model, state_in, state_out):
                    [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
                     state_out.ghost_count, state_out.ghost_weights, state_out.ghost_fill], [state_out.ghost_y, state_out.ghost_y_lo],
                    device=model.device)
+
+
+def allocate_state(model, state, requires_grad: bool):
+    """A state's ghost arrays (written by the step that produces it); None without a ghost floor."""
+    g = model.ghost_floor
+    if g is None:
+        state.ghost_y = state.ghost_y_lo = state.ghost_weights = state.ghost_rows = state.ghost_count = None
+        state.ghost_fill = state.ghost_force = None
+        return
+    T, dev, n, nf = model.types, model.device, model.particle_count, g.count
+    state.ghost_y = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.ghost_y_lo = wp.zeros(n, dtype=T.vec3, device=dev)
+    state.ghost_weights = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
+    state.ghost_fill = wp.zeros((nf, g.rows), dtype=T.scalar, device=dev, requires_grad=requires_grad)
+    state.ghost_rows = wp.zeros((nf, g.rows), dtype=wp.int32, device=dev)
+    state.ghost_count = wp.zeros(nf, dtype=wp.int32, device=dev)
+    state.ghost_force = wp.zeros(nf, dtype=T.vec3, device=dev, requires_grad=requires_grad)
