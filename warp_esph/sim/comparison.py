@@ -471,6 +471,62 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  takes_rest_fit=takes_rest_fit, inverted_stress=inverted_stress)
 
 
+def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None, rest=None):
+    """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
+    place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
+    neighbourhoods' guard with the solver's thresholds (``Model.rest_guard_for``; None: the
+    default ``Model.rest_guard``), as in the launches below; ``rest``: the rest neighbourhoods
+    and their moments the solver holds (``Solver.rest_set``; None: the model's)."""
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
+    model.launches(
+        kernels(model.scalar, model.fit_weight).rest_handover,
+        model.particle_count,
+        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
+         state_in.F,
+         model.scalar(model.support_radius), int(curved)],
+        [Fp_out],
+        device=model.device,
+    )
+
+
+def launch_rest_handback(model, state_in, F_out):
+    """``rest_handback`` of ``state_in.F`` into ``F_out`` (read by an incremental step in place
+    of ``state_in.F``; ``state_in`` is only read)."""
+    model.launches(
+        kernels(model.scalar, model.fit_weight).rest_handback, model.particle_count,
+        [state_in.F, model.particle_material, model.material_arrays()], [F_out], device=model.device,
+    )
+
+
+def start_fit(model, state, curved: bool = False, mats=None, rest_guard=None, rest=None) -> np.ndarray:
+    """``rest_start_fit`` of ``state``: the ``(n, 3, 3)`` deformation gradients a rest step's fit
+    takes at its positions (``mats``, ``rest_guard``, ``rest``: as in the launches here)."""
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
+    out = wp.empty_like(state.F, requires_grad=False)
+    wp.launch(
+        kernels(model.scalar, model.fit_weight).rest_start_fit, model.particle_count,
+        [state.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
+         model.particle_material, model.material_arrays() if mats is None else mats, state.F, state.F_p,
+         model.scalar(model.support_radius), int(curved)],
+        [out], device=model.device, record_tape=False,
+    )
+    return out.numpy()
+
+
+def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=None, Fp_in=None):
+    """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material
+    (``mats``: the material struct the kernels read, default ``model.material_arrays()``;
+    ``Fp_in``: the ``F_p`` read in place of ``state_in.F_p``, a hand-over's)."""
+    model.launches(
+        kernels(model.scalar, model.fit_weight).constitutive_update,
+        model.particle_count,
+        [state_in.F, state_in.alpha, state_in.F_p if Fp_in is None else Fp_in, model.particle_material,
+         model.material_arrays() if mats is None else mats, model.scalar(dt)],
+        [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, counters],
+        device=model.device,
+    )
+
+
 @functools.cache
 def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     """Hand-written adjoints of the rest model's kernels (``kernels``' ``update_deformation``
@@ -585,79 +641,6 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
                                  rest_variational_forces_adjoint=rest_variational_forces_adjoint)
 
 
-def all_rest(model, mats) -> bool:
-    """Whether every material runs the rest model: the rest model switched on (``mats``, the
-    rest codes' struct, ``Model.material_arrays(rest=True)``) or every material ``"rest"``.
-    Only then do the rest kernels' hand-written adjoints stand in for the generated ones
-    (``adjoint_kernels``; a model that mixes deformation models keeps the generated ones)."""
-    return mats is not None or all(mt.deformation == "rest" for mt in model.materials)
-
-
-def _rest_set(model, rest, rest_guard, curved):
-    """``(X, neighbours, counts, guard, A~^-1, K)`` a launch reads: ``rest`` (a solver's own
-    rest set, ``Solver.rest_set``) or the model's (``Model.rest_neighbors``), with ``rest_guard``
-    or the model's default guard, and the moments of the same rest set (``Model.rest_moments``)."""
-    rest_x, rest_nbr, rest_count = model.rest_neighbors() if rest is None else rest[:3]
-    rest_guard = model.rest_guard if rest_guard is None else rest_guard
-    return rest_x, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved, rest)
-
-
-def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None, rest=None):
-    """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
-    place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
-    neighbourhoods' guard with the solver's thresholds (``Model.rest_guard_for``; None: the
-    default ``Model.rest_guard``), as in the launches below; ``rest``: the rest neighbourhoods
-    and their moments the solver holds (``Solver.rest_set``; None: the model's)."""
-    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
-    model.launches(
-        kernels(model.scalar, model.fit_weight).rest_handover,
-        model.particle_count,
-        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
-         state_in.F,
-         model.scalar(model.support_radius), int(curved)],
-        [Fp_out],
-        device=model.device,
-    )
-
-
-def launch_rest_handback(model, state_in, F_out):
-    """``rest_handback`` of ``state_in.F`` into ``F_out`` (read by an incremental step in place
-    of ``state_in.F``; ``state_in`` is only read)."""
-    model.launches(
-        kernels(model.scalar, model.fit_weight).rest_handback, model.particle_count,
-        [state_in.F, model.particle_material, model.material_arrays()], [F_out], device=model.device,
-    )
-
-
-def start_fit(model, state, curved: bool = False, mats=None, rest_guard=None, rest=None) -> np.ndarray:
-    """``rest_start_fit`` of ``state``: the ``(n, 3, 3)`` deformation gradients a rest step's fit
-    takes at its positions (``mats``, ``rest_guard``, ``rest``: as in the launches here)."""
-    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
-    out = wp.empty_like(state.F, requires_grad=False)
-    wp.launch(
-        kernels(model.scalar, model.fit_weight).rest_start_fit, model.particle_count,
-        [state.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
-         model.particle_material, model.material_arrays() if mats is None else mats, state.F, state.F_p,
-         model.scalar(model.support_radius), int(curved)],
-        [out], device=model.device, record_tape=False,
-    )
-    return out.numpy()
-
-
-def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=None, Fp_in=None):
-    """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material
-    (``mats``: the material struct the kernels read, default ``model.material_arrays()``;
-    ``Fp_in``: the ``F_p`` read in place of ``state_in.F_p``, a hand-over's)."""
-    model.launches(
-        kernels(model.scalar, model.fit_weight).constitutive_update,
-        model.particle_count,
-        [state_in.F, state_in.alpha, state_in.F_p if Fp_in is None else Fp_in, model.particle_material,
-         model.material_arrays() if mats is None else mats, model.scalar(dt)],
-        [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, counters],
-        device=model.device,
-    )
-
-
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
                               max_condition: float = deformation.guards.MAX_CONDITION,
                               min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None, rest_guard=None,
@@ -733,3 +716,20 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=
         )
 
     tape.record_func(adjoint, list(grads))
+
+
+def all_rest(model, mats) -> bool:
+    """Whether every material runs the rest model: the rest model switched on (``mats``, the
+    rest codes' struct, ``Model.material_arrays(rest=True)``) or every material ``"rest"``.
+    Only then do the rest kernels' hand-written adjoints stand in for the generated ones
+    (``adjoint_kernels``; a model that mixes deformation models keeps the generated ones)."""
+    return mats is not None or all(mt.deformation == "rest" for mt in model.materials)
+
+
+def _rest_set(model, rest, rest_guard, curved):
+    """``(X, neighbours, counts, guard, A~^-1, K)`` a launch reads: ``rest`` (a solver's own
+    rest set, ``Solver.rest_set``) or the model's (``Model.rest_neighbors``), with ``rest_guard``
+    or the model's default guard, and the moments of the same rest set (``Model.rest_moments``)."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors() if rest is None else rest[:3]
+    rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    return rest_x, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved, rest)
