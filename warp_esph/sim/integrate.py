@@ -190,63 +190,55 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
     return types.SimpleNamespace(integrate=integrate, accumulate=accumulate)
 
 
-@functools.cache
-def reaction_kernels(scalar) -> types.SimpleNamespace:
-    """The image floor's reaction (module doc): the sum of the internal forces, and the force
-    fields' share taken out of it."""
-    T = type_set(scalar)
-    vec3 = T.vec3
-    compression_force = fields.funcs(scalar).compression_force
+def launch_integrate(model, state_in, state_out, dt):
+    """Symplectic Euler of ``state_in`` under ``state_out.force`` and gravity, then the
+    colliders, into ``state_out.x``, ``state_out.v``, and the static colliders' reaction
+    into ``state_out.collider_force``, ``collider_torque``.
 
-    @wp.kernel(module="unique")
-    def floor_image_reaction(force: wp.array(dtype=vec3), x: wp.array(dtype=vec3), world: wp.array(dtype=wp.int32),
-                             ref: vec3, row0: int, n_static: int, cforce: wp.array(dtype=vec3),
-                             ctorque: wp.array(dtype=vec3)):
-        i = wp.tid()
-        f = force[i]
-        row = world[i] * n_static + row0
-        wp.atomic_add(cforce, row, f)
-        wp.atomic_add(ctorque, row, wp.cross(x[i] - ref, f))
-
-    @wp.kernel(module="unique")
-    def compression_out_of_floor_reaction(x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar),
-                                          particle_body: wp.array(dtype=wp.int32), body: int, center: vec3,
-                                          strength: scalar, world: wp.array(dtype=wp.int32), ref: vec3, row0: int,
-                                          n_static: int, cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
-        i = wp.tid()
-        if body >= 0 and particle_body[i] != body:
-            return
-        f = compression_force(x[i], mass[i], center, strength)
-        row = world[i] * n_static + row0
-        wp.atomic_sub(cforce, row, f)
-        wp.atomic_sub(ctorque, row, wp.cross(x[i] - ref, f))
-
-    return types.SimpleNamespace(floor_image_reaction=floor_image_reaction,
-                                 compression_out_of_floor_reaction=compression_out_of_floor_reaction)
-
-
-def launch_floor_image_reaction(model, state_in, state_out):
-    """Add the image floor's force on the material to its reaction row (module doc): run after
-    the integration, when ``state_out.force`` holds every force of the step and the rows
-    the colliders' contact."""
+    Under a tape the launch is not recorded; the tape gets, in its place, a function that
+    launches the kernel's generated adjoint (replayed, ``sim/replay.py``), whose replay of the
+    forward adds into ``spare_reaction_rows`` instead of the state's rows: recorded as a
+    launch, it added the step's reaction to them once more (3x the step's after a backward
+    pass, ``tests/test_contracts.py``), and keeping them took a copy of the rows at every step
+    of the backward (``replay.kept_through_backward``)."""
+    S = model.scalar
     m = model
-    k = reaction_kernels(m.scalar)
-    rows = m._image_reaction_rows
-    if rows is None:
-        # The imaged plane's row and reference point, made once from the plane built: the step
-        # refuses it moved (Model.check_colliders), and reading its arrays here waited for the device.
-        plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
-        ref = m.types.vec3(*plane_reference(m.planes[plane]))
-        rows = m._image_reaction_rows = [m.particle_world, ref, plane, len(m.planes) + len(m.spheres) + len(m.boxes)]
-    m.launches(k.floor_image_reaction, m.particle_count, [state_out.force, state_in.x, *rows],
-               [state_out.collider_force, state_out.collider_torque], device=m.device)
-    S = m.scalar
-    for fld in m.force_fields:
-        if fld.active(state_in.time):
-            m.launches(k.compression_out_of_floor_reaction, m.particle_count,
-                       [state_in.x, m.particle_mass, m.particle_body, int(fld.body), m.types.vec3(*fld.center),
-                        S(fld.strength), *rows],
-                       [state_out.collider_force, state_out.collider_torque], device=m.device)
+    state_out.collider_force.zero_()
+    state_out.collider_torque.zero_()
+    kernel = kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate
+    colliders = static_collider_struct(m)
+    inputs = [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+              colliders, m.particle_world, state_in.alpha]
+    outputs = [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque]
+    tape = recording_tape()
+    model.launches(kernel, m.particle_count, inputs, outputs, device=m.device, record_tape=tape is None)
+    if tape is None:
+        return
+    # Weakly: the tape keeps this backward, and a backward holding the tape made a reference
+    # cycle that left every dropped tape with its step records to the cyclic collector.
+    tape_ref = weak_tape(tape)
+
+    def backward():
+        tape = tape_ref()
+        adj = tape.get_adjoint
+        spare = spare_reaction_rows(m, state_out.collider_force)
+        for a in spare:
+            a.zero_()
+        replayed = [*outputs[:3], *spare]
+        m.launches(kernel, m.particle_count, inputs, replayed,
+                   adj_inputs=[static_collider_adjoint(m, tape, a) if a is colliders else adj(a) for a in inputs],
+                   adj_outputs=[adj(a) for a in outputs], adjoint=True, device=m.device, record_tape=False)
+
+    tape.record_func(backward, [])
+
+
+def accumulate_impulse(model, state_out, dt, impulse):
+    """Add ``dt`` times the step's static-collider force and torque rows to ``impulse``
+    (a pair of arrays of the rows' shape; ``tools.ReactionLog``, untaped steps only)."""
+    k = kernels(model.scalar, len(model.planes), len(model.spheres), len(model.boxes)).accumulate
+    S = model.scalar
+    for src, dst in zip((state_out.collider_force, state_out.collider_torque), impulse):
+        model.launches(k, src.shape[0], [src, S(dt)], [dst], device=model.device)
 
 
 #: ``struct``'s fields that are values, not the model's arrays of that name.
@@ -308,55 +300,63 @@ def spare_reaction_rows(model, rows):
     return spare
 
 
-def launch_integrate(model, state_in, state_out, dt):
-    """Symplectic Euler of ``state_in`` under ``state_out.force`` and gravity, then the
-    colliders, into ``state_out.x``, ``state_out.v``, and the static colliders' reaction
-    into ``state_out.collider_force``, ``collider_torque``.
+@functools.cache
+def reaction_kernels(scalar) -> types.SimpleNamespace:
+    """The image floor's reaction (module doc): the sum of the internal forces, and the force
+    fields' share taken out of it."""
+    T = type_set(scalar)
+    vec3 = T.vec3
+    compression_force = fields.funcs(scalar).compression_force
 
-    Under a tape the launch is not recorded; the tape gets, in its place, a function that
-    launches the kernel's generated adjoint (replayed, ``sim/replay.py``), whose replay of the
-    forward adds into ``spare_reaction_rows`` instead of the state's rows: recorded as a
-    launch, it added the step's reaction to them once more (3x the step's after a backward
-    pass, ``tests/test_contracts.py``), and keeping them took a copy of the rows at every step
-    of the backward (``replay.kept_through_backward``)."""
-    S = model.scalar
+    @wp.kernel(module="unique")
+    def floor_image_reaction(force: wp.array(dtype=vec3), x: wp.array(dtype=vec3), world: wp.array(dtype=wp.int32),
+                             ref: vec3, row0: int, n_static: int, cforce: wp.array(dtype=vec3),
+                             ctorque: wp.array(dtype=vec3)):
+        i = wp.tid()
+        f = force[i]
+        row = world[i] * n_static + row0
+        wp.atomic_add(cforce, row, f)
+        wp.atomic_add(ctorque, row, wp.cross(x[i] - ref, f))
+
+    @wp.kernel(module="unique")
+    def compression_out_of_floor_reaction(x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar),
+                                          particle_body: wp.array(dtype=wp.int32), body: int, center: vec3,
+                                          strength: scalar, world: wp.array(dtype=wp.int32), ref: vec3, row0: int,
+                                          n_static: int, cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
+        i = wp.tid()
+        if body >= 0 and particle_body[i] != body:
+            return
+        f = compression_force(x[i], mass[i], center, strength)
+        row = world[i] * n_static + row0
+        wp.atomic_sub(cforce, row, f)
+        wp.atomic_sub(ctorque, row, wp.cross(x[i] - ref, f))
+
+    return types.SimpleNamespace(floor_image_reaction=floor_image_reaction,
+                                 compression_out_of_floor_reaction=compression_out_of_floor_reaction)
+
+
+def launch_floor_image_reaction(model, state_in, state_out):
+    """Add the image floor's force on the material to its reaction row (module doc): run after
+    the integration, when ``state_out.force`` holds every force of the step and the rows
+    the colliders' contact."""
     m = model
-    state_out.collider_force.zero_()
-    state_out.collider_torque.zero_()
-    kernel = kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate
-    colliders = static_collider_struct(m)
-    inputs = [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-              colliders, m.particle_world, state_in.alpha]
-    outputs = [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque]
-    tape = recording_tape()
-    model.launches(kernel, m.particle_count, inputs, outputs, device=m.device, record_tape=tape is None)
-    if tape is None:
-        return
-    # Weakly: the tape keeps this backward, and a backward holding the tape made a reference
-    # cycle that left every dropped tape with its step records to the cyclic collector.
-    tape_ref = weak_tape(tape)
-
-    def backward():
-        tape = tape_ref()
-        adj = tape.get_adjoint
-        spare = spare_reaction_rows(m, state_out.collider_force)
-        for a in spare:
-            a.zero_()
-        replayed = [*outputs[:3], *spare]
-        m.launches(kernel, m.particle_count, inputs, replayed,
-                   adj_inputs=[static_collider_adjoint(m, tape, a) if a is colliders else adj(a) for a in inputs],
-                   adj_outputs=[adj(a) for a in outputs], adjoint=True, device=m.device, record_tape=False)
-
-    tape.record_func(backward, [])
-
-
-def accumulate_impulse(model, state_out, dt, impulse):
-    """Add ``dt`` times the step's static-collider force and torque rows to ``impulse``
-    (a pair of arrays of the rows' shape; ``tools.ReactionLog``, untaped steps only)."""
-    k = kernels(model.scalar, len(model.planes), len(model.spheres), len(model.boxes)).accumulate
-    S = model.scalar
-    for src, dst in zip((state_out.collider_force, state_out.collider_torque), impulse):
-        model.launches(k, src.shape[0], [src, S(dt)], [dst], device=model.device)
+    k = reaction_kernels(m.scalar)
+    rows = m._image_reaction_rows
+    if rows is None:
+        # The imaged plane's row and reference point, made once from the plane built: the step
+        # refuses it moved (Model.check_colliders), and reading its arrays here waited for the device.
+        plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
+        ref = m.types.vec3(*plane_reference(m.planes[plane]))
+        rows = m._image_reaction_rows = [m.particle_world, ref, plane, len(m.planes) + len(m.spheres) + len(m.boxes)]
+    m.launches(k.floor_image_reaction, m.particle_count, [state_out.force, state_in.x, *rows],
+               [state_out.collider_force, state_out.collider_torque], device=m.device)
+    S = m.scalar
+    for fld in m.force_fields:
+        if fld.active(state_in.time):
+            m.launches(k.compression_out_of_floor_reaction, m.particle_count,
+                       [state_in.x, m.particle_mass, m.particle_body, int(fld.body), m.types.vec3(*fld.center),
+                        S(fld.strength), *rows],
+                       [state_out.collider_force, state_out.collider_torque], device=m.device)
 
 
 def static_collider_references(model) -> list:
