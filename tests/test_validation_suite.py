@@ -342,6 +342,20 @@ def test_the_headline_counts_the_tresca_grounds_rows_and_names_the_particle_floo
             "floor's outside 10 % at S = 0.1, S = 0.2, S = 0.3.") in said, said
     assert ("A yield stress fitted to its piles is that continuum's 1.000 / 1.000 / 1.000 x, where the particle "
             "floor's piles give 1.00-1.00 x of the slip continuum's") in said, said
+    # The paragraph's case for the ground: its miss is its continuum's too where that continuum
+    # misses on the same side, and only there; the particle floor's never (its slip continuum
+    # does not run its wall law). S = 0.1 piles at +12 % on both floors.
+    high = [_tresca_pile(0.1, n, 1.12) for n in (8, 12, 16)] + ground[3:]
+    high += [_tresca_pile(0.1, n, 1.12, floor="particles") for n in (8, 12, 16)] + particles[3:]
+    rest = continuum["slumps"][1:3] + continuum["slumps"][4:]
+
+    def at_s01(share):
+        return _suite_floor_said(high, {"slumps": [_continuum_pile(0.1, 12, share, f) for f in (tresca, "slip")] + rest})
+
+    said = at_s01(1.13)
+    assert ("the Tresca ground's outside 10 % at S = 0.1, where the continuum on its wall is too (+13.0 %), the "
+            "particle floor's outside 10 % at S = 0.1, S = 0.2, S = 0.3.") in said, said
+    assert "where the continuum" not in at_s01(0.87), at_s01(0.87)
 
 
 def test_the_fitted_yield_row_names_the_finer_piles_it_cannot_fit():
