@@ -151,8 +151,9 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax[0].plot(S, [slump_theory(s) for s in S], "k-", label="1-D theory S(1 - ln S)")
         for r in slumps:
             ax[0].plot(r["S"], r["h_over_H0"], MARK[r["elastic_force"]], color=COLOR.get(r["resolution"], "k"), mfc="none")
-        for f in MARK:
-            for res in sorted({r["resolution"] for r in slumps}):
+        # Only the forces and resolutions plotted: the suite's floor has no paper-force rows.
+        for f in (f for f in MARK if any(r["elastic_force"] == f for r in slumps)):
+            for res in sorted({r["resolution"] for r in slumps if r["elastic_force"] == f}):
                 ax[0].plot([], [], MARK[f], color=COLOR.get(res, "k"), mfc="none", label=f"{f}, {res} across H0")
         ax[0].set_xlabel("S = sigma_y / (rho g H0)")
         ax[0].set_ylabel("final height h / H0")
