@@ -927,8 +927,9 @@ def spread_pile(run_once):
     read at 4 s. Whether it comes to rest takes 14 s to see (a rearrangement at its rim at
     about 7.5-10 s spreads it by 1 % of R_RC, then it rests: docs/physics.md, "The thin
     spread pile under energy_spiky: a late rearrangement, then rest"), over 3 minutes of
-    this suite's CPU time, so the 14 s run is the validation benchmark's
-    (``python -m benchmarks.validation --quick --only spread``, docs/validation.md). It names
+    this suite's CPU time, so the 14 s run is the validation benchmark's (the full plan's
+    particle-floor pile, ``--only spread:floor=particles:resolution=3``: the quick plan's stands
+    on the Tresca ground since 2026-12-07; docs/validation.md). It names
     poly6: the bounds below read its creep at 4 s, which the biweight's pile, creeping on
     longer, does not meet (docs/physics.md, "The switch list worked through"; its record at
     14 s is the benchmark's row, ``test_docs.py``'s
