@@ -2210,7 +2210,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     # floor's S = 0.1 pile still rang.
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION} | suite))
-    # A third resolution for the convergence verdict (about 11k particles, 50-66 minutes of
+    # A third resolution for the convergence verdict (about 11k particles, 48-66 minutes of
     # CPU a pile, R101, R102, R105).
     for S in (0.2, 0.3, 0.1, 0.5):
         runs.append(("slump", {"S": S, "resolution": 24, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}

@@ -514,7 +514,8 @@ def test_no_validation_row_runs_the_corrected_incremental_fit_so_none_was_measur
     (``validation.first_step``), runs the linear fit, the rest model or the rest deformation,
     and its stable ``dt`` is the whole wave limit, as when its row was measured: an entry moved
     onto that path (a fit, a floor, ``fit="auto"``'s choice) would run at half its row's ``dt``
-    unseen, and its rows need measuring again. Measured: 396 scenes, none on the path, 5 s.
+    unseen, and its rows need measuring again. Measured: 464 scenes (the suite's floor's entries
+    with them since 2026-12-07), none on the path, 25 s on the shared host.
     The breathing cube above, which runs the path, is read at half the wave limit."""
     runs = validation.plan(False) + ROWS_OUTSIDE_THE_PLAN
     halved = []
