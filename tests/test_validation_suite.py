@@ -869,13 +869,16 @@ def test_slump_on_an_elastic_particle_floor_rests_higher_than_on_the_plastic_one
     0.4865 at 3 s (this tree), 0.057 H0 above. The biweight's elastic-floor pile is at rest
     from 2.75 s (5.7e-9 M g H0; 3.8e-8 at 2.5 s; read from the 3 s run's history). With the
     floor left plastic (``elastic=True`` not applied: the mutation) the pile still sinks
-    2.1 % H0/s at 3 s, the two runs the same. At 12 / 16 across (earlier trees): -0.1 / -0.3 %
+    2.1 % H0/s at 3 s, the two runs the same; with the yield surface at 0.5 Y (the mutation)
+    the elastic floor's pile still sinks 0.51 % H0/s at 3 s (thickness 0.4787, -8.3 %). The
+    1-D bound is the issue's 10 %: the biweight's +6.7 % stood 0.3 points inside the 7 % bound
+    used before (+5.7 % at an earlier tree). At 12 / 16 across (earlier trees): -0.1 / -0.3 %
     (plastic floor -15.6 / -14.5 %); the thin S = 0.1 pile +28.8 % at 16."""
     held = validation.slump(0.2, resolution=8, elastic_force="variational", duration=3.0,
                             **{**PARTICLE_FLOOR, "floor": "elastic_particles"})
     plastic = validation.slump(0.2, resolution=8, elastic_force="variational", duration=3.0, **PARTICLE_FLOOR)
     assert held["finite"] and held["at_rest"], (held["top_rate_pct_H0_per_s"], held["kinetic_last_quarter_over_MgH0"])
-    assert held["thickness_over_H0"] == pytest.approx(held["theory_h_over_H0"], rel=0.07), held["thickness_over_H0"]
+    assert held["thickness_over_H0"] == pytest.approx(held["theory_h_over_H0"], rel=0.10), held["thickness_over_H0"]
     assert held["thickness_over_H0"] > plastic["thickness_over_H0"] + 0.04, (held["thickness_over_H0"], plastic["thickness_over_H0"])
 
 
