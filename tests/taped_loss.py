@@ -40,22 +40,33 @@ def taped_rollout_losses(solver, states, dt: float, weights):
     return losses, tape
 
 
-def untaped_rollout_loss(solver, state, dt: float, steps: int, weights: wp.array) -> float:
+def untaped_rollout_loss(solver, state, dt: float, steps: int, weights: wp.array, forward_only: bool = True) -> float:
     """``taped_rollout_loss``'s loss without the tape, for the central differences: ``steps``
     steps of ``dt`` from ``state`` (changed by them) and one more state in turn, made without
     gradient arrays. A taped rollout needs a state per step and their gradient arrays, which a
     central difference never reads; the step runs the same kernels with and without the tape,
-    so its loss is the taped one to the bit (``test_gradient_coverage.py`` asserts it)."""
-    return untaped_rollout_losses(solver, state, dt, steps, [weights])[0]
+    so its loss is the taped one to the bit (``test_gradient_coverage.py`` asserts it).
+    ``forward_only=False``: the untaped launches run the kernels the taped rollout runs, with
+    their adjoints, not their forward-only twins (``replay.forward_only``), so a test that tapes
+    the scene too compiles no twin of its kernels; the same bits, as that test asserts."""
+    return untaped_rollout_losses(solver, state, dt, steps, [weights], forward_only)[0]
 
 
-def untaped_rollout_losses(solver, state, dt: float, steps: int, weights) -> list:
+def untaped_rollout_losses(solver, state, dt: float, steps: int, weights, forward_only: bool = True) -> list:
     """``untaped_rollout_loss`` for each of ``weights`` (a list of weight arrays), all from the
     one rollout."""
-    a, b = state, solver.model.state(requires_grad=False)
-    for _ in range(steps):
-        solver.step(a, b, dt)
-        a, b = b, a
+    launches = (solver.model.launches, solver.search.launches)
+    kept = [x.forward_only for x in launches]
+    for x in launches:
+        x.forward_only = forward_only
+    try:
+        a, b = state, solver.model.state(requires_grad=False)
+        for _ in range(steps):
+            solver.step(a, b, dt)
+            a, b = b, a
+    finally:
+        for x, k in zip(launches, kept):
+            x.forward_only = k
     values = []
     for w in weights:
         loss = wp.zeros(1, dtype=wp.float64)

@@ -160,8 +160,8 @@ def _model(case, scene, params=None, worlds=1, world1=None):
 def _loss(case, model, w, grad_of=None, hand_adjoints=True):
     solver = we.Solver(model, **CASES[case][1])
     solver.hand_adjoints = hand_adjoints
-    if grad_of is None:  # a central difference's run: no tape
-        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, STEPS, w)
+    if grad_of is None:  # a central difference's run: no tape, on the taped run's kernels (no twins compiled)
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, STEPS, w, forward_only=False)
     states = [model.state() for _ in range(STEPS + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, w)
     if grad_of is None:
