@@ -66,7 +66,7 @@ def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, 
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
     states[0].alpha.fill_(ALPHA0)
     if untaped:
-        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights), solver
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights, forward_only=False), solver
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if not grad_of:
         return loss.numpy()[0], solver
@@ -239,7 +239,7 @@ def _contact_model(case, mu=(1.0e3, 2.0e3)):
 def _contact_loss(model, weights, steps, grad=False):
     solver = we.Solver(model)
     if not grad:  # a central difference's run: no tape
-        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, weights)
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, weights, forward_only=False)
     states = [model.state() for _ in range(steps + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     tape.backward(loss)
@@ -696,7 +696,7 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
     states[0].x.assign(x)
     states[0].v.assign(v)
     if untaped:
-        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights)
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights, forward_only=False)
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if case == "inverted":
         # Inverted all the way, clear of det = 0 (where the continued energy's stress has a kink).
@@ -800,7 +800,7 @@ def _handover_loss(weights, dF=None, dx=None, grad=False):
     states[0].x.assign(x)
     states[0].rest_model = False
     if not grad:
-        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights)
+        return untaped_rollout_loss(solver, states[0], DT, STEPS, weights, forward_only=False)
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     # Handed over: the rest shape F_p = F^-1 G(x) carries the stored F's departure from the fit.
     assert np.abs(states[1].F_p.numpy() - np.eye(3)).max() > 0.02
@@ -1430,7 +1430,7 @@ def _resting_model(case, params=None):
 def _resting_loss(model, case, w, grad_of=None, steps=8):
     solver = we.Solver(model, **AT_REST[case][1])
     if grad_of is None:  # a central difference's run: no tape
-        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, w)
+        return untaped_rollout_loss(solver, model.state(requires_grad=False), DT, steps, w, forward_only=False)
     states = [model.state() for _ in range(steps + 1)]
     loss, tape = taped_rollout_loss(solver, states, DT, w)
     grads = taped_gradients(model, states, loss, tape, grad_of)
