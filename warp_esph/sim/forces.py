@@ -655,7 +655,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
     ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     S = model.scalar
-    k = kernels(S, model.fit_weight)
+    kernel = elastic_kernels(S, model.fit_weight, "linear").elastic_forces
     inputs = [
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
@@ -667,9 +667,9 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
             or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
         with kept_through_backward(state_out.force):
-            model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+            model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+    model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
 
@@ -1081,8 +1081,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             sph_particle_adjoint(i, mi, rp_i, k_i, pi, rest_density, mat, adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gv_i,
                                  adj_v, adj_rho, adj_rho_p, adj_k, adj_visc)
 
-    return types.SimpleNamespace(elastic_forces=elastic_kernels(scalar, weight, "linear").elastic_forces,
-                                 elastic_forces_adjoint=elastic_forces_adjoint,
+    return types.SimpleNamespace(elastic_forces_adjoint=elastic_forces_adjoint,
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
