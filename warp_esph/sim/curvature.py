@@ -1094,12 +1094,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     gx_i += fo.moving_image_pair_slopes(j, xi, xj, ai, aj, g, gr, gg, gn, goff, gmin, adj_x)
         df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
 
-    # Eq. 8's update, its adjoint and the elastic forces are the linear fit's kernels on
-    # this fit's functions.
+    # Eq. 8's update and its adjoint are the linear fit's kernels on this fit's functions
+    # (as the elastic forces are: forces.elastic_kernels).
     update = deformation.update_kernels(scalar, weight, "curvature_corrected")
     return types.SimpleNamespace(update_deformation=update.update_deformation,
                                  update_deformation_adjoint=update.update_deformation_adjoint,
-                                 elastic_forces=forces.elastic_kernels(scalar, weight, "curvature_corrected").elastic_forces,
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
@@ -1109,21 +1108,17 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     tape the backward runs ``variational_forces_adjoint`` and, for the particles of eqs.
     10-13, ``forces.elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     S = model.scalar
-    inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-              state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-              state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
-              *forces.image_constitutive(model, state_out)]
+    kernel = forces.elastic_kernels(S, model.fit_weight, "curvature_corrected").elastic_forces
+    inputs = forces.elastic_force_inputs(model, state_in, state_out, max_condition, min_neighbors)
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if model.image_plane is not None:
         grads += (state_out.image_stress, state_out.F_image_flowed)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         with kept_through_backward(state_out.force):
-            model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force],
-                           device=model.device)
+            model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
-              record_tape=False)
+    model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     def adjoint():
         model.launches(

@@ -654,14 +654,8 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
     Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
     ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
-    S = model.scalar
-    kernel = elastic_kernels(S, model.fit_weight, "linear").elastic_forces
-    inputs = [
-        state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-        state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-        state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
-        *image_constitutive(model, state_out),
-    ]
+    kernel = elastic_kernels(model.scalar, model.fit_weight, "linear").elastic_forces
+    inputs = elastic_force_inputs(model, state_in, state_out, max_condition, min_neighbors)
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
     if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
@@ -672,6 +666,18 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
+
+
+def elastic_force_inputs(model, state_in, state_out, max_condition: float, min_neighbors: int) -> list:
+    """``elastic_kernels``' inputs, the same for either fit (``launch_elastic_forces`` here
+    and in ``curvature.py``), so the two launchers cannot drift from the kernel's signature."""
+    S = model.scalar
+    return [
+        state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+        state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+        state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
+        *image_constitutive(model, state_out),
+    ]
 
 
 def image_constitutive(model, state_out):
