@@ -2225,14 +2225,7 @@ class Model(Unpicklable):
         # as 1.000003 after poly6 -> biweight, their normalisations differing).
         key = (bool(curved), self.fit_weight)
         if key not in cache:
-            mat33 = self.types.mat33
-            At_inv = wp.empty(self.particle_count, dtype=mat33, device=self.device)
-            K = wp.empty(self.particle_count, dtype=mat33, device=self.device)
-            # Not on a tape a step may be recording: a constant of the model, not of the step.
-            self.launches(comparison.kernels(self.scalar, self.fit_weight).rest_moments, self.particle_count,
-                          [rest_x, self.particle_body, rest_nbr, rest_count, self.scalar(self.support_radius), int(key[0])],
-                          [At_inv, K], device=self.device, record_tape=False)
-            cache[key] = (At_inv, K)
+            cache[key] = comparison.launch_rest_moments(self, rest_x, rest_nbr, rest_count, key[0])
         return cache[key]
 
     def _drop_stale_rest(self):

@@ -471,6 +471,19 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  takes_rest_fit=takes_rest_fit, inverted_stress=inverted_stress)
 
 
+def launch_rest_moments(model, rest_x, rest_nbr, rest_count, curved: bool) -> tuple[wp.array, wp.array]:
+    """``rest_moments`` of the rest set ``rest_x, rest_nbr, rest_count``: new arrays of every
+    particle's ``A~^-1`` and ``K`` (``Model.rest_moments`` keeps them per fit and weight)."""
+    mat33 = model.types.mat33
+    At_inv = wp.empty(model.particle_count, dtype=mat33, device=model.device)
+    K = wp.empty(model.particle_count, dtype=mat33, device=model.device)
+    # Not on a tape a step may be recording: a constant of the model, not of the step.
+    model.launches(kernels(model.scalar, model.fit_weight).rest_moments, model.particle_count,
+                   [rest_x, model.particle_body, rest_nbr, rest_count, model.scalar(model.support_radius), int(curved)],
+                   [At_inv, K], device=model.device, record_tape=False)
+    return At_inv, K
+
+
 def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None, rest=None):
     """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
     place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
