@@ -1007,10 +1007,7 @@ class Rollout:
             for k in range(self.steps):
                 self._store_forces(k, states[k + 1])
                 if self._work is not None:  # each step's state holds its reactions and tool motion, off the tape
-                    st = states[k + 1]
-                    wp.launch(tools_.kernels.work, len(tools_.row_names),
-                              [st.reaction_force, st.reaction_torque, st.tool_pose_q, st.tool_pose_dp, st.tool_pose_dr,
-                               int(tools_.count)], [self._work], device=self.model.device)
+                    tools_.launch_work(states[k + 1], self._work)
             self._final = states[self.steps]
 
     def first_non_finite(self, particles=None, positions: np.ndarray | None = None) -> tuple[int, int, int] | None:

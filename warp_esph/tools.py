@@ -1585,9 +1585,14 @@ class ToolSet:
             self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_torque, step], [acc[1]], device=dev)
         work = getattr(solver, "tool_work", None)
         if work is not None and not taping:
-            self.model.launches(self.kernels.work, n * self.world_count,
-                                [state_out.reaction_force, state_out.reaction_torque, state_out.tool_pose_q,
-                                 state_out.tool_pose_dp, state_out.tool_pose_dr, int(n)], [work], device=dev)
+            self.launch_work(state_out, work)
+
+    def launch_work(self, state, dst: wp.array):
+        """``work``: add to ``dst`` (float64, one per reaction row) the work each row did in the
+        step that produced ``state``, from the reactions and tool motion ``state`` holds."""
+        self.model.launches(self.kernels.work, self.count * self.world_count,
+                            [state.reaction_force, state.reaction_torque, state.tool_pose_q, state.tool_pose_dp,
+                             state.tool_pose_dr, int(self.count)], [dst], device=self.model.device)
 
     # ----------------------------------------------------------------- queries
     def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
